@@ -1,0 +1,33 @@
+"""The paper's scenarios as Gymnasium environments. Importing this package registers them:
+
+>>> import gymnasium as gym, envs
+>>> env = gym.make("bimp/Overtaking-v0", render_mode="rgb_array")
+"""
+
+from gymnasium.envs.registration import register, registry
+
+from envs.road import RoadGeometry
+from envs.scene import Bounds, Scene
+
+ENV_IDS = {"overtaking": "bimp/Overtaking-v0", "emergency-brake": "bimp/EmergencyBrake-v0"}
+_ENTRY_POINTS = {
+    "bimp/Overtaking-v0": ("envs.scenarios:OvertakingEnv", 150),
+    "bimp/EmergencyBrake-v0": ("envs.scenarios:EmergencyBrakeEnv", 120),
+}
+
+for _id, (_entry, _steps) in _ENTRY_POINTS.items():
+    if _id not in registry:
+        register(id=_id, entry_point=_entry, max_episode_steps=_steps)
+
+
+def env_id(scenario: str) -> str:
+    """Gym id of a scenario given by its short name (``overtaking``, ``emergency-brake``) or its id."""
+    if scenario in ENV_IDS.values():
+        return scenario
+    try:
+        return ENV_IDS[scenario]
+    except KeyError:
+        raise ValueError(f"unknown scenario {scenario!r}; choose from {sorted(ENV_IDS)}") from None
+
+
+__all__ = ["ENV_IDS", "Bounds", "RoadGeometry", "Scene", "env_id"]

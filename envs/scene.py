@@ -1,0 +1,116 @@
+"""What a planner may know beside the observation: the static scene description an env publishes.
+
+``env.unwrapped.scene`` is a frozen :class:`Scene`, rebuilt at every ``reset`` (the road is randomized).
+It also owns the observation layout and the planning-constraint functions (paper eq. 2-5) so that the
+env's ``info`` and the planners' barriers compute the very same quantities.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.road import RoadGeometry, body_corners, box_gap
+
+EGO_FIELDS = ("x", "y", "heading", "speed")
+OV_FIELDS = ("present", "x", "y", "heading", "speed", "acceleration")
+REF_FIELDS = ("speed", "acceleration", "lane_offset")
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Planning constraints (paper eq. 2-5). The actuators reach further, so violations are measurable.
+
+    accel: (a_min, a_max) [m/s^2]; steer: |delta| <= steer [rad]; accel_rate / steer_rate: bound on the
+    change of the commanded input per policy step [m/s^2 per step, rad per step]; d_min: least gap between
+    the EV's and an OV's footprints [m]; edge_margin: least distance of every body corner to the road edge [m].
+    """
+
+    accel: tuple[float, float] = (-7.0, 3.0)
+    steer: float = 0.05
+    accel_rate: float = 1.0
+    steer_rate: float = 0.005
+    d_min: float = 1.0
+    edge_margin: float = 0.0
+
+    def input_violation(self, u: np.ndarray) -> np.ndarray:
+        """Per-row max of the input-bound constraint values ``phi(u) (N,)`` for ``u (N, 2)``; <= 0 is feasible."""
+        u = np.atleast_2d(u)
+        return np.max(
+            np.stack([self.accel[0] - u[:, 0], u[:, 0] - self.accel[1], np.abs(u[:, 1]) - self.steer], -1), -1
+        )
+
+    def rate_violation(self, du: np.ndarray) -> np.ndarray:
+        """Per-row max of the rate constraint values ``(N,)`` for ``du (N, 2)``; <= 0 is feasible."""
+        du = np.atleast_2d(du)
+        return np.maximum(np.abs(du[:, 0]) - self.accel_rate, np.abs(du[:, 1]) - self.steer_rate)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Static description of one episode's scene.
+
+    ``actuator_accel`` / ``actuator_steer``: physical ranges that the normalized action [-1, 1] maps onto.
+    ``n_obstacles``: fixed number of OV slots in the observation (absent ones are masked, ``present = 0``).
+    """
+
+    road: RoadGeometry
+    bounds: Bounds
+    dt: float
+    vehicle_length: float
+    vehicle_width: float
+    actuator_accel: tuple[float, float]
+    actuator_steer: tuple[float, float]
+    n_obstacles: int
+
+    # --- observation layout --------------------------------------------------------------------------
+    @property
+    def obs_dim(self) -> int:
+        return len(EGO_FIELDS) + 2 + self.n_obstacles * len(OV_FIELDS) + len(REF_FIELDS)
+
+    def split_obs(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``obs (obs_dim,)`` -> ego ``[x, y, heading, speed] (4,)``, previous input ``[a, delta] (2,)``,
+        OVs ``(n_obstacles, 6)`` with columns :data:`OV_FIELDS`, reference ``[v_ref, a_ref, l_ref] (3,)``."""
+        obs = np.asarray(obs, dtype=float)
+        k = 6 + self.n_obstacles * len(OV_FIELDS)
+        return obs[:4], obs[4:6], obs[6:k].reshape(self.n_obstacles, len(OV_FIELDS)), obs[k:]
+
+    def check_obs(self, obs: np.ndarray) -> np.ndarray:
+        """Validate an observation for a policy: right shape, finite. Returns it as float64."""
+        obs = np.asarray(obs, dtype=float)
+        if obs.shape != (self.obs_dim,):
+            raise ValueError(f"observation has shape {obs.shape}, expected ({self.obs_dim},)")
+        if not np.all(np.isfinite(obs)):
+            bad = np.flatnonzero(~np.isfinite(obs)).tolist()
+            raise ValueError(f"observation holds non-finite values at indices {bad}")
+        return obs
+
+    # --- actions ---------------------------------------------------------------------------------------
+    def to_physical(self, action: np.ndarray) -> np.ndarray:
+        """Normalized action ``(..., 2)`` in [-1, 1] -> ``[a m/s^2, delta rad]`` (clipped first)."""
+        a = np.clip(np.asarray(action, float), -1.0, 1.0)
+        lo = np.array([self.actuator_accel[0], self.actuator_steer[0]])
+        hi = np.array([self.actuator_accel[1], self.actuator_steer[1]])
+        return lo + (a + 1.0) * (hi - lo) / 2.0
+
+    def to_normalized(self, u: np.ndarray) -> np.ndarray:
+        """Physical input ``(..., 2)`` -> normalized action in [-1, 1] (clipped to the actuator range)."""
+        lo = np.array([self.actuator_accel[0], self.actuator_steer[0]])
+        hi = np.array([self.actuator_accel[1], self.actuator_steer[1]])
+        return np.clip(2.0 * (np.asarray(u, float) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+
+    # --- geometry --------------------------------------------------------------------------------------
+    def edge_distance(self, states: np.ndarray) -> np.ndarray:
+        """Least signed distance [m] of the body corners to the road edge, ``(...)`` for ``states (..., 4)``."""
+        corners = body_corners(states[..., :2], states[..., 2], self.vehicle_length, self.vehicle_width)
+        _, lat = self.road.to_frenet(corners)
+        return self.road.edge_distance(lat).min(axis=-1)
+
+    def ov_gaps(self, ego: np.ndarray, ovs: np.ndarray) -> np.ndarray:
+        """Footprint gaps [m] ``(K,)`` between ego state ``(4,)`` and OV rows ``(K, >=3)`` of ``[.., x, y]``
+        (columns 1:3); ``inf`` where an OV is absent."""
+        s_e, l_e = self.road.to_frenet(ego[:2])
+        s_o, l_o = self.road.to_frenet(ovs[:, 1:3])
+        gap = box_gap(s_e, l_e, s_o, l_o, self.vehicle_length, self.vehicle_width)
+        return np.where(ovs[:, 0] > 0, gap, np.inf)
