@@ -1,0 +1,37 @@
+"""``bimp`` console script: one sub-command per job, each module parsing its own arguments.
+
+Modules load lazily so ``bimp --help`` stays instant and a command pulls in only what it uses.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+COMMANDS = {
+    "demo": ("agents.demo", "small evaluation of both scenarios and planners, with table and figures"),
+    "evaluate": ("agents.evaluate", "run policies x scenarios x seeds and write safety metrics"),
+    "plot": ("agents.plots", "draw the paper's figures from an evaluation folder"),
+    "sweep": ("agents.sweep", "sample-efficiency sweep over the ensemble size N"),
+    "bench": ("agents.bench", "plan-step timing of the planners, side by side"),
+    "train-dynamics": ("planners.dynamics", "train the MLP vehicle model and print its accuracy"),
+    "train-rl": ("agents.rl", "train the stable-baselines3 baseline"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
+        print("usage: bimp COMMAND [options]   (bimp COMMAND --help for its options)\n\ncommands:")
+        for name, (_, text) in COMMANDS.items():
+            print(f"  {name:<15} {text}")
+        if argv and argv[0] not in ("-h", "--help"):
+            print(f"\nunknown command {argv[0]!r}", file=sys.stderr)
+            return 2
+        return 0
+    module = importlib.import_module(COMMANDS[argv[0]][0])
+    return int(module.main(argv[1:]) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,30 @@
+"""``make_policy(name, env, **overrides)``: every agent by name, built lazily from its module."""
+
+from __future__ import annotations
+
+import importlib
+
+import gymnasium as gym
+
+from agents.policy import Policy
+
+# name -> "module:factory"; each factory takes (env, **overrides) and returns a Policy.
+POLICIES = {
+    "enkts": "planners.enkts:make_enkts",
+    "enks": "planners.enkts:make_enks",
+    "lane-keep": "agents.baselines:LaneKeeping",
+    "ppo": "agents.rl:make_ppo",
+    "sac": "agents.rl:make_sac",
+    "mppi": "planners.mppi:make_mppi",
+    "nmpc": "planners.nmpc:make_nmpc",
+    "nmpc-t": "planners.nmpc:make_nmpc_t",
+}
+
+
+def make_policy(name: str, env: gym.Env, **overrides) -> Policy:
+    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``overrides`` go to its
+    config and an unknown one raises. ``ValueError`` for an unknown name."""
+    if name not in POLICIES:
+        raise ValueError(f"unknown policy {name!r}; choose from {sorted(POLICIES)}")
+    module, factory = POLICIES[name].split(":")
+    return getattr(importlib.import_module(module), factory)(env, **overrides)
