@@ -1,0 +1,217 @@
+"""EnKTS: motion planning by single-pass Student's-t ensemble Kalman smoothing (paper Algorithm 1).
+
+EnKS is the same planner with ``nu = inf`` (Gaussian draws, no spread adaptation): a special case, not a copy.
+
+Per control step the planner smooths the virtual system of :mod:`planners.virtual` over the horizon:
+
+    for t = 0 .. H-1:
+        du_t^j = du_nominal_t + w^j,   w ~ St(0, diag(sigma_du^2), nu)          (eq. 7, prediction)
+        u_t^j  = u_{t-1}^j + du_t^j;   x_t^j = f(x_{t-1}^j, u_{t-1}^j)
+        Y^j    = h(x_t^j, u_t^j, du_t^j) + v^j,  v ~ St(0, R, nu)               (eq. 14)
+        [x_t, du_t, u_0..u_t]^j <- student_t_update(..., Y, 0, nu)            (eq. 16-19)
+
+The update reaches back over the whole stored plan (smoothing), but only what later steps or the output
+need is stored: the current state and increment, and the controls ``u_0 .. u_t`` (past positions are not
+needed to predict the future). The applied action is the smoothed ensemble mean of ``u_0``; the next plan
+is warm-started from this plan's mean controls, shifted by one step.
+
+Cost: each horizon step does O(N) model work and an update on a ``(N, 6 + 2(t+1))`` ensemble, so a plan is
+linear in N and quadratic in H (the smoothed control history grows with t).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from configs import load_config
+from envs.scene import Scene
+from planners.smoother import student_t, student_t_update
+from planners.virtual import N_TRACK, BarrierShape, measure, n_measurements, predict_obstacles, reference_profile
+
+Dynamics = Callable[[np.ndarray, np.ndarray], np.ndarray]
+_ACTIVE = 1e-3  # a barrier value below this for every particle counts as not touched
+
+
+@dataclass(frozen=True)
+class EnKTSConfig:
+    """Planner settings. Units: m, rad, s, m/s, m/s^2; per-step increments are per control step (dt).
+
+    n_particles: ensemble size N >= 2; horizon: H >= 1 steps; nu: degrees of freedom > 2 of the joint
+    Student's-t approximation and of the process / measurement noise (``inf``: EnKS); adapt_spread: rescale
+    the posterior anomalies by the Student's-t factor; grow_nu: ``nu <- nu + m`` after each update (eq. 19);
+    max_spread: cap on that factor; iterations: smoothing passes per step (1 = the paper's single pass);
+    sigma_du: process noise scale of ``[da, ddelta]`` per step; sigma_ref: measurement noise of the reference
+    state ``[lateral, heading, speed]``; sigma_input: of the reference input ``[a, delta]``; sigma_barrier: of
+    each barrier value (the barriers' tightness); barrier: margins and widths; dynamics: ``"mlp"`` (shipped
+    model) or ``"bicycle"`` (exact model); seed: default seed of the planner's generator.
+    """
+
+    n_particles: int = 50
+    horizon: int = 20
+    nu: float = 4.0
+    adapt_spread: bool = True
+    grow_nu: bool = True
+    max_spread: float = 25.0
+    iterations: int = 1
+    sigma_du: tuple[float, float] = (0.5, 0.002)
+    sigma_ref: tuple[float, float, float] = (1.0, 0.05, 2.0)
+    sigma_input: tuple[float, float] = (3.0, 0.02)
+    sigma_barrier: float = 0.1
+    barrier: BarrierShape = field(default_factory=BarrierShape)
+    dynamics: str = "mlp"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.barrier, dict):  # from YAML
+            object.__setattr__(self, "barrier", load_config(BarrierShape, **self.barrier))
+        if self.n_particles < 2:
+            raise ValueError(f"n_particles must be >= 2, got {self.n_particles}")
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if not self.nu > 2:
+            raise ValueError(f"nu must be > 2 (inf for EnKS), got {self.nu}")
+        if self.iterations < 1 or self.max_spread < 1:
+            raise ValueError("iterations must be >= 1 and max_spread >= 1")
+        scales = (*self.sigma_du, *self.sigma_ref, *self.sigma_input, self.sigma_barrier)
+        if not all(np.isfinite(scales)) or min(scales) <= 0:
+            raise ValueError(f"noise scales must be finite and > 0, got {scales}")
+        if self.dynamics not in ("mlp", "bicycle"):
+            raise ValueError(f"dynamics must be 'mlp' or 'bicycle', got {self.dynamics!r}")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The latest plan: ``controls (H, 2)`` smoothed mean ``[a, delta]``, ``states (H + 1, 4)`` rolled out from
+    the current state with those controls, ``control_particles (N, H, 2)`` the smoothed ensemble."""
+
+    states: np.ndarray
+    controls: np.ndarray
+    control_particles: np.ndarray
+
+
+class EnKTSPlanner:
+    """EnKTS (``nu < inf``) or EnKS (``nu = inf``) as a :class:`agents.Policy`.
+
+    scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``:
+    the road is redrawn at every env reset); dynamics: any batched ``f(x (N, 4), u (N, 2)) -> (N, 4)``, by
+    default the one ``config.dynamics`` names.
+    """
+
+    def __init__(self, scene: Scene | Callable[[], Scene], config: EnKTSConfig = EnKTSConfig(),
+                 dynamics: Dynamics | None = None):
+        self.config = config
+        self._scene = scene if callable(scene) else (lambda: scene)
+        self.dynamics = dynamics or _default_dynamics(config.dynamics)
+        self.fallbacks = 0  # plans that came out non-finite and were replaced by holding the last input
+        self.reset(config.seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode: reseed the generator, forget the warm start."""
+        self.rng = np.random.default_rng(self.config.seed if seed is None else seed)
+        self._previous: np.ndarray | None = None
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    # --- Policy ------------------------------------------------------------------------------------
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Normalized action ``(2,)`` float32 in [-1, 1]: the smoothed mean of the first control.
+
+        Raises ``ValueError`` on an observation of the wrong shape or with non-finite entries.
+        """
+        scene = self._scene()
+        ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
+        cfg = self.config
+        lo = np.array([scene.actuator_accel[0], scene.actuator_steer[0]])
+        hi = np.array([scene.actuator_accel[1], scene.actuator_steer[1]])
+        nominal = self._warm_start(u_prev)
+        obstacles = predict_obstacles(scene, ovs, cfg.horizon)
+        v_ref, a_ref = reference_profile(scene, ref, cfg.horizon)
+        for _ in range(cfg.iterations):
+            U = self._smooth(scene, ego, u_prev, nominal, obstacles, ref[2], v_ref, a_ref)
+            nominal = U.mean(axis=0)
+        controls = nominal
+        if not np.all(np.isfinite(controls)):
+            self.fallbacks += 1
+            controls = np.tile(u_prev, (cfg.horizon, 1))
+            U = np.broadcast_to(controls, U.shape)
+        controls = np.clip(controls, lo, hi)
+        self._previous = controls
+        self._last = (ego, controls, U)
+        return scene.to_normalized(controls[0]).astype(np.float32)
+
+    @property
+    def plan(self) -> Plan | None:
+        """The latest plan (``None`` before the first ``act``); states are rolled out on demand."""
+        if self._last is None:
+            return None
+        ego, controls, U = self._last
+        states = [ego]
+        for u in controls:
+            states.append(self.dynamics(states[-1][None], u[None])[0])
+        return Plan(states=np.array(states), controls=controls.copy(), control_particles=np.array(U))
+
+    # --- internals ---------------------------------------------------------------------------------
+    def _warm_start(self, u_prev: np.ndarray) -> np.ndarray:
+        """Nominal controls ``(H, 2)``: the previous plan shifted by one step, or holding ``u_prev``."""
+        if self._previous is None:
+            return np.tile(u_prev, (self.config.horizon, 1))
+        return np.vstack([self._previous[1:], self._previous[-1:]])
+
+    def _smooth(self, scene: Scene, ego: np.ndarray, u_prev: np.ndarray, nominal: np.ndarray,
+                obstacles: tuple, ref_lane: float, v_ref: np.ndarray, a_ref: np.ndarray) -> np.ndarray:
+        """One smoothing pass; returns the smoothed control particles ``(N, H, 2)``."""
+        cfg = self.config
+        n, horizon = cfg.n_particles, cfg.horizon
+        s_o, l_o, v_o, a_o, present = obstacles
+        m = n_measurements(len(present))
+        noise_scale = np.array([*cfg.sigma_ref, *cfg.sigma_input] + [cfg.sigma_barrier] * (m - N_TRACK))
+        du_nominal = np.diff(np.vstack([u_prev, nominal]), axis=0)
+        nu = cfg.nu
+        x = np.tile(ego, (n, 1))
+        u_last = np.tile(u_prev, (n, 1))
+        Z = np.empty((n, 6 + 2 * horizon))  # [x (4), du (2), u_0 .. u_{H-1}]
+        for t in range(horizon):
+            if t > 0:
+                x = self.dynamics(x, u_last)
+            du = du_nominal[t] + student_t(self.rng, cfg.sigma_du, cfg.nu, n)
+            u_last = u_last + du
+            width = 8 + 2 * t
+            Z[:, :4], Z[:, 4:6], Z[:, width - 2:width] = x, du, u_last
+            h = measure(scene, cfg.barrier, x, u_last, du, Z[:, 6:8], u_prev, ref_lane, v_ref[t], a_ref[t],
+                        (s_o[t], l_o[t], v_o[t], a_o[t], present))
+            Y = h + student_t(self.rng, noise_scale, cfg.nu, n)
+            # A barrier that reads ~0 for every particle is flat there and carries no information, yet with
+            # N = 50 its noise regresses spuriously on the plan and collapses the ensemble within a few steps:
+            # only the tracking rows and the barriers some particle touches enter the update.
+            active = np.concatenate([np.ones(N_TRACK, bool), h[:, N_TRACK:].max(axis=0) > _ACTIVE])
+            Z[:, :width], nu_post = student_t_update(Z[:, :width], Y[:, active], np.zeros(active.sum()), nu,
+                                                     adapt_spread=cfg.adapt_spread, max_spread=cfg.max_spread)
+            if cfg.grow_nu:
+                nu = nu_post
+            x, u_last = Z[:, :4], Z[:, width - 2:width]
+        return Z[:, 6:].reshape(n, horizon, 2)
+
+
+def _default_dynamics(name: str) -> Dynamics:
+    from planners.dynamics import BicycleModel, load_model
+
+    return load_model() if name == "mlp" else BicycleModel()
+
+
+CONFIG_FILE = "planner.yaml"
+
+
+def make_enkts(env, config: str | None = CONFIG_FILE, **overrides) -> EnKTSPlanner:
+    """EnKTS for ``env`` with the shared tuning of ``configs/planner.yaml`` plus ``overrides``."""
+    return EnKTSPlanner(lambda: env.unwrapped.scene, load_config(EnKTSConfig, config, **overrides))
+
+
+def make_enks(env, config: str | None = CONFIG_FILE, **overrides) -> EnKTSPlanner:
+    """EnKS: the same tuning as EnKTS except ``nu = inf`` (paper: "all other parameters the same")."""
+    return make_enkts(env, config, **{"nu": math.inf, **overrides})
+
+
+__all__ = ["EnKTSConfig", "EnKTSPlanner", "Plan", "make_enkts", "make_enks"]
