@@ -45,12 +45,12 @@ class BarrierShape:
     """
 
     headway: float = 0.6
-    brake_decel: float = 5.0
+    brake_decel: float = 6.0
     lateral_clearance: float = 1.0
     edge_margin: float = 0.3
     widths: tuple[float, ...] = (0.1, 0.5, 1.0, 0.01, 0.5, 0.002)
     sharpness: float = 8.0
-    bound_margin: float = 0.2
+    bound_margin: float = 0.05
 
 
 def predict_obstacles(scene: Scene, ovs: np.ndarray, horizon: int) -> tuple[np.ndarray, ...]:
@@ -112,10 +112,11 @@ def measure(scene: Scene, shape: BarrierShape, x: np.ndarray, u: np.ndarray, du:
 
     s_o, l_o, v_o, a_o, present = obstacles
     w = shape.widths
-    # Keep-out ellipse around each OV (centre to centre): semi-axes of a footprint plus the clearance,
-    # longitudinally the time headway of whichever vehicle follows. Unlike a box's penetration depth, its
-    # value changes with both the longitudinal and the lateral offset, so the ensemble regression sees both
-    # escapes (brake, or change lanes) rather than only the cheaper one.
+    # Keep-out box around each OV (centre to centre): half-sizes of a footprint plus the clearance,
+    # longitudinally the time headway of whichever vehicle follows plus its braking room. The barrier is the
+    # smaller *relative* penetration, so a vehicle deep in the same lane is pushed to brake, and only a
+    # plan that has mostly left the OV's lane gets credit for the lateral escape (within the lane, swerving
+    # buys nothing and only heads for the road edge).
     ds = s[:, None] - s_o
     behind = ds < 0
     v_follow = np.where(behind, v[:, None], v_o)
@@ -128,7 +129,7 @@ def measure(scene: Scene, shape: BarrierShape, x: np.ndarray, u: np.ndarray, du:
     room = np.maximum(room, np.where(a_lead < -0.5, stop, 0.0))
     semi_s = scene.vehicle_length + b.d_min + shape.headway * v_follow + room
     semi_l = scene.vehicle_width + shape.lateral_clearance
-    phi_ov = 1.0 - np.hypot(ds / semi_s, (lat[:, None] - l_o) / semi_l)
+    phi_ov = np.minimum(1.0 - np.abs(ds) / semi_s, 1.0 - np.abs(lat[:, None] - l_o) / semi_l)
     phi_ov = np.where(present, phi_ov / w[0], -1e3)
     extent = np.abs(lat) + half_l * np.abs(np.sin(dpsi)) + half_w * np.cos(dpsi)
     keep = 1.0 - shape.bound_margin
