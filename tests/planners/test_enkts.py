@@ -1,0 +1,137 @@
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs
+from agents import make_policy
+from configs import load_config
+from planners.dynamics import BicycleModel
+from planners.enkts import EnKTSConfig, EnKTSPlanner, make_enks, make_enkts
+
+
+def env_at(env_id="bimp/EmergencyBrake-v0", seed=0, **config):
+    env = gym.make(env_id, config=config or None)
+    obs, _ = env.reset(seed=seed)
+    return env, obs
+
+
+@pytest.mark.parametrize("bad", [dict(n_particles=1), dict(horizon=0), dict(nu=2.0), dict(nu=1.5),
+                                 dict(sigma_du=(0.5, 0.0)), dict(relaxation=1.0), dict(dynamics="magic")])
+def test_invalid_config_raises_at_construction(bad):
+    with pytest.raises(ValueError):
+        EnKTSConfig(**bad)
+
+
+def test_yaml_overrides_load_and_unknown_keys_raise(tmp_path):
+    path = tmp_path / "p.yaml"
+    path.write_text("n_particles: 30\nnu: .inf\nbarrier: {headway: 0.8}\nsigma_du: [0.4, 0.003]\n")
+    cfg = load_config(EnKTSConfig, path)
+    assert cfg.n_particles == 30 and math.isinf(cfg.nu) and cfg.barrier.headway == 0.8
+    assert cfg.sigma_du == (0.4, 0.003)
+    path.write_text("n_particle: 30\n")
+    with pytest.raises(ValueError, match="n_particle"):
+        load_config(EnKTSConfig, path)
+    with pytest.raises(ValueError, match="hedway"):
+        load_config(EnKTSConfig, None, barrier={"hedway": 1.0})
+
+
+def test_enks_is_enkts_with_infinite_nu_and_nothing_else():
+    env, _ = env_at()
+    a, b = make_enkts(env), make_enks(env)
+    assert math.isinf(b.config.nu) and not math.isinf(a.config.nu)
+    assert {k: v for k, v in vars(a.config).items() if k != "nu"} == \
+        {k: v for k, v in vars(b.config).items() if k != "nu"}
+
+
+@pytest.mark.parametrize("name", ["enkts", "enks"])
+def test_same_seed_same_actions_and_actions_in_space(name):
+    runs = []
+    for _ in range(2):
+        env, obs = env_at("bimp/Overtaking-v0", seed=3)
+        policy = make_policy(name, env)
+        policy.reset(7)
+        actions = []
+        for _ in range(8):
+            a = policy.act(obs)
+            assert a.shape == (2,) and a.dtype == np.float32 and env.action_space.contains(a)
+            actions.append(a)
+            obs, *_ = env.step(a)
+        runs.append(np.array(actions))
+    np.testing.assert_array_equal(*runs)
+    policy.reset(8)
+    env, obs = env_at("bimp/Overtaking-v0", seed=3)
+    assert not np.array_equal(policy.act(obs), runs[0][0])
+
+
+def test_bad_observations_raise_value_errors_that_name_the_problem():
+    env, obs = env_at()
+    planner = make_enkts(env, n_particles=10, horizon=3)
+    with pytest.raises(ValueError, match="shape"):
+        planner.act(obs[:-1])
+    for value in (np.nan, np.inf):
+        bad = obs.copy()
+        bad[3] = value
+        with pytest.raises(ValueError, match="non-finite.*3"):
+            planner.act(bad)
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
+def test_degenerate_situations_never_give_non_finite_actions():
+    env, obs = env_at()
+    scene = env.unwrapped.scene
+    crashed = obs.copy()
+    crashed[7:9] = obs[0:2]  # OV1 on top of the EV: every barrier deep in violation for every particle
+    crashed[11] = -50.0  # an absurd deceleration
+    planner = make_enkts(env, n_particles=5, horizon=20)
+    for o in (crashed, obs):
+        action = planner.act(o)
+        assert np.all(np.isfinite(action)) and env.action_space.contains(action)
+
+    def broken(x, u):  # a dynamics model that returns NaN
+        return np.full_like(x, np.nan)
+
+    planner = EnKTSPlanner(scene, EnKTSConfig(n_particles=8, horizon=5), dynamics=broken)
+    action = planner.act(obs)
+    assert np.all(np.isfinite(action)) and planner.fallbacks == 1
+    np.testing.assert_allclose(scene.to_physical(action), scene.split_obs(obs)[1], atol=1e-5)
+
+
+def test_plan_is_readable_for_plotting():
+    env, obs = env_at()
+    planner = EnKTSPlanner(env.unwrapped.scene, EnKTSConfig(n_particles=20, horizon=6), BicycleModel())
+    assert planner.plan is None
+    planner.act(obs)
+    plan = planner.plan
+    assert plan.states.shape == (7, 4) and plan.controls.shape == (6, 2)
+    assert plan.control_particles.shape == (20, 6, 2)
+    np.testing.assert_allclose(plan.states[0], obs[:4], rtol=1e-6)
+    np.testing.assert_allclose(plan.states[1], BicycleModel()(obs[None, :4].astype(float), plan.controls[:1])[0])
+
+
+def test_emergency_brake_plan_brakes_once_the_ovs_brake():
+    """The lead OVs' deceleration, seen in the observation, must make the plan brake hard within 2 s."""
+    env, obs = env_at(seed=0)
+    planner = make_enkts(env)
+    planner.reset(0)
+    accels = []
+    for _ in range(35):
+        action = planner.act(obs)
+        accels.append(env.unwrapped.scene.to_physical(action)[0])
+        obs, *_ = env.step(action)
+    assert max(accels[:8]) > -1.0  # cruising before the onset (~1 s)
+    assert min(accels) < -4.0
+
+
+@pytest.mark.parametrize("scenario", ["overtaking", "emergency-brake"])
+def test_enkts_completes_each_scenario_on_the_default_seed_safely(scenario):
+    env = gym.make(envs.env_id(scenario))
+    obs, _ = env.reset(seed=0)
+    planner = make_enkts(env)
+    planner.reset(0)
+    done = False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(planner.act(obs))
+        done = terminated or truncated
+    assert truncated and not info["collision"] and not info["offroad"]
