@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 import multiprocessing as mp
@@ -80,7 +81,9 @@ def run_episode(job: Job) -> dict:
         record.update(status="ok", steps=len(trace["plan_ms"]), truncated=bool(truncated),
                       metrics=episode_metrics(trace, env.unwrapped.scene.dt, truncated=bool(truncated)))
         if job.trace:
-            record["trace"] = _finite(trace)
+            scene = env.unwrapped.scene
+            record.update(trace=_finite(trace), road=dataclasses.asdict(scene.road),
+                          bounds=dataclasses.asdict(scene.bounds))
         env.close()
     except Exception as err:  # recorded, never fatal: one broken episode must not end a long run
         record.update(status="error", error=f"{type(err).__name__}: {err}", traceback=traceback.format_exc())

@@ -1,0 +1,26 @@
+"""``bimp demo``: the main job on a small default: a few episodes of both scenarios with EnKTS and EnKS,
+then the table and the figures."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from agents.evaluate import evaluate, markdown_table
+from agents.plots import plot_all
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp demo", description=__doc__)
+    parser.add_argument("--episodes", type=int, default=2)
+    parser.add_argument("--policy", nargs="+", default=["enkts", "enks"])
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--out", default="runs/demo")
+    args = parser.parse_args(argv)
+    summary = evaluate(["overtaking", "emergency-brake"], args.policy, args.episodes, seed=0,
+                       workers=args.workers, out=args.out, traces=1)
+    print(markdown_table(summary))
+    for path in plot_all(args.out):
+        print(f"figure: {path}")
+    print(f"table: {Path(args.out) / 'summary.md'}")
+    return 0

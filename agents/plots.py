@@ -1,0 +1,158 @@
+"""``bimp plot DIR``: figures like the paper's from the traced episodes of an evaluation folder.
+
+Per scenario, comparing the policies on the first traced seed they share:
+- ``trajectories_<scenario>.png``: the EV paths on the road with the OVs (paper Fig. 1 and 3);
+- ``controls_<scenario>.png``: acceleration, steering and their per-step changes with the bounds (Fig. 2, 4);
+- ``safety_<scenario>.png``: distance to each OV and to the road edge with the safety margins, and the
+  speed against the reference speed (Fig. 5).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # headless: files only
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from agents.evaluate import read_records  # noqa: E402
+from envs.road import RoadGeometry  # noqa: E402
+from envs.scene import Bounds  # noqa: E402
+
+COLORS = {"enkts": "tab:red", "enks": "tab:blue", "mppi": "tab:green", "nmpc": "tab:purple",
+          "nmpc-t": "tab:pink", "ppo": "tab:orange", "sac": "tab:brown", "lane-keep": "tab:gray"}
+
+
+def _color(policy: str) -> str:
+    return COLORS.get(policy, "black")
+
+
+def traced_episodes(records: list[dict]) -> dict[str, dict[str, dict]]:
+    """``{scenario: {policy: record}}``, for each scenario the lowest seed traced for every policy there."""
+    by_scenario: dict[str, dict[int, dict[str, dict]]] = {}
+    for r in records:
+        if r.get("status") == "ok" and "trace" in r:
+            by_scenario.setdefault(r["scenario"], {}).setdefault(r["seed"], {})[r["policy"]] = r
+    chosen = {}
+    for scenario, seeds in by_scenario.items():
+        policies = set().union(*seeds.values())
+        common = [s for s in sorted(seeds) if set(seeds[s]) == policies]
+        seed = common[0] if common else min(seeds)
+        chosen[scenario] = dict(sorted(seeds[seed].items()))
+    return chosen
+
+
+def _road(ax, road: RoadGeometry, s_max: float) -> None:
+    s = np.linspace(0.0, min(road.length, s_max), 400)
+    for lat, style in ((-road.half_width, "k-"), (road.half_width, "k-"), (0.0, "k--")):
+        xy = road.position(s, np.full_like(s, lat))
+        ax.plot(xy[:, 0], xy[:, 1], style, lw=1.0 if style == "k-" else 0.6)
+
+
+def plot_trajectories(scenario: str, runs: dict[str, dict], out: Path) -> Path:
+    fig, axes = plt.subplots(len(runs), 1, figsize=(11, 2.6 * len(runs)), squeeze=False)
+    for ax, (policy, rec) in zip(axes[:, 0], runs.items()):
+        t = rec["trace"]
+        road = RoadGeometry(**rec["road"])
+        x, y = np.array(t["x"]), np.array(t["y"])
+        _road(ax, road, s_max=float(np.max(x)) + 80.0)
+        ov = np.array(t["ov_xy"], dtype=float)  # (T, K, 2)
+        for k in range(ov.shape[1]):
+            ax.plot(ov[:, k, 0], ov[:, k, 1], ":", color=f"C{k + 2}", label=f"OV{k + 1}")
+            ax.plot(*ov[-1, k], "s", color=f"C{k + 2}")
+        ax.plot(x, y, color=_color(policy), lw=2, label=f"EV ({policy})")
+        ax.plot(x[-1], y[-1], "s", color=_color(policy))
+        outcome = "collision" if rec["metrics"]["collision_rate"] else (
+            "off road" if rec["metrics"]["offroad_rate"] else "safe")
+        ax.set_title(f"{scenario}, {policy}, seed {rec['seed']}: {outcome}")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.invert_yaxis()  # highway-env draws +y downwards: keep the rendered orientation
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.legend(loc="upper right", fontsize=7)
+    return _save(fig, out / f"trajectories_{scenario}.png")
+
+
+def plot_controls(scenario: str, runs: dict[str, dict], out: Path) -> Path:
+    b = Bounds(**{k: tuple(v) if isinstance(v, list) else v for k, v in next(iter(runs.values()))["bounds"].items()})
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6), sharex=True)
+    panels = [("acceleration [m/s²]", b.accel), ("steering [rad]", (-b.steer, b.steer)),
+              ("Δ acceleration [m/s² per step]", (-b.accel_rate, b.accel_rate)),
+              ("Δ steering [rad per step]", (-b.steer_rate, b.steer_rate))]
+    for policy, rec in runs.items():
+        u = np.array(rec["trace"]["input"], dtype=float)
+        du = np.diff(np.vstack([np.zeros((1, 2)), u]), axis=0)
+        for ax, series in zip(axes.flat, (u[:, 0], u[:, 1], du[:, 0], du[:, 1])):
+            ax.plot(series, color=_color(policy), label=policy)
+    for ax, (label, (lo, hi)) in zip(axes.flat, panels):
+        ax.axhline(lo, color="k", lw=0.8)
+        ax.axhline(hi, color="k", lw=0.8)
+        ax.set_ylabel(label)
+    for ax in axes[1]:
+        ax.set_xlabel("time step")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{scenario}: control profiles with their bounds")
+    return _save(fig, out / f"controls_{scenario}.png")
+
+
+def plot_safety(scenario: str, runs: dict[str, dict], out: Path) -> Path:
+    first = next(iter(runs.values()))
+    d_min = first["bounds"]["d_min"]
+    k_ovs = len(first["trace"]["ov_distance"][0])
+    fig, axes = plt.subplots(1, k_ovs + 2, figsize=(4 * (k_ovs + 2), 3.4))
+    for policy, rec in runs.items():
+        t, c = rec["trace"], _color(policy)
+        d = np.array(t["ov_distance"], dtype=float)
+        for k in range(k_ovs):
+            axes[k].plot(d[:, k], color=c, label=policy)
+        axes[k_ovs].plot(t["edge_distance"], color=c, label=policy)
+        axes[k_ovs + 1].plot(t["speed"], color=c, label=policy)
+    axes[k_ovs + 1].plot(first["trace"]["reference_speed"], "k--", label="reference")
+    for k in range(k_ovs):
+        axes[k].axhline(d_min, color="k", lw=0.8)
+        axes[k].set_ylabel(f"distance to OV{k + 1} [m]")
+    axes[k_ovs].axhline(first["bounds"]["edge_margin"], color="k", lw=0.8)
+    axes[k_ovs].set_ylabel("distance to road edge [m]")
+    axes[k_ovs + 1].set_ylabel("speed [m/s]")
+    for ax in axes:
+        ax.set_xlabel("time step")
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{scenario}: safety margins and reference-speed tracking")
+    return _save(fig, out / f"safety_{scenario}.png")
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_all(folder: str | Path, out: str | Path | None = None) -> list[Path]:
+    """Draw every figure for the evaluation in ``folder`` into ``out`` (default ``folder/figures``)."""
+    folder = Path(folder)
+    out = Path(out) if out else folder / "figures"
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for scenario, runs in traced_episodes(read_records(folder)).items():
+        written += [plot_trajectories(scenario, runs, out), plot_controls(scenario, runs, out),
+                    plot_safety(scenario, runs, out)]
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp plot", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folder", help="an evaluation folder (holding episodes.jsonl)")
+    parser.add_argument("--out", default=None, help="where to write the PNGs (default FOLDER/figures)")
+    args = parser.parse_args(argv)
+    written = plot_all(args.folder, args.out)
+    if not written:
+        print(f"no traced episodes in {args.folder}: run `bimp evaluate --traces 1 ...` first")
+        return 1
+    for path in written:
+        print(path)
+    return 0
