@@ -135,7 +135,11 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int, seed: int
     jobs = [Job(s, p, seed + i, trace=i < traces, overrides=tuple(sorted((overrides or {}).get(p, {}).items())))
             for s in scenarios for p in policies for i in range(episodes)]
     todo = [j for j in jobs if j.key not in done]
-    with open(out / EPISODES_FILE, "a") as sink, tqdm(total=len(jobs), initial=len(jobs) - len(todo),
+    path = out / EPISODES_FILE
+    if path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n"):
+        with open(path, "a") as sink:  # end the line an interruption cut, or the next record joins it
+            sink.write("\n")
+    with open(path, "a") as sink, tqdm(total=len(jobs), initial=len(jobs) - len(todo),
                                                        desc="episodes", disable=not progress) as bar:
         def write(record: dict) -> None:
             sink.write(json.dumps(_finite(record)) + "\n")

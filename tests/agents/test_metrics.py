@@ -1,0 +1,70 @@
+import math
+
+import pytest
+
+from agents.metrics import METRICS, episode_metrics, summarize
+
+OK = {"accel_min": -1.0, "accel_max": -1.0, "steer": -0.01, "accel_rate": -0.5, "steer_rate": -0.001}
+
+
+def trace(n=10, **changes):
+    t = {
+        "collision": [False] * n, "offroad": [False] * n, "ov_distance": [[20.0, 30.0]] * n,
+        "edge_distance": [1.0] * n, "ttc": [math.inf] * n, "lateral_error": [0.0] * n,
+        "speed_error": [0.0] * n, "input": [[0.0, 0.0]] * n, "constraints": [dict(OK) for _ in range(n)],
+        "plan_ms": [1.0] * n,
+    }
+    t.update(changes)
+    return t
+
+
+def test_clean_episode():
+    m = episode_metrics(trace(), dt=0.1, truncated=True)
+    assert m["success_rate"] == 1.0 and m["collision_rate"] == m["offroad_rate"] == 0.0
+    assert m["input_violation_rate"] == m["rate_violation_rate"] == 0.0
+    assert m["min_distance_m"] == 20.0 and m["min_ttc_s"] is None and m["max_abs_jerk"] == 0.0
+
+
+def test_known_collision_offroad_and_early_termination():
+    collided = trace(collision=[False] * 9 + [True], ov_distance=[[20.0, 30.0]] * 9 + [[-0.2, 30.0]])
+    m = episode_metrics(collided, dt=0.1, truncated=False)
+    assert m["collision_rate"] == 1.0 and m["success_rate"] == 0.0 and m["min_distance_m"] == -0.2
+    m = episode_metrics(trace(offroad=[False] * 4 + [True]), dt=0.1, truncated=False)
+    assert m["offroad_rate"] == 1.0 and m["success_rate"] == 0.0
+    assert episode_metrics(trace(), dt=0.1, truncated=False)["success_rate"] == 0.0
+
+
+def test_known_number_of_bound_violations_and_jerk():
+    c = [dict(OK) for _ in range(10)]
+    c[2]["steer"] = 0.01
+    c[5]["accel_min"] = 0.5
+    c[7]["accel_rate"] = 0.3
+    c[8]["accel_rate"] = 1e-9  # float round-off on the bound is not a violation
+    inputs = [[0.0, 0.0]] * 5 + [[-2.0, 0.0]] * 5
+    m = episode_metrics(trace(constraints=c, input=inputs), dt=0.1, truncated=True)
+    assert m["input_violation_rate"] == pytest.approx(0.2)
+    assert m["rate_violation_rate"] == pytest.approx(0.1)
+    assert m["max_abs_jerk"] == pytest.approx(20.0)
+
+
+def test_known_minimum_ttc_and_errors():
+    m = episode_metrics(trace(ttc=[math.inf, 4.0, 2.5, math.inf] + [math.inf] * 6,
+                              lateral_error=[3.0] + [0.0] * 9, speed_error=[1.0] * 10,
+                              plan_ms=list(range(1, 11))), dt=0.1, truncated=True)
+    assert m["min_ttc_s"] == 2.5
+    assert m["rms_lateral_error_m"] == pytest.approx(math.sqrt(0.9))
+    assert m["rms_speed_error_mps"] == pytest.approx(1.0)
+    assert m["plan_time_ms_p50"] == pytest.approx(5.5)
+
+
+def test_summary_has_every_key_with_spreads_and_counts_errors_as_failures():
+    ok = {"scenario": "s", "policy": "p", "status": "ok",
+          "metrics": episode_metrics(trace(), dt=0.1, truncated=True)}
+    bad = {"scenario": "s", "policy": "p", "status": "error", "error": "boom"}
+    summary = summarize([ok, ok, bad])
+    e = summary["p/s"]
+    assert e["episodes"] == 3 and e["errors"] == 1
+    for name in METRICS:
+        assert set(e[name]) == {"mean", "std", "min", "max"}
+    assert e["success_rate"]["mean"] == pytest.approx(2 / 3)
+    assert e["min_ttc_s"]["mean"] is None
