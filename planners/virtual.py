@@ -132,19 +132,20 @@ def measure(scene: Scene, shape: BarrierShape, x: np.ndarray, u: np.ndarray, du:
     phi_ov = np.minimum(1.0 - np.abs(ds) / semi_s, 1.0 - np.abs(lat[:, None] - l_o) / semi_l)
     phi_ov = np.where(present, phi_ov / w[0], -1e3)
     extent = np.abs(lat) + half_l * np.abs(np.sin(dpsi)) + half_w * np.cos(dpsi)
+    # Input bounds as |u - centre| <= half-range (acceleration) and |delta| <= bound, tightened by the margin;
+    # rates as |du| <= bound. Written for both [a, delta] columns at once.
     keep = 1.0 - shape.bound_margin
-    du0 = u0 - u_prev
-    phi = np.column_stack([
-        phi_ov,
-        (extent - road.half_width + shape.edge_margin) / w[1],
-        np.maximum(keep * b.accel[0] - u[:, 0], u[:, 0] - keep * b.accel[1]) / w[2],
-        (np.abs(u[:, 1]) - keep * b.steer) / w[3],
-        (np.abs(du[:, 0]) - keep * b.accel_rate) / w[4],
-        (np.abs(du[:, 1]) - keep * b.steer_rate) / w[5],
-        np.maximum(keep * b.accel[0] - u0[:, 0], u0[:, 0] - keep * b.accel[1]) / w[2],
-        (np.abs(u0[:, 1]) - keep * b.steer) / w[3],
-        (np.abs(du0[:, 0]) - keep * b.accel_rate) / w[4],
-        (np.abs(du0[:, 1]) - keep * b.steer_rate) / w[5],
-    ])
+    centre = keep * np.array([(b.accel[0] + b.accel[1]) / 2, 0.0])
+    half = keep * np.array([(b.accel[1] - b.accel[0]) / 2, b.steer])
+    rate = keep * np.array([b.accel_rate, b.steer_rate])
+    w_input, w_rate = np.array(w[2:4]), np.array(w[4:6])
+    k = phi_ov.shape[1]
+    phi = np.empty((x.shape[0], k + 9))
+    phi[:, :k] = phi_ov
+    phi[:, k] = (extent - road.half_width + shape.edge_margin) / w[1]
+    phi[:, k + 1:k + 3] = (np.abs(u - centre) - half) / w_input
+    phi[:, k + 3:k + 5] = (np.abs(du) - rate) / w_rate
+    phi[:, k + 5:k + 7] = (np.abs(u0 - centre) - half) / w_input
+    phi[:, k + 7:k + 9] = (np.abs(u0 - u_prev) - rate) / w_rate
     out[:, N_TRACK:] = _hinge(phi, shape.sharpness)
     return out

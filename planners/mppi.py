@@ -1,0 +1,214 @@
+"""MPPI peer planner: ``pytorch_mppi.MPPI`` on the same MLP, minimizing the virtual system's negative log-likelihood.
+
+MPPI (Williams et al. 2017) samples ``N`` control sequences around a nominal one, rolls them out and averages
+them with weights ``exp(-cost / lambda)``. Here it optimizes exactly what EnKTS infers, in the Gaussian case:
+
+    running cost  c_t = 0.5 * sum_i (h_i(xb_t) / sigma_i)^2,   h = planners.virtual.measure   (eq. 8, observed 0)
+    sigma = [sigma_ref (3), sigma_input (2), sigma_barrier (one per barrier)]  of the shared planner tuning
+
+MPPI's state is the virtual system's block plus the first control: ``xb_t = [x_t (4), u_t (2), du_t (2), u_0 (2)]``
+(eq. 7): ``u`` and ``du`` so the cost can charge input and rate terms, ``u_0`` because the virtual system observes the
+applied control's barriers at every step. Its transition with MPPI's action ``u_t`` is ``x_t = f(x_{t-1}, u_{t-1})``
+(``x_0`` = the current state), ``du_t = u_t - u_{t-1}``; the start block carries ``u_{-1}`` = the input applied last,
+so ``du_0`` is charged against it as EnKTS does. Pairing ``x_t`` with ``u_t`` needs the step index, hence
+``step_dependent_dynamics``.
+
+Choices: the dynamics wrap :meth:`planners.dynamics.LearnedDynamics.predict` (numpy, tensors converted without
+copies: float64 CPU tensors share memory with numpy): the same model object as EnKTS, and the faster path at
+N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`planners.virtual.measure`,
+numpy too. Noise: MPPI perturbs the controls ``u_t`` i.i.d. per step, not the increments; the default scale
+``noise_gain * sigma_du`` with gain 1 gives increments of spread ``sqrt(2) sigma_du`` (0.7 m/s^2, 0.003 rad), inside
+the rate bounds, so most samples are not thrown away by the rate barrier, while the nominal sequence accumulates
+larger moves over the receding steps. Actions are clamped to the actuator range (the env clips there); the
+planning bounds are the barriers' business, as for EnKTS. Warm start: the previous nominal sequence shifted by
+one step, its last control held (as EnKTS); the first plan of an episode holds the last input.
+
+Randomness: pytorch_mppi 0.9.1 draws its noise with the global torch RNG (``torch.randn`` in ``_sample_noise``);
+:class:`_SeededMPPI` overrides that one method to draw from a ``torch.Generator`` the planner owns, seeded in
+``reset(seed)``, so the global RNG is never touched and the same seed gives the same actions.
+
+Cost per plan: H steps of O(N) model and cost work: linear in N and in H.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+from pytorch_mppi import MPPI
+
+from configs import load_config
+from envs.scene import Scene
+from planners.enkts import CONFIG_FILE, EnKTSConfig
+from planners.virtual import N_TRACK, measure, n_measurements, predict_obstacles, reference_profile
+
+Dynamics = Callable[[np.ndarray, np.ndarray], np.ndarray]
+NX = 10  # [x (4), u (2), du (2), u_0 (2)]
+
+
+@dataclass(frozen=True)
+class MPPIConfig:
+    """MPPI settings; the cost (noise scales, barriers) comes from the shared :class:`EnKTSConfig`.
+
+    n_particles: samples N >= 2 (``None``: the shared tuning's, as EnKTS); horizon: H >= 1 steps (``None``: the
+    shared tuning's); temperature: MPPI's lambda > 0, in units of the cost (a negative log-likelihood);
+    noise_gain: std of the i.i.d. control perturbation per step as a multiple of the tuning's ``sigma_du``, > 0;
+    control_cost: weight >= 0 of MPPI's control cost ``lambda U' Sigma^-1 eps`` (``1 - alpha`` of Williams et al.
+    2018; 1 = pytorch_mppi's default). That term is the log-prior of controls that are zero-mean a priori; the
+    virtual system's prior is on the increments and its input and rate terms are already in the running cost,
+    so by default it is off (with it on, the steering feed-forward of a curve alone costs ~50 per plan and pulls
+    the plan straight off the road); seed: default seed of the planner's generator.
+    """
+
+    n_particles: int | None = None
+    horizon: int | None = None
+    temperature: float = 1.0
+    noise_gain: float = 1.0
+    control_cost: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.n_particles is not None and self.n_particles < 2:
+            raise ValueError(f"n_particles must be >= 2, got {self.n_particles}")
+        if self.horizon is not None and self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if not self.temperature > 0 or not np.isfinite(self.temperature):
+            raise ValueError(f"temperature must be finite and > 0, got {self.temperature}")
+        if not self.noise_gain > 0 or not np.isfinite(self.noise_gain):
+            raise ValueError(f"noise_gain must be finite and > 0, got {self.noise_gain}")
+        if not self.control_cost >= 0 or not np.isfinite(self.control_cost):
+            raise ValueError(f"control_cost must be finite and >= 0, got {self.control_cost}")
+
+
+class _SeededMPPI(MPPI):
+    """``pytorch_mppi.MPPI`` whose noise comes from ``generator`` instead of the global torch RNG, and whose
+    control cost ``lambda U' Sigma^-1 eps`` is scaled by ``control_cost`` (1: the library's).
+
+    Overrides ``_sample_noise`` of pytorch_mppi 0.9.1 (the only place it draws) and wraps the action-cost
+    function it resolves at construction; the rest is the library's.
+    """
+
+    def __init__(self, generator: torch.Generator, control_cost: float, *args, **kwargs):
+        self.generator = generator  # before MPPI.__init__, which may sample an initial sequence
+        super().__init__(*args, **kwargs)
+        library_cost = self._compute_action_cost
+        self._compute_action_cost = lambda noise: control_cost * library_cost(noise)
+
+    def _sample_noise(self, shape):
+        z = torch.randn(*shape, self.nu, generator=self.generator, device=self.d, dtype=self.dtype)
+        if self._diagonal_sigma:
+            return z * self._noise_sigma_sqrt_diag + self.noise_mu
+        return z @ self._noise_sigma_chol.T + self.noise_mu
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What the running cost of one plan needs beside the block: see :func:`planners.virtual.measure`."""
+
+    scene: Scene
+    u_prev: np.ndarray
+    ref_lane: float
+    v_ref: np.ndarray
+    a_ref: np.ndarray
+    obstacles: tuple[np.ndarray, ...]
+
+
+class MPPIPlanner:
+    """MPPI as an :class:`agents.Policy`.
+
+    scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
+    config: MPPI settings; tuning: the shared planner tuning (noise scales, barriers, default N and H); dynamics:
+    any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the shipped MLP, as EnKTS).
+
+    ``fallbacks`` counts plans that came out non-finite and were replaced by holding the last input.
+    """
+
+    def __init__(self, scene: Scene | Callable[[], Scene], config: MPPIConfig = MPPIConfig(),
+                 tuning: EnKTSConfig = EnKTSConfig(), dynamics: Dynamics | None = None):
+        self.config, self.tuning = config, tuning
+        self.n_particles = config.n_particles or tuning.n_particles
+        self.horizon = config.horizon or tuning.horizon
+        self._scene = scene if callable(scene) else (lambda: scene)
+        if dynamics is None:
+            from planners.dynamics import load_model
+
+            dynamics = load_model()
+        self.dynamics = dynamics
+        self.generator = torch.Generator()
+        noise_std = config.noise_gain * torch.tensor(tuning.sigma_du, dtype=torch.float64)
+        self._mppi = _SeededMPPI(
+            self.generator, config.control_cost, self._step, self.running_cost, nx=NX, noise_sigma=torch.diag(noise_std**2),
+            num_samples=self.n_particles, horizon=self.horizon, lambda_=config.temperature,
+            U_init=torch.zeros(self.horizon, 2, dtype=torch.float64), step_dependent_dynamics=True)
+        self._context: _Context | None = None
+        self.fallbacks = 0
+        self.reset(config.seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode: reseed the generator, forget the warm start."""
+        self.generator.manual_seed(self.config.seed if seed is None else seed)
+        self._warm = False
+
+    # --- Policy ------------------------------------------------------------------------------------------
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Normalized action ``(2,)`` float32 in [-1, 1]: the first control of the updated nominal sequence.
+
+        Raises ``ValueError`` on an observation of the wrong shape or with non-finite entries.
+        """
+        scene = self._scene()
+        ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
+        lo = np.array([scene.actuator_accel[0], scene.actuator_steer[0]])
+        hi = np.array([scene.actuator_accel[1], scene.actuator_steer[1]])
+        mppi = self._mppi
+        mppi.u_min, mppi.u_max = torch.from_numpy(lo), torch.from_numpy(hi)
+        if not self._warm:
+            mppi.U = torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
+        v_ref, a_ref = reference_profile(scene, ref, self.horizon)
+        self._context = _Context(scene, u_prev, float(ref[2]), v_ref, a_ref,
+                                 predict_obstacles(scene, ovs, self.horizon))
+        start = torch.from_numpy(np.concatenate([ego, u_prev, np.zeros(2), u_prev]))
+        # MPPI's own shift refills with a fixed u_init; shift ourselves afterwards to hold the last control.
+        u = mppi.command(start, shift_nominal_trajectory=False).numpy().copy()
+        if not (np.all(np.isfinite(u)) and torch.isfinite(mppi.U).all()):
+            self.fallbacks += 1
+            u = u_prev
+            mppi.U = torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
+        mppi.U = torch.cat([mppi.U[1:], mppi.U[-1:]])
+        self._warm = True
+        return scene.to_normalized(np.clip(u, lo, hi)).astype(np.float32)
+
+    # --- MPPI callbacks ----------------------------------------------------------------------------------
+    def _step(self, block: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
+        """Virtual-system transition ``(N, 10) -> (N, 10)`` with action ``u (N, 2)`` at step ``t`` (eq. 7)."""
+        b, u = block.numpy(), u.numpy()
+        x = b[:, :4] if t == 0 else self.dynamics(b[:, :4], b[:, 4:6])
+        first = u if t == 0 else b[:, 8:10]
+        return torch.from_numpy(np.concatenate([x, u, u - b[:, 4:6], first], axis=1))
+
+    def running_cost(self, block: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
+        """Negative log-likelihood ``(N,)`` of the zero virtual observation at step ``t`` for blocks ``(N, 10)``:
+        ``0.5 * sum_i (h_i / sigma_i)^2`` with ``h`` = :func:`planners.virtual.measure` (``u`` is in the block)."""
+        ctx, tun = self._context, self.tuning
+        b = block.numpy()
+        s_o, l_o, v_o, a_o, present = ctx.obstacles
+        h = measure(ctx.scene, tun.barrier, b[:, :4], b[:, 4:6], b[:, 6:8], b[:, 8:10], ctx.u_prev, ctx.ref_lane,
+                    ctx.v_ref[t], ctx.a_ref[t], (s_o[t], l_o[t], v_o[t], a_o[t], present))
+        return torch.from_numpy(0.5 * np.sum((h / self.noise_scale(len(present))) ** 2, axis=1))
+
+    def noise_scale(self, n_obstacles: int) -> np.ndarray:
+        """Measurement noise scales ``(m,)``: ``[sigma_ref, sigma_input, sigma_barrier, ...]`` (as EnKTS)."""
+        tun = self.tuning
+        m = n_measurements(n_obstacles)
+        return np.array([*tun.sigma_ref, *tun.sigma_input] + [tun.sigma_barrier] * (m - N_TRACK))
+
+
+def make_mppi(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> MPPIPlanner:
+    """MPPI for ``env``: settings from ``config`` (YAML, optional) plus ``overrides`` (an unknown key raises naming
+    it); cost and default N, H from the shared ``tuning`` (``configs/planner.yaml``)."""
+    return MPPIPlanner(lambda: env.unwrapped.scene, load_config(MPPIConfig, config, **overrides),
+                       load_config(EnKTSConfig, tuning))
+
+
+__all__ = ["MPPIConfig", "MPPIPlanner", "make_mppi"]

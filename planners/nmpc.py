@@ -1,0 +1,416 @@
+"""NMPC peer planner: the paper's eq. 21 solved by CasADi + IPOPT, with the same MLP dynamics and tuning.
+
+Section IV of the paper shows that BIMP approximately solves an NMPC problem; this module solves that problem
+directly with a gradient-based solver, so the EnKTS planner can be compared against it:
+
+    min_{U, X}  sum_{t=1..H} rho_3(|r(x_t)|^2_{Sigma_ref^-1}) + sum_{t=0..H-1} [rho_2(|s(x_t, u_t)|^2_{Sigma_in^-1})
+                                                                            + rho_2(|u_t - u_{t-1}|^2_{Sigma_w^-1})]
+    s.t.  x_{t+1} = f(x_t, u_t)                    (the shipped MLP, written as CasADi expressions)
+          a_min <= a_t <= a_max, |delta_t| <= delta_max, |u_t - u_{t-1}| <= rate    (eq. 4-5, hard)
+          every body corner inside the road edges, margin BarrierShape.edge_margin    (eq. 3, hard)
+          (ds / semi_s)^2 + (dl / semi_l)^2 >= 1 per OV and step                      (eq. 2, hard, smooth)
+
+- ``nmpc`` (``nu = inf``): rho_n(q) = q / 2, the quadratic tracking cost of eq. 21 as a negative log-likelihood;
+  weights are the inverse squared noise scales ``sigma_ref``, ``sigma_input``, ``sigma_du`` of the shared planner
+  tuning (``configs/planner.yaml``), so all planners trade tracking against smoothness the same way.
+- ``nmpc-t`` (``nu`` = the tuning's ``nu``): rho_n(q) = (nu + n) / 2 log(1 + q / nu), the Student's-t log cost
+  of section IV (it tends to q / 2 as nu -> inf).
+
+The residuals are those of :func:`planners.virtual.measure` (road frame: lateral offset to the reference lane,
+heading relative to the road, speed error; acceleration minus the reference's rate, steering minus the
+curvature feed-forward). ``u_{-1}`` is the input applied last (from the observation); ``x_0`` is the current
+state, so its own residual is a constant and left out. The OV keep-out is an ellipse through the semi-axes
+of the virtual system's keep-out box (time headway and braking room, see :func:`keep_out_semi_axes`); OV motion
+comes from :func:`planners.virtual.predict_obstacles`. The road's Frenet frame is written as CasADi expressions
+of ``(x, y)`` mirroring :meth:`envs.road.RoadGeometry.to_frenet` (tests check they agree), with the road's
+parameters as NLP parameters, so one compiled solver serves every redrawn road.
+
+Solver: IPOPT (MUMPS), multiple shooting (X and U are both decision variables: the MLP's nonlinearity stays
+local to each step), exact Hessian by CasADi's AD, warm start from the previous solution shifted by one
+step, ``max_iter`` and ``max_cpu_time`` caps. A solve that ends in IPOPT success is used; one stopped by a cap
+is used if its iterate is feasible (``feasibility_tol``), counted in ``capped``; anything else (infeasible,
+restoration failure, non-finite numbers, an exception) falls back to the previous plan's next control (or holds
+the last input if there is no plan), counted in ``failures``. Never a crash, never a non-finite action.
+Deterministic: no random draws, so ``reset(seed)`` only forgets the warm start.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Callable
+
+import casadi as ca
+import numpy as np
+
+from configs import load_config
+from envs.road import RoadGeometry
+from envs.scene import Scene
+from planners.enkts import CONFIG_FILE, EnKTSConfig
+from planners.virtual import BarrierShape, predict_obstacles, reference_profile
+
+_SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+_CAPPED = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded", "Maximum_WallTime_Exceeded")
+_ABSENT = 1e3  # added to an absent OV's keep-out value: the constraint can never bind
+
+
+@dataclass(frozen=True)
+class NMPCConfig:
+    """Solver settings; the cost weights and barrier margins come from the shared :class:`EnKTSConfig`.
+
+    horizon: H >= 1 steps (``None``: the shared tuning's); nu: degrees of freedom of the Student's-t log cost,
+    > 0 (``inf``: the quadratic cost of eq. 21); max_iter: IPOPT iteration cap (>= 0); max_cpu_time [s]: IPOPT
+    CPU-time cap per solve; tol: IPOPT's convergence tolerance; hessian: ``"exact"`` (CasADi AD) or
+    ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin on the input and rate bounds, so that
+    IPOPT's tolerance and the float32 action never cross the env's bound; feasibility_tol: largest constraint
+    violation of a capped iterate that is still used.
+    """
+
+    horizon: int | None = None
+    nu: float = math.inf
+    max_iter: int = 100
+    max_cpu_time: float = 0.5
+    tol: float = 1e-6
+    hessian: str = "exact"
+    bound_tightening: float = 1e-3
+    feasibility_tol: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if self.horizon is not None and self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if not self.nu > 0:
+            raise ValueError(f"nu must be > 0 (inf for the quadratic cost), got {self.nu}")
+        if self.max_iter < 0:
+            raise ValueError(f"max_iter must be >= 0, got {self.max_iter}")
+        if not self.max_cpu_time > 0 or not self.tol > 0 or not self.feasibility_tol > 0:
+            raise ValueError("max_cpu_time, tol and feasibility_tol must be > 0")
+        if self.hessian not in ("exact", "limited-memory"):
+            raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
+        if not 0 <= self.bound_tightening < 1:
+            raise ValueError(f"bound_tightening must lie in [0, 1), got {self.bound_tightening}")
+
+
+# --- CasADi building blocks (each mirrors a numpy function elsewhere; tests check they agree) ---------------
+def mlp_function(model=None) -> ca.Function:
+    """The learned model as a CasADi ``Function f(x (4,), u (2,)) -> x_next (4,)``, float64.
+
+    Same math as :meth:`planners.dynamics.LearnedDynamics.predict`: feature map of
+    :func:`planners.dynamics.features` (inputs clipped to the actuator ranges, acceleration capped above
+    ``max_speed``), three affine maps with two tanh from the folded weights ``model._w``, ``model._b``, body-frame
+    change rotated by the heading, next speed clamped at 0 (:func:`planners.dynamics.apply_change`). Built on MX:
+    the layers stay dense matrix products, which CasADi evaluates and differentiates about 3x faster than the
+    scalar SX graph (16k products per layer); JIT-compiling them gains nothing. ``model``: a ``LearnedDynamics``
+    (default: the shipped one).
+    """
+    if model is None:
+        from planners.dynamics import load_model
+
+        model = load_model()
+    x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
+    v = x[3]
+    a = ca.fmin(ca.fmax(u[0], model.accel_range[0]), model.accel_range[1])
+    a = ca.if_else(v > model.max_speed, ca.fmin(a, model.max_speed - v), a)
+    delta = ca.fmin(ca.fmax(u[1], model.steer_range[0]), model.steer_range[1])
+    h = ca.vertcat(v, a, delta)
+    # The numpy weights are (in, out) for ``rows @ W``; a column vector needs the transpose.
+    for i, (w, b) in enumerate(zip(model._w, model._b)):
+        h = ca.DM(np.asarray(w, np.float64).T) @ h + ca.DM(np.asarray(b, np.float64))
+        if i < len(model._w) - 1:
+            h = ca.tanh(h)
+    c, s = ca.cos(x[2]), ca.sin(x[2])
+    nxt = ca.vertcat(x[0] + c * h[0] - s * h[1], x[1] + s * h[0] + c * h[1], x[2] + h[2], ca.fmax(x[3] + h[3], 0.0))
+    return ca.Function("mlp_step", [x, u], [nxt], ["x", "u"], ["x_next"])
+
+
+ROAD_PARAMS = ("straight_in", "radius", "arc_angle")
+
+
+def road_params(road: RoadGeometry) -> np.ndarray:
+    """The road's shape as NLP parameters ``(3,)``: ``[straight_in m, radius m, arc_angle rad]``."""
+    return np.array([road.straight_in, road.radius, road.arc_angle])
+
+
+def frenet(x, y, p):
+    """Road coordinates ``(s, l)`` of world points, as CasADi expressions (element-wise on rows).
+
+    ``p``: :func:`road_params` (symbols or numbers). Same pieces and the same switching as
+    :meth:`envs.road.RoadGeometry.to_frenet`: the first straight (extended backwards), the arc where the polar
+    angle about its centre is >= 0, the second straight past the arc's end. With ``arc_angle = 0`` the arc
+    branch is never selected (the second straight starts at ``straight_in``), as in numpy.
+    """
+    straight_in, radius, arc = p[0], p[1], p[2]
+    turn = ca.if_else(arc >= 0, 1.0, -1.0)
+    phi_end = ca.fabs(arc)
+    cx, cy = straight_in, turn * radius
+    dx, dy = x - cx, y - cy
+    phi = ca.atan2(dx, -turn * dy)
+    on_arc = phi >= 0
+    s = ca.if_else(on_arc, straight_in + radius * phi, x)
+    lat = ca.if_else(on_arc, turn * (radius - ca.sqrt(dx**2 + dy**2)), y)
+    ex, ey = cx + radius * ca.sin(phi_end), cy - turn * radius * ca.cos(phi_end)
+    h_end = turn * phi_end
+    s_out = straight_in + radius * phi_end + (x - ex) * ca.cos(h_end) + (y - ey) * ca.sin(h_end)
+    l_out = -(x - ex) * ca.sin(h_end) + (y - ey) * ca.cos(h_end)
+    past = s_out >= straight_in + radius * phi_end
+    return ca.if_else(past, s_out, s), ca.if_else(past, l_out, lat)
+
+
+def heading_at(s, p):
+    """Centreline heading [rad] at ``s`` (:meth:`envs.road.RoadGeometry.heading_at`)."""
+    turn = ca.if_else(p[2] >= 0, 1.0, -1.0)
+    return turn * ca.fmin(ca.fmax((s - p[0]) / p[1], 0.0), ca.fabs(p[2]))
+
+
+def curvature_at(s, p):
+    """Signed curvature [1/m] at ``s`` (:meth:`envs.road.RoadGeometry.curvature_at`)."""
+    turn = ca.if_else(p[2] >= 0, 1.0, -1.0)
+    on_arc = (s >= p[0]) * (s <= p[0] + p[1] * ca.fabs(p[2])) * (ca.fabs(p[2]) > 0)
+    return ca.if_else(on_arc, turn / p[1], 0.0)
+
+
+def keep_out_semi_axes(scene: Scene, shape: BarrierShape, ds, v, v_o, a_o):
+    """Semi-axes ``(semi_s, semi_l)`` [m] of the keep-out around an OV, as CasADi expressions.
+
+    The half-sizes of the keep-out box of :func:`planners.virtual.measure` (centre to centre): the footprint
+    length plus ``d_min``, the time headway of whichever vehicle follows and its braking room; laterally the
+    footprint width plus the clearance. ``ds = s_EV - s_OV`` [m], ``v`` EV speed, ``v_o`` / ``a_o`` OV speed
+    [m/s] and acceleration [m/s^2]. The switch at ``ds = 0`` leaves ``(ds / semi_s)^2`` continuous (it is 0 there
+    on both sides), so the ellipse constraint stays continuous.
+    """
+    behind = ds < 0
+    v_follow = ca.if_else(behind, v, v_o)
+    v_lead = ca.if_else(behind, v_o, v)
+    room = ca.fmax(v_follow - v_lead, 0.0) ** 2 / (2 * shape.brake_decel)
+    a_lead = ca.if_else(behind, a_o, 0.0)
+    stop = v_follow**2 / (2 * shape.brake_decel) - v_lead**2 / (2 * ca.fmax(-a_lead, 1e-6))
+    room = ca.fmax(room, ca.if_else(a_lead < -0.5, stop, 0.0))
+    semi_s = scene.vehicle_length + scene.bounds.d_min + shape.headway * v_follow + room
+    return semi_s, scene.vehicle_width + shape.lateral_clearance
+
+
+def robust_cost(q, n: int, nu: float):
+    """Negative log-density of a residual with squared Mahalanobis norm ``q``: ``q / 2`` (Gaussian, ``nu = inf``)
+    or ``(nu + n) / 2 log(1 + q / nu)`` (Student's-t with ``n`` dimensions, paper section IV)."""
+    if math.isinf(nu):
+        return q / 2
+    return (nu + n) / 2 * ca.log1p(q / nu)
+
+
+# --- the planner ---------------------------------------------------------------------------------------------
+@dataclass
+class _Problem:
+    """A compiled NLP for one scene layout: the solver, its variable / constraint bounds and sizes."""
+
+    solver: ca.Function
+    lbx: np.ndarray
+    ubx: np.ndarray
+    lbg: np.ndarray
+    ubg: np.ndarray
+    n_obstacles: int
+
+
+class NMPCPlanner:
+    """NMPC (eq. 21) as an :class:`agents.Policy`.
+
+    scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
+    config: solver settings; tuning: the shared planner tuning (cost weights = inverse squared noise scales,
+    barrier margins); dynamics: a CasADi ``Function f(x (4,), u (2,)) -> (4,)`` (default: :func:`mlp_function`).
+
+    Attributes after ``act``: ``failures`` (fallback actions), ``capped`` (cap-stopped but feasible solves used),
+    ``statuses`` (IPOPT return statuses), ``solve_times`` [s] and ``iterations`` per solve, ``plan`` (``(X (H+1, 4), U (H, 2))``).
+    """
+
+    def __init__(self, scene: Scene | Callable[[], Scene], config: NMPCConfig = NMPCConfig(),
+                 tuning: EnKTSConfig = EnKTSConfig(), dynamics: ca.Function | None = None):
+        self.config, self.tuning = config, tuning
+        self.horizon = config.horizon or tuning.horizon
+        self._scene = scene if callable(scene) else (lambda: scene)
+        self.f = dynamics if dynamics is not None else mlp_function()
+        self._problems: dict[tuple, _Problem] = {}
+        self.failures = self.capped = 0
+        self.statuses: Counter[str] = Counter()
+        self.solve_times: list[float] = []
+        self.iterations: list[int] = []
+        self.reset()
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start a new episode: forget the warm start. (``seed`` is accepted for the protocol; nothing is random.)"""
+        self._warm: tuple[np.ndarray, np.ndarray] | None = None  # X (H, 4) = x_1..x_H, U (H, 2)
+        self.plan: tuple[np.ndarray, np.ndarray] | None = None
+
+    # --- Policy ------------------------------------------------------------------------------------------
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Normalized action ``(2,)`` float32 in [-1, 1]: the first control of the solution (or the fallback).
+
+        Raises ``ValueError`` on an observation of the wrong shape or with non-finite entries.
+        """
+        scene = self._scene()
+        ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
+        problem = self._problem(scene)
+        params = self._params(scene, ego, u_prev, ovs, ref)
+        X0, U0 = self._initial_guess(ego, u_prev)
+        w0 = np.concatenate([X0.ravel(), U0.ravel()])
+        solution = self._solve(problem, w0, params)
+        if solution is None:
+            self.failures += 1
+            u = U0[0] if self._warm is not None else u_prev  # the shifted previous plan's next control
+            self._warm = (X0, U0)  # keep walking down the old plan; the next solve starts from it
+        else:
+            X, U = solution
+            self._warm = (X, U)
+            self.plan = (np.vstack([ego, X]), U)
+            u = U[0]
+        lo = np.array([scene.actuator_accel[0], scene.actuator_steer[0]])
+        hi = np.array([scene.actuator_accel[1], scene.actuator_steer[1]])
+        if not np.all(np.isfinite(u)):
+            u = u_prev
+        return scene.to_normalized(np.clip(u, lo, hi)).astype(np.float32)
+
+    # --- internals ---------------------------------------------------------------------------------------
+    def _initial_guess(self, ego: np.ndarray, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``X (H, 4)``, ``U (H, 2)``: the previous solution shifted by one step (its last control held and the
+        state rolled one step further), or ``u_prev`` held and rolled out from ``ego`` on the first step."""
+        H = self.horizon
+        if self._warm is None:
+            U = np.tile(u_prev, (H, 1))
+            X, x = np.empty((H, 4)), ego
+            for t in range(H):
+                x = np.asarray(self.f(x, U[t])).ravel()
+                X[t] = x
+            return X, U
+        X, U = self._warm
+        x_last = np.asarray(self.f(X[-1], U[-1])).ravel()
+        return np.vstack([X[1:], x_last]), np.vstack([U[1:], U[-1:]])
+
+    def _solve(self, problem: _Problem, w0: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Run IPOPT; ``(X (H, 4), U (H, 2))`` if the result may be used, else ``None``."""
+        H = self.horizon
+        start = time.perf_counter()
+        try:
+            out = problem.solver(x0=w0, p=params, lbx=problem.lbx, ubx=problem.ubx, lbg=problem.lbg,
+                                 ubg=problem.ubg)
+            stats = problem.solver.stats()
+        except RuntimeError:  # CasADi raises on evaluation errors it cannot hand to IPOPT
+            self.statuses["exception"] += 1
+            return None
+        status = stats.get("return_status", "unknown")
+        self.statuses[status] += 1
+        self.solve_times.append(time.perf_counter() - start)
+        self.iterations.append(int(stats.get("iter_count", -1)))
+        w = np.asarray(out["x"]).ravel()
+        if not np.all(np.isfinite(w)):
+            return None
+        if status not in _SUCCESS:
+            if status not in _CAPPED:
+                return None
+            g = np.asarray(out["g"]).ravel()
+            violation = max(np.max(problem.lbg - g, initial=0.0), np.max(g - problem.ubg, initial=0.0),
+                            np.max(problem.lbx - w, initial=0.0), np.max(w - problem.ubx, initial=0.0))
+            if not violation <= self.config.feasibility_tol:
+                return None
+            self.capped += 1
+        return w[:4 * H].reshape(H, 4), w[4 * H:].reshape(H, 2)
+
+    def _params(self, scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
+        """NLP parameters, in the order :meth:`_build` declares them."""
+        H = self.horizon
+        s_o, l_o, v_o, a_o, present = predict_obstacles(scene, ovs, H)
+        v_ref, a_ref = reference_profile(scene, ref, H)
+        return np.concatenate([ego, u_prev, [ref[2]], v_ref, a_ref, road_params(scene.road),
+                               s_o.ravel(), l_o.ravel(), v_o.ravel(), a_o.ravel(), present.astype(float)])
+
+    def _problem(self, scene: Scene) -> _Problem:
+        # The road shape is a parameter; everything else in a scene is fixed per env, so this builds once.
+        key = (scene.bounds, scene.dt, scene.vehicle_length, scene.vehicle_width, scene.road.half_width,
+               scene.n_obstacles)
+        if key not in self._problems:
+            self._problems[key] = self._build(scene)
+        return self._problems[key]
+
+    def _build(self, scene: Scene) -> _Problem:
+        """Formulate eq. 21 (multiple shooting) for ``scene``'s layout and compile IPOPT on it."""
+        cfg, tun, H, K = self.config, self.tuning, self.horizon, scene.n_obstacles
+        shape, b = tun.barrier, scene.bounds
+        X = ca.MX.sym("X", 4, H)  # x_1 .. x_H (columns)
+        U = ca.MX.sym("U", 2, H)  # u_0 .. u_{H-1}
+        x0, u_prev, ref_lane = ca.MX.sym("x0", 4), ca.MX.sym("u_prev", 2), ca.MX.sym("ref_lane")
+        v_ref, a_ref = ca.MX.sym("v_ref", 1, H + 1), ca.MX.sym("a_ref", 1, H + 1)
+        road = ca.MX.sym("road", len(ROAD_PARAMS))
+        # predict_obstacles gives (H + 1, K) arrays, raveled row-major: reshape to (K, H + 1), columns = time.
+        s_o, l_o, v_o, a_o = (ca.MX.sym(n, K, H + 1) for n in ("s_o", "l_o", "v_o", "a_o"))
+        present = ca.MX.sym("present", K)
+        params = [x0, u_prev, ref_lane, v_ref, a_ref, road, s_o, l_o, v_o, a_o, present]
+        # ca.vec stacks columns; the numpy side ravels (H + 1, K) row-major, which is the column-major (K, H + 1).
+        p = ca.vertcat(*[ca.vec(q) for q in params])
+
+        states = ca.horzcat(x0, X)  # x_0 .. x_H
+        s, lat = frenet(states[0, :], states[1, :], road)
+        dpsi = states[2, :] - heading_at(s, road)
+        v = states[3, :]
+        du = U - ca.horzcat(u_prev, U[:, :-1])
+
+        # Cost (eq. 21, or its Student's-t form): residuals of planners.virtual.measure, weights 1 / sigma^2.
+        sr, si, sw = tun.sigma_ref, tun.sigma_input, tun.sigma_du
+        q_ref = ((lat - ref_lane) / sr[0]) ** 2 + (dpsi / sr[1]) ** 2 + ((v - v_ref) / sr[2]) ** 2
+        feedforward = ca.atan(scene.vehicle_length * curvature_at(s[:, :H], road))
+        q_in = ((U[0, :] - a_ref[:, :H]) / si[0]) ** 2 + ((U[1, :] - feedforward) / si[1]) ** 2
+        q_du = (du[0, :] / sw[0]) ** 2 + (du[1, :] / sw[1]) ** 2
+        J = ca.sum2(robust_cost(q_ref[:, 1:], 3, cfg.nu) + robust_cost(q_in, 2, cfg.nu)
+                    + robust_cost(q_du, 2, cfg.nu))
+
+        # Constraints, each row of g over the steps 1..H (u: 0..H-1).
+        f_map = self.f.map(H)
+        g = [ca.vec(f_map(states[:, :H], U) - X)]
+        lbg, ubg = [np.zeros(4 * H)], [np.zeros(4 * H)]
+        keep = 1.0 - cfg.bound_tightening
+        g.append(ca.vec(du))
+        rate = np.tile([keep * b.accel_rate, keep * b.steer_rate], H)
+        lbg.append(-rate), ubg.append(rate)
+        # Road edges: |l| + L/2 |sin dpsi| + W/2 cos dpsi is the largest of the four corners' +-l +- L/2 sin dpsi
+        # + W/2 cos dpsi; four smooth rows instead of one with two kinks.
+        half_l, half_w = scene.vehicle_length / 2, scene.vehicle_width / 2
+        room = scene.road.half_width - shape.edge_margin
+        for sign_l in (1.0, -1.0):
+            for sign_h in (1.0, -1.0):
+                g.append(ca.vec(sign_l * lat[:, 1:] + sign_h * half_l * ca.sin(dpsi[:, 1:])
+                                + half_w * ca.cos(dpsi[:, 1:])))
+                lbg.append(np.full(H, -np.inf)), ubg.append(np.full(H, room))
+        for k in range(K):
+            ds = s[:, 1:] - s_o[k, 1:]
+            semi_s, semi_l = keep_out_semi_axes(scene, shape, ds, v[:, 1:], v_o[k, 1:], a_o[k, 1:])
+            ellipse = (ds / semi_s) ** 2 + ((lat[:, 1:] - l_o[k, 1:]) / semi_l) ** 2 - 1.0
+            g.append(ca.vec(ellipse + (1.0 - present[k]) * _ABSENT))
+            lbg.append(np.zeros(H)), ubg.append(np.full(H, np.inf))
+
+        w = ca.vertcat(ca.vec(X), ca.vec(U))  # X column-major = x_1, x_2, ... row blocks of 4
+        nlp = {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}
+        opts = {"print_time": False, "error_on_fail": False, "ipopt": {
+            "print_level": 0, "sb": "yes", "max_iter": cfg.max_iter, "max_cpu_time": cfg.max_cpu_time,
+            "tol": cfg.tol, "acceptable_tol": 1e3 * cfg.tol, "hessian_approximation": cfg.hessian,
+            "constr_viol_tol": cfg.feasibility_tol}}
+        solver = ca.nlpsol("nmpc", "ipopt", nlp, opts)
+        lo_u = np.array([keep * b.accel[0], -keep * b.steer])
+        hi_u = np.array([keep * b.accel[1], keep * b.steer])
+        lbx = np.concatenate([np.full(4 * H, -np.inf), np.tile(lo_u, H)])
+        ubx = np.concatenate([np.full(4 * H, np.inf), np.tile(hi_u, H)])
+        return _Problem(solver, lbx, ubx, np.concatenate(lbg), np.concatenate(ubg), K)
+
+
+def make_nmpc(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> NMPCPlanner:
+    """NMPC with the quadratic cost of eq. 21 for ``env``: solver settings from ``config`` (YAML, optional) plus
+    ``overrides`` (an unknown key raises naming it); weights and margins from the shared ``tuning``."""
+    return NMPCPlanner(lambda: env.unwrapped.scene, load_config(NMPCConfig, config, **overrides),
+                       load_config(EnKTSConfig, tuning))
+
+
+def make_nmpc_t(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> NMPCPlanner:
+    """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared tuning (EnKTS's)."""
+    shared = load_config(EnKTSConfig, tuning)
+    return NMPCPlanner(lambda: env.unwrapped.scene,
+                       load_config(NMPCConfig, config, **{"nu": shared.nu, **overrides}), shared)
+
+
+__all__ = ["NMPCConfig", "NMPCPlanner", "make_nmpc", "make_nmpc_t", "mlp_function", "frenet",
+           "keep_out_semi_axes", "robust_cost"]
