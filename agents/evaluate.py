@@ -63,7 +63,8 @@ def run_episode(job: Job) -> dict:
         policy.reset(job.seed)
         trace: dict[str, list] = {k: [] for k in (
             "x", "y", "heading", "speed", "input", "ov_xy", "ov_distance", "edge_distance", "ttc",
-            "lateral_error", "speed_error", "reference_speed", "collision", "offroad", "constraints", "plan_ms")}
+            "lateral_error", "speed_error", "reference_speed", "collision", "offroad", "constraints", "plan_ms",
+            "s")}
         terminated = truncated = False
         while not (terminated or truncated):
             start = time.perf_counter()
@@ -76,7 +77,7 @@ def run_episode(job: Job) -> dict:
             trace["ov_xy"].append(ovs[:, 1:3].tolist())
             trace["reference_speed"].append(float(ref[0]))
             for name in ("input", "ov_distance", "edge_distance", "ttc", "lateral_error", "speed_error",
-                         "collision", "offroad", "constraints"):
+                         "collision", "offroad", "constraints", "s"):
                 trace[name].append(info[name])
         record.update(status="ok", steps=len(trace["plan_ms"]), truncated=bool(truncated),
                       metrics=episode_metrics(trace, env.unwrapped.scene.dt, truncated=bool(truncated)))

@@ -4,7 +4,8 @@ A trace is a dict of equal-length per-step lists, as :func:`agents.evaluate.run_
 the env's ``info`` (evaluation never re-derives what the env already measured):
 ``collision``, ``offroad`` (bool); ``ov_distance`` (K floats, m); ``edge_distance`` (m); ``ttc`` (s, inf if no
 closing OV); ``lateral_error`` (m); ``speed_error`` (m/s); ``input`` ([a, delta]); ``constraints`` (dicts of
-values <= 0 when satisfied, see :mod:`envs.scenarios`); ``plan_ms`` (ms spent in ``act``).
+values <= 0 when satisfied, see :mod:`envs.scenarios`); ``plan_ms`` (ms spent in ``act``); ``s`` (arc length
+along the road, m; gives ``progress_m``, e.g. higher when the EV overtakes instead of following).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 METRICS = (
     "success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate",
     "min_distance_m", "min_ttc_s", "rms_lateral_error_m", "rms_speed_error_mps", "max_abs_jerk",
-    "plan_time_ms_p50", "plan_time_ms_p95",
+    "plan_time_ms_p50", "plan_time_ms_p95", "progress_m",
 )
 # Constraint values this small count as satisfied: float32 round-off of an action sitting on its bound.
 TOLERANCE = 1e-6
@@ -50,6 +51,7 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
         "max_abs_jerk": float(jerk.max()),
         "plan_time_ms_p50": float(np.percentile(plan, 50)),
         "plan_time_ms_p95": float(np.percentile(plan, 95)),
+        "progress_m": float(trace["s"][-1] - trace["s"][0]) if "s" in trace else None,
     }
 
 

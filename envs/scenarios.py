@@ -284,7 +284,7 @@ class OvertakingEnv(BimpEnv):
         "ev_speed": (23.0, 27.0),
         "ov1_gap": (25.0, 35.0),
         "ov1_speed": (15.0, 18.0),
-        "ov2_gap": (65.0, 85.0),
+        "ov2_gap": (100.0, 130.0),
         "ov2_speed": (17.0, 20.0),
         "radius": (180.0, 220.0),
         "arc_angle_deg": (50.0, 70.0),

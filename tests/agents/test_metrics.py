@@ -12,7 +12,7 @@ def trace(n=10, **changes):
         "collision": [False] * n, "offroad": [False] * n, "ov_distance": [[20.0, 30.0]] * n,
         "edge_distance": [1.0] * n, "ttc": [math.inf] * n, "lateral_error": [0.0] * n,
         "speed_error": [0.0] * n, "input": [[0.0, 0.0]] * n, "constraints": [dict(OK) for _ in range(n)],
-        "plan_ms": [1.0] * n,
+        "plan_ms": [1.0] * n, "s": [20.0 * k for k in range(n)],
     }
     t.update(changes)
     return t
@@ -23,6 +23,7 @@ def test_clean_episode():
     assert m["success_rate"] == 1.0 and m["collision_rate"] == m["offroad_rate"] == 0.0
     assert m["input_violation_rate"] == m["rate_violation_rate"] == 0.0
     assert m["min_distance_m"] == 20.0 and m["min_ttc_s"] is None and m["max_abs_jerk"] == 0.0
+    assert m["progress_m"] == 180.0
 
 
 def test_known_collision_offroad_and_early_termination():
