@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from agents.evaluate import evaluate, markdown_table
-from agents.plots import plot_all
+from agents.plots import plot_all, render_episode
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,7 +20,11 @@ def main(argv: list[str] | None = None) -> int:
     summary = evaluate(["overtaking", "emergency-brake"], args.policy, args.episodes, seed=0,
                        workers=args.workers, out=args.out, traces=1)
     print(markdown_table(summary))
-    for path in plot_all(args.out):
+    figures = plot_all(args.out)
+    for scenario in ("overtaking", "emergency-brake"):
+        figures.append(render_episode(scenario, args.policy[0], 0, Path(args.out) / "figures" /
+                                      f"render_{scenario}.png"))
+    for path in figures:
         print(f"figure: {path}")
     print(f"table: {Path(args.out) / 'summary.md'}")
     return 0

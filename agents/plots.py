@@ -131,6 +131,33 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+def render_episode(scenario: str, policy: str, seed: int, path: str | Path, every: int = 30) -> Path:
+    """Run one episode with highway-env's renderer and save a strip of frames (every ``every`` steps and
+    the last one) as one PNG: what the simulator shows, next to the plotted trajectories."""
+    import gymnasium as gym
+
+    import envs
+    from agents.registry import make_policy
+
+    env = gym.make(envs.env_id(scenario), render_mode="rgb_array")
+    agent = make_policy(policy, env)
+    obs, _ = env.reset(seed=seed)
+    agent.reset(seed)
+    frames, step, done = [env.render()], 0, False
+    while not done:
+        obs, _, terminated, truncated, _ = env.step(agent.act(obs))
+        done, step = terminated or truncated, step + 1
+        if step % every == 0 or done:
+            frames.append(env.render())
+    env.close()
+    fig, axes = plt.subplots(len(frames), 1, figsize=(8, 2.4 * len(frames)))
+    for k, (ax, frame) in enumerate(zip(np.atleast_1d(axes), frames)):
+        ax.imshow(frame)
+        ax.set_axis_off()
+        ax.set_title(f"{scenario}, {policy}, seed {seed}: step {min(k * every, step)}", fontsize=8)
+    return _save(fig, Path(path))
+
+
 def plot_all(folder: str | Path, out: str | Path | None = None) -> list[Path]:
     """Draw every figure for the evaluation in ``folder`` into ``out`` (default ``folder/figures``)."""
     folder = Path(folder)
