@@ -8,7 +8,7 @@ directly with a gradient-based solver, so the EnKTS planner can be compared agai
     s.t.  x_{t+1} = f(x_t, u_t)                    (the shipped MLP, written as CasADi expressions)
           a_min <= a_t <= a_max, |delta_t| <= delta_max, |u_t - u_{t-1}| <= rate    (eq. 4-5, hard)
           every body corner inside the road edges, margin BarrierShape.edge_margin    (eq. 3, hard)
-          (ds / semi_s)^2 + (dl / semi_l)^2 >= 1 per OV and step                      (eq. 2, hard, smooth)
+          (ds / semi_s)^p + (dl / semi_l)^p >= 1 per OV and step, p even               (eq. 2, hard, smooth)
 
 - ``nmpc`` (``nu = inf``): rho_n(q) = q / 2, the quadratic tracking cost of eq. 21 as a negative log-likelihood;
   weights are the inverse squared noise scales ``sigma_ref``, ``sigma_input``, ``sigma_du`` of the shared planner
@@ -19,18 +19,21 @@ directly with a gradient-based solver, so the EnKTS planner can be compared agai
 The residuals are those of :func:`planners.virtual.measure` (road frame: lateral offset to the reference lane,
 heading relative to the road, speed error; acceleration minus the reference's rate, steering minus the
 curvature feed-forward). ``u_{-1}`` is the input applied last (from the observation); ``x_0`` is the current
-state, so its own residual is a constant and left out. The OV keep-out is an ellipse through the semi-axes
-of the virtual system's keep-out box (time headway and braking room, see :func:`keep_out_semi_axes`); OV motion
-comes from :func:`planners.virtual.predict_obstacles`. The road's Frenet frame is written as CasADi expressions
-of ``(x, y)`` mirroring :meth:`envs.road.RoadGeometry.to_frenet` (tests check they agree), with the road's
-parameters as NLP parameters, so one compiled solver serves every redrawn road.
+state, so its own residual is a constant and left out. The OV keep-out is a smooth superellipse through the
+semi-axes of the virtual system's keep-out box (time headway and braking room, see :func:`keep_out_semi_axes`).
+An ellipse (p = 2) cuts the box's corners by 29% of each semi-axis, and in the emergency brake NMPC used that
+to stop between the lanes 0.3 m from an OV; p = 4 (16%) stays closer to the box the other planners see and
+stopped 1.7 m behind. OV motion comes from :func:`planners.virtual.predict_obstacles`. The road's Frenet frame
+is written as CasADi expressions of ``(x, y)`` mirroring :meth:`envs.road.RoadGeometry.to_frenet` (tests check
+they agree), with the road's shape as NLP parameters, so one compiled solver serves every redrawn road.
 
 Solver: IPOPT (MUMPS), multiple shooting (X and U are both decision variables: the MLP's nonlinearity stays
 local to each step), exact Hessian by CasADi's AD, warm start from the previous solution shifted by one
 step, ``max_iter`` and ``max_cpu_time`` caps. A solve that ends in IPOPT success is used; one stopped by a cap
 is used if its iterate is feasible (``feasibility_tol``), counted in ``capped``; anything else (infeasible,
-restoration failure, non-finite numbers, an exception) falls back to the previous plan's next control (or holds
-the last input if there is no plan), counted in ``failures``. Never a crash, never a non-finite action.
+restoration failure, non-finite numbers, an exception) falls back to the last usable plan's next control (or
+holds the last input if there is none), counted in ``failures``, and the next solve starts from the unusable
+iterate if it is finite (it is further on than the old guess). Never a crash, never a non-finite action.
 Deterministic: no random draws, so ``reset(seed)`` only forgets the warm start.
 """
 
@@ -65,7 +68,8 @@ class NMPCConfig:
     CPU-time cap per solve; tol: IPOPT's convergence tolerance; hessian: ``"exact"`` (CasADi AD) or
     ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin on the input and rate bounds, so that
     IPOPT's tolerance and the float32 action never cross the env's bound; feasibility_tol: largest constraint
-    violation of a capped iterate that is still used.
+    violation of a capped iterate that is still used; keep_out_power: even exponent p >= 2 of the keep-out
+    superellipse (2: an ellipse).
     """
 
     horizon: int | None = None
@@ -76,6 +80,7 @@ class NMPCConfig:
     hessian: str = "exact"
     bound_tightening: float = 1e-3
     feasibility_tol: float = 1e-4
+    keep_out_power: int = 4
 
     def __post_init__(self) -> None:
         if self.horizon is not None and self.horizon < 1:
@@ -88,6 +93,8 @@ class NMPCConfig:
             raise ValueError("max_cpu_time, tol and feasibility_tol must be > 0")
         if self.hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
+        if self.keep_out_power < 2 or self.keep_out_power % 2:
+            raise ValueError(f"keep_out_power must be an even integer >= 2, got {self.keep_out_power}")
         if not 0 <= self.bound_tightening < 1:
             raise ValueError(f"bound_tightening must lie in [0, 1), got {self.bound_tightening}")
 
@@ -176,8 +183,8 @@ def keep_out_semi_axes(scene: Scene, shape: BarrierShape, ds, v, v_o, a_o):
     The half-sizes of the keep-out box of :func:`planners.virtual.measure` (centre to centre): the footprint
     length plus ``d_min``, the time headway of whichever vehicle follows and its braking room; laterally the
     footprint width plus the clearance. ``ds = s_EV - s_OV`` [m], ``v`` EV speed, ``v_o`` / ``a_o`` OV speed
-    [m/s] and acceleration [m/s^2]. The switch at ``ds = 0`` leaves ``(ds / semi_s)^2`` continuous (it is 0 there
-    on both sides), so the ellipse constraint stays continuous.
+    [m/s] and acceleration [m/s^2]. The switch at ``ds = 0`` leaves ``(ds / semi_s)^p`` continuous (it is 0 there
+    on both sides), so the keep-out constraint stays continuous.
     """
     behind = ds < 0
     v_follow = ca.if_else(behind, v, v_o)
@@ -208,7 +215,6 @@ class _Problem:
     ubx: np.ndarray
     lbg: np.ndarray
     ubg: np.ndarray
-    n_obstacles: int
 
 
 class NMPCPlanner:
@@ -219,7 +225,8 @@ class NMPCPlanner:
     barrier margins); dynamics: a CasADi ``Function f(x (4,), u (2,)) -> (4,)`` (default: :func:`mlp_function`).
 
     Attributes after ``act``: ``failures`` (fallback actions), ``capped`` (cap-stopped but feasible solves used),
-    ``statuses`` (IPOPT return statuses), ``solve_times`` [s] and ``iterations`` per solve, ``plan`` (``(X (H+1, 4), U (H, 2))``).
+    ``statuses`` (IPOPT return statuses), ``solve_times`` [s] and ``iterations`` per solve, ``plan`` (the last
+    usable solution ``(X (H + 1, 4), U (H, 2))``).
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: NMPCConfig = NMPCConfig(),
@@ -227,7 +234,13 @@ class NMPCPlanner:
         self.config, self.tuning = config, tuning
         self.horizon = config.horizon or tuning.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
-        self.f = dynamics if dynamics is not None else mlp_function()
+        self._model_dt = None  # the step the learned model was trained for, checked against the scene's
+        if dynamics is None:
+            from planners.dynamics import load_model
+
+            model = load_model()
+            dynamics, self._model_dt = mlp_function(model), model.dt
+        self.f = dynamics
         self._problems: dict[tuple, _Problem] = {}
         self.failures = self.capped = 0
         self.statuses: Counter[str] = Counter()
@@ -237,7 +250,8 @@ class NMPCPlanner:
 
     def reset(self, seed: int | None = None) -> None:
         """Start a new episode: forget the warm start. (``seed`` is accepted for the protocol; nothing is random.)"""
-        self._warm: tuple[np.ndarray, np.ndarray] | None = None  # X (H, 4) = x_1..x_H, U (H, 2)
+        self._guess: tuple[np.ndarray, np.ndarray] | None = None  # last iterate: X (H, 4) = x_1..x_H, U (H, 2)
+        self._controls: np.ndarray | None = None  # the last usable plan's controls (H, 2), shifted at every step
         self.plan: tuple[np.ndarray, np.ndarray] | None = None
 
     # --- Policy ------------------------------------------------------------------------------------------
@@ -252,16 +266,17 @@ class NMPCPlanner:
         params = self._params(scene, ego, u_prev, ovs, ref)
         X0, U0 = self._initial_guess(ego, u_prev)
         w0 = np.concatenate([X0.ravel(), U0.ravel()])
-        solution = self._solve(problem, w0, params)
-        if solution is None:
+        usable, iterate = self._solve(problem, w0, params)
+        # Even an unusable iterate (stopped by a cap while still infeasible) is further on than the old guess.
+        self._guess = iterate if iterate is not None else (X0, U0)
+        if usable:
+            self._controls = iterate[1]
+            self.plan = (np.vstack([ego, iterate[0]]), iterate[1])
+        elif self._controls is not None:
+            self._controls = np.vstack([self._controls[1:], self._controls[-1:]])  # the old plan's next control
+        if not usable:
             self.failures += 1
-            u = U0[0] if self._warm is not None else u_prev  # the shifted previous plan's next control
-            self._warm = (X0, U0)  # keep walking down the old plan; the next solve starts from it
-        else:
-            X, U = solution
-            self._warm = (X, U)
-            self.plan = (np.vstack([ego, X]), U)
-            u = U[0]
+        u = self._controls[0] if self._controls is not None else u_prev
         lo = np.array([scene.actuator_accel[0], scene.actuator_steer[0]])
         hi = np.array([scene.actuator_accel[1], scene.actuator_steer[1]])
         if not np.all(np.isfinite(u)):
@@ -273,19 +288,20 @@ class NMPCPlanner:
         """``X (H, 4)``, ``U (H, 2)``: the previous solution shifted by one step (its last control held and the
         state rolled one step further), or ``u_prev`` held and rolled out from ``ego`` on the first step."""
         H = self.horizon
-        if self._warm is None:
+        if self._guess is None:
             U = np.tile(u_prev, (H, 1))
             X, x = np.empty((H, 4)), ego
             for t in range(H):
                 x = np.asarray(self.f(x, U[t])).ravel()
                 X[t] = x
             return X, U
-        X, U = self._warm
+        X, U = self._guess
         x_last = np.asarray(self.f(X[-1], U[-1])).ravel()
         return np.vstack([X[1:], x_last]), np.vstack([U[1:], U[-1:]])
 
-    def _solve(self, problem: _Problem, w0: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Run IPOPT; ``(X (H, 4), U (H, 2))`` if the result may be used, else ``None``."""
+    def _solve(self, problem: _Problem, w0: np.ndarray, params: np.ndarray
+               ) -> tuple[bool, tuple[np.ndarray, np.ndarray] | None]:
+        """Run IPOPT: whether the result may be used, and its iterate ``(X (H, 4), U (H, 2))`` if finite."""
         H = self.horizon
         start = time.perf_counter()
         try:
@@ -294,24 +310,26 @@ class NMPCPlanner:
             stats = problem.solver.stats()
         except RuntimeError:  # CasADi raises on evaluation errors it cannot hand to IPOPT
             self.statuses["exception"] += 1
-            return None
+            return False, None
         status = stats.get("return_status", "unknown")
         self.statuses[status] += 1
         self.solve_times.append(time.perf_counter() - start)
         self.iterations.append(int(stats.get("iter_count", -1)))
         w = np.asarray(out["x"]).ravel()
         if not np.all(np.isfinite(w)):
-            return None
-        if status not in _SUCCESS:
-            if status not in _CAPPED:
-                return None
-            g = np.asarray(out["g"]).ravel()
-            violation = max(np.max(problem.lbg - g, initial=0.0), np.max(g - problem.ubg, initial=0.0),
-                            np.max(problem.lbx - w, initial=0.0), np.max(w - problem.ubx, initial=0.0))
-            if not violation <= self.config.feasibility_tol:
-                return None
-            self.capped += 1
-        return w[:4 * H].reshape(H, 4), w[4 * H:].reshape(H, 2)
+            return False, None
+        iterate = (w[:4 * H].reshape(H, 4), w[4 * H:].reshape(H, 2))
+        if status in _SUCCESS:
+            return True, iterate
+        if status not in _CAPPED:
+            return False, iterate
+        g = np.asarray(out["g"]).ravel()
+        violation = max(np.max(problem.lbg - g, initial=0.0), np.max(g - problem.ubg, initial=0.0),
+                        np.max(problem.lbx - w, initial=0.0), np.max(w - problem.ubx, initial=0.0))
+        if not violation <= self.config.feasibility_tol:
+            return False, iterate
+        self.capped += 1
+        return True, iterate
 
     def _params(self, scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
         """NLP parameters, in the order :meth:`_build` declares them."""
@@ -331,6 +349,8 @@ class NMPCPlanner:
 
     def _build(self, scene: Scene) -> _Problem:
         """Formulate eq. 21 (multiple shooting) for ``scene``'s layout and compile IPOPT on it."""
+        if self._model_dt is not None and abs(self._model_dt - scene.dt) > 1e-9:
+            raise ValueError(f"the dynamics model steps {self._model_dt} s but the scene's dt is {scene.dt} s")
         cfg, tun, H, K = self.config, self.tuning, self.horizon, scene.n_obstacles
         shape, b = tun.barrier, scene.bounds
         X = ca.MX.sym("X", 4, H)  # x_1 .. x_H (columns)
@@ -360,29 +380,31 @@ class NMPCPlanner:
         J = ca.sum2(robust_cost(q_ref[:, 1:], 3, cfg.nu) + robust_cost(q_in, 2, cfg.nu)
                     + robust_cost(q_du, 2, cfg.nu))
 
-        # Constraints, each row of g over the steps 1..H (u: 0..H-1).
-        f_map = self.f.map(H)
-        g = [ca.vec(f_map(states[:, :H], U) - X)]
-        lbg, ubg = [np.zeros(4 * H)], [np.zeros(4 * H)]
+        # Constraints: rows over the steps 1..H (inputs and rates: 0..H-1), each with its lower and upper bound.
+        g, lbg, ubg = [], [], []
+
+        def add(rows, lower, upper) -> None:
+            g.append(ca.vec(rows))
+            n = g[-1].shape[0]
+            lbg.append(np.broadcast_to(lower, (n,))), ubg.append(np.broadcast_to(upper, (n,)))
+
+        add(self.f.map(H)(states[:, :H], U) - X, 0.0, 0.0)  # multiple shooting
         keep = 1.0 - cfg.bound_tightening
-        g.append(ca.vec(du))
         rate = np.tile([keep * b.accel_rate, keep * b.steer_rate], H)
-        lbg.append(-rate), ubg.append(rate)
+        add(du, -rate, rate)
         # Road edges: |l| + L/2 |sin dpsi| + W/2 cos dpsi is the largest of the four corners' +-l +- L/2 sin dpsi
         # + W/2 cos dpsi; four smooth rows instead of one with two kinks.
         half_l, half_w = scene.vehicle_length / 2, scene.vehicle_width / 2
-        room = scene.road.half_width - shape.edge_margin
         for sign_l in (1.0, -1.0):
             for sign_h in (1.0, -1.0):
-                g.append(ca.vec(sign_l * lat[:, 1:] + sign_h * half_l * ca.sin(dpsi[:, 1:])
-                                + half_w * ca.cos(dpsi[:, 1:])))
-                lbg.append(np.full(H, -np.inf)), ubg.append(np.full(H, room))
+                corner = sign_l * lat[:, 1:] + sign_h * half_l * ca.sin(dpsi[:, 1:]) + half_w * ca.cos(dpsi[:, 1:])
+                add(corner, -np.inf, scene.road.half_width - shape.edge_margin)
+        p_exp = cfg.keep_out_power
         for k in range(K):
             ds = s[:, 1:] - s_o[k, 1:]
             semi_s, semi_l = keep_out_semi_axes(scene, shape, ds, v[:, 1:], v_o[k, 1:], a_o[k, 1:])
-            ellipse = (ds / semi_s) ** 2 + ((lat[:, 1:] - l_o[k, 1:]) / semi_l) ** 2 - 1.0
-            g.append(ca.vec(ellipse + (1.0 - present[k]) * _ABSENT))
-            lbg.append(np.zeros(H)), ubg.append(np.full(H, np.inf))
+            keep_out = (ds / semi_s) ** p_exp + ((lat[:, 1:] - l_o[k, 1:]) / semi_l) ** p_exp - 1.0
+            add(keep_out + (1.0 - present[k]) * _ABSENT, 0.0, np.inf)
 
         w = ca.vertcat(ca.vec(X), ca.vec(U))  # X column-major = x_1, x_2, ... row blocks of 4
         nlp = {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}
@@ -395,7 +417,7 @@ class NMPCPlanner:
         hi_u = np.array([keep * b.accel[1], keep * b.steer])
         lbx = np.concatenate([np.full(4 * H, -np.inf), np.tile(lo_u, H)])
         ubx = np.concatenate([np.full(4 * H, np.inf), np.tile(hi_u, H)])
-        return _Problem(solver, lbx, ubx, np.concatenate(lbg), np.concatenate(ubg), K)
+        return _Problem(solver, lbx, ubx, np.concatenate(lbg), np.concatenate(ubg))
 
 
 def make_nmpc(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> NMPCPlanner:

@@ -1,0 +1,219 @@
+"""planners.nmpc: the CasADi pieces against their numpy originals (MLP, Frenet frame, keep-out semi-axes), known
+optima of toy instances (quadratic and Student's-t cost, interior and active bounds), failure fallbacks, the
+Policy contract on both scenarios, config validation."""
+
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs
+from envs.road import RoadGeometry
+from envs.scene import Bounds, Scene
+from planners.dynamics import load_model
+from planners.enkts import EnKTSConfig
+from planners.nmpc import (
+    NMPCConfig, NMPCPlanner, curvature_at, frenet, heading_at, keep_out_semi_axes, make_nmpc, make_nmpc_t,
+    mlp_function, road_params, robust_cost,
+)
+from planners.virtual import N_TRACK, BarrierShape, measure
+
+DT = 0.1
+
+
+def toy_scene() -> Scene:
+    return Scene(road=RoadGeometry(arc_angle=0.0), bounds=Bounds(), dt=DT, vehicle_length=5.0, vehicle_width=2.0,
+                 actuator_accel=(-10.0, 10.0), actuator_steer=(-0.3, 0.3), n_obstacles=2)
+
+
+def toy_dynamics() -> ca.Function:
+    """Speed integrates the acceleration, the position the speed; steering moves nothing: a linear model whose
+    H = 1 optimum is a scalar least-squares problem per input."""
+    x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
+    return ca.Function("toy", [x, u], [ca.vertcat(x[0] + x[3] * DT, x[1], x[2], x[3] + u[0] * DT)])
+
+
+def toy_obs(scene: Scene, v0: float, u_prev, v_ref: float, ovs=None) -> np.ndarray:
+    lane = float(scene.road.lane_offset(1))
+    ov_rows = np.zeros((2, 6)) if ovs is None else np.asarray(ovs, float)
+    return np.concatenate([[0.0, lane, 0.0, v0], u_prev, ov_rows.ravel(), [v_ref, 0.0, lane]])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+def test_casadi_mlp_equals_learned_dynamics(model):
+    rng = np.random.default_rng(0)
+    n = 300
+    x = np.column_stack([rng.uniform(-300, 300, n), rng.uniform(-10, 10, n), rng.uniform(-4, 4, n),
+                         rng.uniform(0, 42, n)])  # speeds past max_speed too: the acceleration cap
+    x[::7, 3] = 0.0  # at rest, braking: the speed clamp
+    u = np.column_stack([rng.uniform(-12, 12, n), rng.uniform(-0.4, 0.4, n)])  # beyond the actuators: clipping
+    got = np.asarray(mlp_function(model).map(n)(x.T, u.T)).T
+    # predict runs the net in float32: agreement to float32 rounding of a step's change (metres, rad, m/s)
+    np.testing.assert_allclose(got, model.predict(x, u), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("arc_deg", [60.0, -45.0, 0.0])
+def test_casadi_frenet_heading_and_curvature_match_the_road(arc_deg):
+    road = RoadGeometry(straight_in=100.0, radius=200.0, arc_angle=math.radians(arc_deg), straight_out=300.0)
+    rng = np.random.default_rng(1)
+    s = rng.uniform(-20, road.length, 400)
+    lat = rng.uniform(-6, 6, 400)
+    xy = road.position(s, lat)
+    X, P = ca.SX.sym("X", 2, 400), ca.SX.sym("p", 3)
+    fs, fl = frenet(X[0, :], X[1, :], P)
+    f = ca.Function("f", [X, P], [fs, fl, heading_at(fs, P), curvature_at(fs, P)])
+    got = [np.asarray(v).ravel() for v in f(xy.T, road_params(road))]
+    s_np, l_np = road.to_frenet(xy)
+    np.testing.assert_allclose(got[0], s_np, atol=1e-9)
+    np.testing.assert_allclose(got[1], l_np, atol=1e-9)
+    np.testing.assert_allclose(got[2], road.heading_at(s_np), atol=1e-12)
+    inside = np.abs(s_np - road.straight_in) > 1e-6  # the arc's end points are a tie either way
+    np.testing.assert_allclose(got[3][inside], road.curvature_at(s_np)[inside], atol=1e-12)
+
+
+def test_keep_out_semi_axes_are_those_of_the_virtual_barrier():
+    """Where ``measure``'s OV barrier reads a given penetration, the NMPC's semi-axes say the same: invert the
+    softplus hinge to get phi = 1 - |ds| / semi_s (dl = 0) or 1 - |dl| / semi_l (ds = 0)."""
+    env = gym.make(envs.env_id("overtaking"))
+    env.reset(seed=3)
+    scene, shape = env.unwrapped.scene, BarrierShape()
+    rng = np.random.default_rng(2)
+    n = 64
+    v, v_o = rng.uniform(0, 30, n), rng.uniform(0, 30, n)
+    a_o = np.where(np.arange(n) % 2 == 0, rng.uniform(-8, -0.6, n), 0.0)  # braking leaders and steady ones
+    sign = np.where(np.arange(n) % 4 < 2, -1.0, 1.0)  # behind and ahead of the OV
+    semi = ca.Function("semi", [sym := ca.SX.sym("q", 4)], list(keep_out_semi_axes(scene, shape, *ca.vertsplit(sym))))
+    semi_s = np.array([float(semi([sign[i], v[i], v_o[i], a_o[i]])[0]) for i in range(n)])
+    semi_l = float(semi([1.0, 1.0, 1.0, 0.0])[1])
+    s_o, lane = 150.0, float(scene.road.lane_offset(1))
+    zeros = np.zeros((1, 2))
+    for ds, dl in ((0.9 * sign * semi_s, np.zeros(n)), (np.zeros(n), np.full(n, 0.9 * semi_l))):
+        xy = scene.road.position(s_o + ds, lane + dl)
+        x = np.column_stack([xy, scene.road.heading_at(s_o + ds), v])
+        phi = np.empty(n)
+        for i in range(n):  # one OV (the second slot absent), its own speed and acceleration per row
+            ov = (np.array([s_o, 0.0]), np.array([lane, 0.0]), np.array([v_o[i], 0.0]), np.array([a_o[i], 0.0]),
+                  np.array([True, False]))
+            h = measure(scene, shape, x[i:i + 1], zeros, zeros, zeros, np.zeros(2), lane, 20.0, 0.0, ov)
+            phi[i] = shape.widths[0] * np.log(np.expm1(shape.sharpness * h[0, N_TRACK])) / shape.sharpness
+        np.testing.assert_allclose(phi, 0.1, atol=1e-6)  # 1 - 0.9: both agree on where the keep-out ends
+
+
+def solve_toy(tuning: EnKTSConfig, obs: np.ndarray, nu: float = math.inf, **config) -> tuple[NMPCPlanner, np.ndarray]:
+    scene = toy_scene()
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=1, nu=nu, tol=1e-10, **config), tuning, toy_dynamics())
+    action = planner.act(obs)
+    return planner, scene.to_physical(action)
+
+
+def test_quadratic_toy_matches_the_closed_form_optimum():
+    tuning = EnKTSConfig()
+    v0, v_ref, u_prev = 20.0, 25.0, np.array([0.5, 0.01])
+    planner, u = solve_toy(tuning, toy_obs(toy_scene(), v0, u_prev, v_ref))
+    (_, _, sv), (sa, sd), (swa, swd) = tuning.sigma_ref, tuning.sigma_input, tuning.sigma_du
+    # J(a) = [(v0 + a dt - v_ref)^2 / sv^2 + a^2 / sa^2 + (a - a_prev)^2 / swa^2] / 2, the same for delta
+    # (feed-forward 0 on a straight road, heading untouched by the toy's steering).
+    a_star = (DT * (v_ref - v0) / sv**2 + u_prev[0] / swa**2) / (DT**2 / sv**2 + 1 / sa**2 + 1 / swa**2)
+    d_star = (u_prev[1] / swd**2) / (1 / sd**2 + 1 / swd**2)
+    b = toy_scene().bounds
+    assert abs(a_star - u_prev[0]) < b.accel_rate and abs(d_star - u_prev[1]) < b.steer_rate  # interior optimum
+    assert planner.statuses["Solve_Succeeded"] == 1 and planner.failures == 0
+    np.testing.assert_allclose(u, [a_star, d_star], rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("a_prev, expected", [(0.0, 0.999), (2.5, 3.0 * 0.999)])
+def test_quadratic_toy_stops_on_the_rate_or_input_bound(a_prev, expected):
+    """A loose rate prior and a tight speed target want a large acceleration: the optimum of a convex scalar
+    problem is then the bound it hits (the rate bound from 0, the input bound from 2.5), tightened by 1e-3."""
+    tuning = EnKTSConfig(sigma_du=(50.0, 0.002), sigma_ref=(1.0, 0.05, 0.1))
+    planner, u = solve_toy(tuning, toy_obs(toy_scene(), 10.0, np.array([a_prev, 0.0]), 30.0))
+    b = toy_scene().bounds
+    assert planner.failures == 0
+    assert u[0] == pytest.approx(expected, abs=1e-6)
+    assert b.accel[0] <= u[0] <= b.accel[1] and abs(u[0] - a_prev) <= b.accel_rate and abs(u[1]) <= b.steer
+    X, U = planner.plan
+    np.testing.assert_allclose(X[1, 3], 10.0 + U[0, 0] * DT, atol=1e-9)  # the dynamics hold
+
+
+def test_student_t_toy_matches_a_grid_search():
+    tuning = EnKTSConfig()
+    nu, v0, v_ref, u_prev = tuning.nu, 20.0, 24.0, np.array([0.3, 0.004])
+    _, u = solve_toy(tuning, toy_obs(toy_scene(), v0, u_prev, v_ref), nu=nu)
+    (_, _, sv), (sa, sd), (swa, swd) = tuning.sigma_ref, tuning.sigma_input, tuning.sigma_du
+
+    def cost(a, d):
+        rho = lambda q, n: (nu + n) / 2 * np.log1p(q / nu)  # noqa: E731 - section IV's log cost
+        return (rho(((v0 + a * DT - v_ref) / sv) ** 2, 3) + rho((a / sa) ** 2 + (d / sd) ** 2, 2)
+                + rho(((a - u_prev[0]) / swa) ** 2 + ((d - u_prev[1]) / swd) ** 2, 2))
+
+    a, d = u_prev
+    for half in (0.5, 0.02, 1e-3, 5e-5):  # zooming grid search around the best point so far
+        A, D = np.meshgrid(a + np.linspace(-half, half, 201), d + np.linspace(-half, half, 201) * 0.01)
+        k = np.argmin(cost(A, D))
+        a, d = A.flat[k], D.flat[k]
+    assert u[0] == pytest.approx(a, abs=1e-5) and u[1] == pytest.approx(d, abs=1e-6), (u, a, d)
+    assert robust_cost(4.0, 2, math.inf) == 2.0
+    assert float(robust_cost(4.0, 2, 1e9)) == pytest.approx(2.0, rel=1e-6)
+
+
+def test_infeasible_problem_falls_back_and_counts():
+    scene = toy_scene()
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=50), EnKTSConfig(), toy_dynamics())
+    u_prev = np.array([-1.0, 0.002])
+    lane = float(scene.road.lane_offset(1))
+    blocked = [[1.0, 1.0, lane, 0.0, 20.0, 0.0], [0.0] * 6]  # an OV 1 m ahead: every plan is inside its keep-out
+    action = planner.act(toy_obs(scene, 20.0, u_prev, 20.0, blocked))
+    assert planner.failures == 1 and np.all(np.isfinite(action))
+    np.testing.assert_allclose(scene.to_physical(action), u_prev, atol=1e-6)  # no plan yet: hold the last input
+
+    planner.reset()
+    planner.act(toy_obs(scene, 20.0, u_prev, 25.0))
+    assert planner.failures == 1
+    plan_controls = planner.plan[1].copy()
+    action = planner.act(toy_obs(scene, 20.0, plan_controls[0], 25.0, blocked))
+    assert planner.failures == 2
+    np.testing.assert_allclose(scene.to_physical(action), plan_controls[1], atol=1e-6)  # the plan's next control
+
+
+def test_iteration_cap_uses_a_feasible_iterate():
+    scene = toy_scene()
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=0), EnKTSConfig(), toy_dynamics())
+    action = planner.act(toy_obs(scene, 20.0, np.array([0.5, 0.0]), 25.0))
+    assert planner.statuses["Maximum_Iterations_Exceeded"] == 1 and planner.capped == 1 and planner.failures == 0
+    np.testing.assert_allclose(scene.to_physical(action), [0.5, 0.0], atol=1e-3)  # the initial guess holds u_prev
+
+
+@pytest.mark.parametrize("scenario, factory", [("overtaking", make_nmpc), ("emergency-brake", make_nmpc),
+                                               ("overtaking", make_nmpc_t)])
+def test_actions_are_finite_and_in_the_action_space(scenario, factory):
+    env = gym.make(envs.env_id(scenario))
+    obs, _ = env.reset(seed=0)
+    planner = factory(env)
+    planner.reset(0)
+    for _ in range(3):
+        action = planner.act(obs)
+        assert action.dtype == np.float32 and action.shape == (2,) and env.action_space.contains(action)
+        obs, *_ = env.step(action)
+    # (failures are not asserted: a cold first solve may hit the CPU-time cap on a loaded machine)
+    assert sum(planner.statuses.values()) == 3
+    if factory is make_nmpc_t:
+        assert planner.config.nu == EnKTSConfig().nu
+
+
+def test_config_validation_and_unknown_overrides():
+    for bad in ({"horizon": 0}, {"nu": 0.0}, {"max_iter": -1}, {"hessian": "bfgs"}, {"keep_out_power": 3},
+                {"bound_tightening": 1.0}, {"max_cpu_time": 0.0}):
+        with pytest.raises(ValueError):
+            NMPCConfig(**bad)
+    env = gym.make(envs.env_id("overtaking"))
+    with pytest.raises(ValueError, match="max_iters"):
+        make_nmpc(env, max_iters=5)
+    assert make_nmpc(env, horizon=7).horizon == 7
