@@ -1,0 +1,138 @@
+"""planners.mppi: the running cost is the virtual measurements' negative log-likelihood (by hand and against
+``measure``), the virtual-system transition, seeding without the global RNG, the fallback, the Policy contract
+on both scenarios, config validation."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import envs
+from envs.road import RoadGeometry
+from envs.scene import Bounds, Scene
+from planners.dynamics import load_model
+from planners.enkts import EnKTSConfig
+from planners.mppi import MPPIConfig, MPPIPlanner, make_mppi
+from planners.virtual import measure, predict_obstacles, reference_profile
+
+
+def straight_scene() -> Scene:
+    return Scene(road=RoadGeometry(arc_angle=0.0), bounds=Bounds(), dt=0.1, vehicle_length=5.0, vehicle_width=2.0,
+                 actuator_accel=(-10.0, 10.0), actuator_steer=(-0.3, 0.3), n_obstacles=2)
+
+
+def obs_of(scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
+    return np.concatenate([ego, u_prev, np.asarray(ovs, float).ravel(), ref])
+
+
+def planner_with_context(scene: Scene, obs: np.ndarray, tuning: EnKTSConfig = EnKTSConfig()) -> MPPIPlanner:
+    """A planner that has planned once on ``obs``, so its running cost knows the references and OVs."""
+    planner = MPPIPlanner(scene, MPPIConfig(n_particles=8, horizon=3), tuning, dynamics=load_model())
+    planner.act(obs)
+    return planner
+
+
+def test_running_cost_by_hand():
+    """Right lane, no OVs, inside every bound: only the speed and acceleration residuals count. Then the
+    steering past its bound: its input residual, two steering barriers (the step's and the first control's) and the
+    first control's steering-rate barrier against the last input."""
+    scene, tun = straight_scene(), EnKTSConfig()
+    lane = float(scene.road.lane_offset(1))
+    obs = obs_of(scene, [50.0, lane, 0.0, 20.0], [0.8, 0.0], np.zeros((2, 6)), [25.0, 0.0, lane])
+    planner = planner_with_context(scene, obs, tun)
+    block = torch.tensor([[60.0, lane, 0.0, 20.0, 1.0, 0.0, 0.2, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    cost = planner.running_cost(block, block[:, 4:6], 0).item()
+    expected = 0.5 * ((20.0 - 25.0) / tun.sigma_ref[2]) ** 2 + 0.5 * (1.0 / tun.sigma_input[0]) ** 2
+    assert cost == pytest.approx(expected, rel=1e-6)
+
+    shape, delta, keep = tun.barrier, 0.06, 1 - tun.barrier.bound_margin
+    block[0, [5, 9]] = delta  # u_t and u_0 both steer 0.06 rad; the block's own du stays (0.2, 0)
+    cost = planner.running_cost(block, block[:, 4:6], 0).item()
+    psi = lambda phi: np.logaddexp(0.0, shape.sharpness * phi) / shape.sharpness  # noqa: E731 - the hinge
+    steer = psi((delta - keep * scene.bounds.steer) / shape.widths[3])
+    steer_rate = psi((delta - 0.0 - keep * scene.bounds.steer_rate) / shape.widths[5])  # u_0 against u_prev
+    expected += 0.5 * (delta / tun.sigma_input[1]) ** 2 + 0.5 * (2 * steer**2 + steer_rate**2) / tun.sigma_barrier**2
+    assert cost == pytest.approx(expected, rel=1e-6)
+
+
+def test_running_cost_is_the_nll_of_measure_on_random_blocks():
+    env = gym.make(envs.env_id("overtaking"))
+    obs, _ = env.reset(seed=1)
+    scene = env.unwrapped.scene
+    planner = planner_with_context(scene, obs)
+    ego, u_prev, ovs, ref = scene.split_obs(obs)
+    rng = np.random.default_rng(0)
+    n, t = 40, 2
+    x = ego + rng.normal(0, 1, (n, 4)) * [30.0, 2.0, 0.05, 5.0]
+    u, du, u0 = rng.normal(0, 1, (n, 2)) * [3.0, 0.05], rng.normal(0, 1, (n, 2)) * [1.0, 0.005], \
+        rng.normal(0, 1, (n, 2)) * [3.0, 0.05]
+    block = torch.from_numpy(np.column_stack([x, u, du, u0]))
+    s_o, l_o, v_o, a_o, present = predict_obstacles(scene, ovs, 3)
+    v_ref, a_ref = reference_profile(scene, ref, 3)
+    h = measure(scene, planner.tuning.barrier, x, u, du, u0, u_prev, ref[2], v_ref[t], a_ref[t],
+                (s_o[t], l_o[t], v_o[t], a_o[t], present))
+    sigma = np.array([*planner.tuning.sigma_ref, *planner.tuning.sigma_input] + [planner.tuning.sigma_barrier] * 11)
+    np.testing.assert_allclose(planner.running_cost(block, block[:, 4:6], t).numpy(),
+                               0.5 * np.sum((h / sigma) ** 2, axis=1), rtol=1e-12)
+
+
+def test_transition_is_the_virtual_system():
+    model = load_model()
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), dynamics=model)
+    start = torch.tensor([[10.0, 2.0, 0.01, 20.0, -1.0, 0.01, 0.0, 0.0, -1.0, 0.01]], dtype=torch.float64)
+    u0 = torch.tensor([[-1.5, 0.012]], dtype=torch.float64)
+    b0 = planner._step(start, u0, 0)  # x_0 stays the current state
+    np.testing.assert_allclose(b0.numpy(), [[10.0, 2.0, 0.01, 20.0, -1.5, 0.012, -0.5, 0.002, -1.5, 0.012]])
+    u1 = torch.tensor([[-2.0, 0.01]], dtype=torch.float64)
+    b1 = planner._step(b0, u1, 1).numpy()  # x_1 = f(x_0, u_0); u_0 kept in the last slot
+    np.testing.assert_allclose(b1[:, :4], model.predict(b0.numpy()[:, :4], u0.numpy()))
+    np.testing.assert_allclose(b1[:, 4:], [[-2.0, 0.01, -0.5, -0.002, -1.5, 0.012]], atol=1e-15)
+
+
+@pytest.mark.parametrize("scenario", ["overtaking", "emergency-brake"])
+def test_actions_are_finite_in_the_space_and_seeded(scenario):
+    env = gym.make(envs.env_id(scenario))
+    planner = make_mppi(env)
+    assert planner.n_particles == EnKTSConfig().n_particles and planner.horizon == EnKTSConfig().horizon
+    runs = []
+    global_state = torch.get_rng_state()
+    for seed in (0, 0, 1):
+        obs, _ = env.reset(seed=0)
+        planner.reset(seed)
+        actions = []
+        for _ in range(4):
+            action = planner.act(obs)
+            assert action.dtype == np.float32 and action.shape == (2,) and env.action_space.contains(action)
+            actions.append(action)
+            obs, *_ = env.step(action)
+        runs.append(np.array(actions))
+    np.testing.assert_array_equal(runs[0], runs[1])  # same seed, same actions
+    assert not np.array_equal(runs[0], runs[2])
+    assert torch.equal(torch.get_rng_state(), global_state)  # the global RNG is never drawn from
+    assert planner.fallbacks == 0
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
+def test_non_finite_plan_falls_back_to_the_last_input():
+    scene = straight_scene()
+    lane = float(scene.road.lane_offset(1))
+    broken = lambda x, u: np.full_like(x, np.nan)  # noqa: E731 - a model that has gone wrong
+    planner = MPPIPlanner(scene, MPPIConfig(n_particles=8, horizon=3), dynamics=broken)
+    u_prev = np.array([-2.0, 0.01])
+    action = planner.act(obs_of(scene, [0.0, lane, 0.0, 20.0], u_prev, np.zeros((2, 6)), [20.0, 0.0, lane]))
+    assert planner.fallbacks == 1 and np.all(np.isfinite(action))
+    np.testing.assert_allclose(scene.to_physical(action), u_prev, atol=1e-6)
+
+
+def test_config_validation_and_unknown_overrides():
+    for bad in ({"n_particles": 1}, {"horizon": 0}, {"temperature": 0.0}, {"noise_gain": -1.0},
+                {"control_cost": float("nan")}):
+        with pytest.raises(ValueError):
+            MPPIConfig(**bad)
+    env = gym.make(envs.env_id("overtaking"))
+    with pytest.raises(ValueError, match="lambda_"):
+        make_mppi(env, lambda_=2.0)
+    planner = make_mppi(env, n_particles=20, horizon=5)
+    assert (planner.n_particles, planner.horizon) == (20, 5)
