@@ -1,0 +1,182 @@
+"""``bimp bench``: plan-step time of EnKTS, EnKS, MPPI and NMPC side by side, in one run (DESIGN.md section 5).
+
+    bimp bench [--repeats 30] [--quick] [--out bench.json]
+
+Every planner plans on the same observations: the overtaking env after ``reset(seed=0)``, driven by EnKTS (shared
+tuning, seed 0) for ``--steps`` steps and then ``--repeats`` more, recorded once. Each planner is built, reset, and
+called untimed on the observation at ``--steps`` (NMPC compiles its solver there), then timed on the next
+``--repeats`` observations in order. A sequence rather than one observation repeated, because a warm start is
+the shifted previous plan: on a frozen state that guess is wrong by one step at every call, and NMPC then
+runs into its CPU-time cap at every call (on seed 0 even a cold solve needs 20-100 IPOPT iterations), so the
+"time" would be the cap. On the recorded sequence each planner runs as in closed loop; the state is the same
+for all of them. Reported: median and 95th percentile [ms] for EnKTS, EnKS and MPPI at N in {50, 500, 2000}
+with H = 20, NMPC once (it has no N) with its IPOPT statuses, the ratios EnKTS/MPPI per N and NMPC/EnKTS at
+N = 50, and EnKTS at N = 50 for H in {10, 20, 40} (how a plan grows with H). ``--quick``: N in {50, 500} and
+5 repeats.
+
+One thread everywhere: ``torch.set_num_threads(1)`` and ``OPENBLAS_NUM_THREADS=1`` (also OMP / MKL). BLAS reads the
+latter only when numpy loads, and ``bimp`` has loaded numpy before this module (the ``agents`` package imports
+gymnasium), so unless the variable is already 1 the benchmark reruns itself in a fresh interpreter with it set.
+On a shared machine the numbers move with the load: compare ratios from one run, not times across runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+SCENARIO = "overtaking"
+N_VALUES, N_QUICK = (50, 500, 2000), (50, 500)
+H_DEFAULT, H_VALUES = 20, (10, 20, 40)
+SAMPLED = ("enkts", "enks", "mppi")
+
+
+def _single_threaded() -> bool:
+    return all(os.environ.get(v) == "1" for v in THREAD_VARS)
+
+
+def observations(count: int):
+    """The shared observations: the overtaking env from ``reset(seed=0)`` driven by EnKTS (shared tuning, seed 0),
+    ``count`` of them. Returns ``(env, [obs, ...])``; the env stays open because the planners read its scene (the
+    road is fixed within an episode)."""
+    import gymnasium as gym
+
+    import envs
+    from agents.registry import make_policy
+
+    env = gym.make(envs.env_id(SCENARIO))
+    obs, _ = env.reset(seed=0)
+    driver = make_policy("enkts", env)
+    driver.reset(0)
+    recorded = [obs]
+    while len(recorded) < count:
+        obs, _, terminated, truncated, _ = env.step(driver.act(obs))
+        if terminated or truncated:
+            raise RuntimeError(f"the EnKTS driver ended the episode after {len(recorded)} steps; use fewer")
+        recorded.append(obs)
+    return env, recorded
+
+
+def time_policy(name: str, env, sequence: list, repeats: int, **overrides) -> dict:
+    """Median and 95th percentile [ms] of ``act`` on ``sequence[1:repeats + 1]`` after an untimed call on
+    ``sequence[0]``."""
+    import numpy as np
+
+    from agents.registry import make_policy
+
+    policy = make_policy(name, env, **overrides)
+    policy.reset(0)
+    policy.act(sequence[0])
+    times = np.empty(repeats)
+    for i in range(repeats):
+        obs = sequence[i + 1]
+        start = time.perf_counter()
+        policy.act(obs)
+        times[i] = 1e3 * (time.perf_counter() - start)
+    row = {"planner": name, **overrides, "repeats": repeats, "median_ms": float(np.median(times)),
+           "p95_ms": float(np.percentile(times, 95))}
+    if hasattr(policy, "failures"):  # NMPC: how the timed solves ended
+        row["solver_failures"] = int(policy.failures)
+        row["ipopt_statuses"] = dict(policy.statuses)
+    return row
+
+
+def run(repeats: int, quick: bool, steps: int, progress=print) -> dict:
+    """Time everything; returns the JSON-ready result (rows and ratios)."""
+    import torch
+
+    torch.set_num_threads(1)
+    env, recorded = observations(steps + repeats + 1)
+    obs = recorded[steps:]
+    n_values = N_QUICK if quick else N_VALUES
+    rows = []
+    for n in n_values:
+        for name in SAMPLED:
+            rows.append(time_policy(name, env, obs, repeats, n_particles=n, horizon=H_DEFAULT))
+            progress(f"  {name:<6} N={n:<5} {rows[-1]['median_ms']:9.2f} ms")
+    nmpc = time_policy("nmpc", env, obs, repeats, horizon=H_DEFAULT)
+    progress(f"  nmpc   any N  {nmpc['median_ms']:9.2f} ms")
+    h_rows = [r for r in rows if r["planner"] == "enkts" and r["n_particles"] == 50 and r["horizon"] == H_DEFAULT]
+    for h in H_VALUES:
+        if h != H_DEFAULT:
+            h_rows.append(time_policy("enkts", env, obs, repeats, n_particles=50, horizon=h))
+            progress(f"  enkts  N=50    H={h:<3} {h_rows[-1]['median_ms']:9.2f} ms")
+    h_rows.sort(key=lambda r: r["horizon"])
+    env.close()
+
+    median = {(r["planner"], r["n_particles"]): r["median_ms"] for r in rows}
+    ratios = {f"enkts/mppi N={n}": median["enkts", n] / median["mppi", n] for n in n_values}
+    ratios["nmpc/enkts N=50"] = nmpc["median_ms"] / median["enkts", 50]
+    return {
+        "scenario": SCENARIO, "env_seed": 0, "steps_before": steps, "horizon": H_DEFAULT, "repeats": repeats,
+        "threads": {"torch": torch.get_num_threads(), **{v: os.environ.get(v) for v in THREAD_VARS}},
+        "machine": {"python": platform.python_version(), "processor": platform.machine(), "cpus": os.cpu_count(),
+                    "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None},
+        "rows": rows, "nmpc": nmpc, "enkts_vs_horizon": h_rows, "ratios": ratios,
+    }
+
+
+def report(result: dict) -> str:
+    """The side-by-side table as text."""
+    fmt = lambda r: f"{r['median_ms']:8.2f} ({r['p95_ms']:7.2f})"  # noqa: E731
+    by = {(r["planner"], r["n_particles"]): r for r in result["rows"]}
+    n_values = sorted({r["n_particles"] for r in result["rows"]})
+    load = result["machine"]["load_average"]
+    lines = [
+        f"plan-step time [ms], median (p95) of {result['repeats']} calls, one thread; {result['scenario']} env, "
+        f"seed 0, EnKTS-driven steps {result['steps_before'] + 1}..{result['steps_before'] + result['repeats']}; "
+        f"H = {result['horizon']}"
+        + (f"; load average {load[0]:.2f} on {result['machine']['cpus']} CPUs" if load else ""),
+        f"{'N':>6} {'EnKTS':>18} {'EnKS':>18} {'MPPI':>18} {'EnKTS/MPPI':>11}",
+    ]
+    for n in n_values:
+        lines.append(f"{n:>6} {fmt(by['enkts', n])} {fmt(by['enks', n])} {fmt(by['mppi', n])} "
+                     f"{result['ratios'][f'enkts/mppi N={n}']:>10.2f}x")
+    nmpc = result["nmpc"]
+    lines.append(f"NMPC (CasADi + IPOPT, same MLP; no N): {fmt(nmpc)}   NMPC/EnKTS(N=50) = "
+                 f"{result['ratios']['nmpc/enkts N=50']:.0f}x")
+    lines.append(f"  IPOPT over the {nmpc['repeats'] + 1} solves: {nmpc['ipopt_statuses']}, "
+                 f"fallbacks {nmpc['solver_failures']}")
+    h_rows = result["enkts_vs_horizon"]
+    base = next(r for r in h_rows if r["horizon"] == result["horizon"])["median_ms"]
+    lines.append("EnKTS at N = 50 vs H: " + ", ".join(
+        f"H={r['horizon']}: {fmt(r).strip()} ({r['median_ms'] / base:.2f}x)" for r in h_rows)
+        + "  (per step O(N) model work plus an update over the stored controls, which grow with t: "
+          "between linear and quadratic in H)")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=None, help="timed calls per planner (default 30, quick 5)")
+    parser.add_argument("--quick", action="store_true", help="N in {50, 500} and 5 repeats")
+    parser.add_argument("--steps", type=int, default=5, help="EnKTS-driven env steps before the timed ones")
+    parser.add_argument("--out", type=Path, default=None, help="also write the result as JSON here")
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    repeats = args.repeats if args.repeats is not None else (5 if args.quick else 30)
+    if repeats < 1 or args.steps < 0:
+        parser.error("--repeats must be >= 1 and --steps >= 0")
+    if not _single_threaded():
+        env = {**os.environ, **{v: "1" for v in THREAD_VARS}}
+        forwarded = list(sys.argv[1:] if argv is None else argv)
+        return subprocess.run([sys.executable, "-m", "agents.bench", *forwarded], env=env).returncode
+    print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
+    result = run(repeats, args.quick, args.steps, progress=lambda s: print(s, flush=True))
+    print()
+    print(report(result))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
