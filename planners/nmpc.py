@@ -29,12 +29,18 @@ they agree), with the road's shape as NLP parameters, so one compiled solver ser
 
 Solver: IPOPT (MUMPS), multiple shooting (X and U are both decision variables: the MLP's nonlinearity stays
 local to each step), exact Hessian by CasADi's AD, warm start from the previous solution shifted by one
-step, ``max_iter`` and ``max_cpu_time`` caps. A solve that ends in IPOPT success is used; one stopped by a cap
-is used if its iterate is feasible (``feasibility_tol``), counted in ``capped``; anything else (infeasible,
-restoration failure, non-finite numbers, an exception) falls back to the last usable plan's next control (or
-holds the last input if there is none), counted in ``failures``, and the next solve starts from the unusable
-iterate if it is finite (it is further on than the old guess). Never a crash, never a non-finite action.
-Deterministic: no random draws, so ``reset(seed)`` only forgets the warm start.
+step. Caps: ``max_iter`` is the working one (warm solves take 10-15 iterations), so the actions do not depend
+on the machine's load; ``max_cpu_time`` only guards against a pathological solve. The first solve of an episode
+has no warm start and its own, larger caps (``cold_max_iter``, ``cold_max_cpu_time``), as a controller solves
+once before it engages: with the closed-loop caps it can stop short at every step while the state drifts into
+the keep-out (seen on overtaking seed 0: 20-38 iterations needed, never reached, collision on a held input).
+A solve that ends in IPOPT success is used; one stopped by a cap is used if its iterate is feasible
+(``feasibility_tol``), counted in ``capped``; anything else (infeasible, restoration failure, non-finite
+numbers, an exception) falls back to the last usable plan's next control (or holds the last input if there is
+none), counted in ``failures``, and the next solve starts from the unusable iterate if it is finite (it is
+further on than the old guess). Never a crash, never a non-finite action. No random draws: ``reset(seed)``
+only forgets the warm start, and while the iteration caps bind before the CPU-time caps the same observations
+give the same actions.
 """
 
 from __future__ import annotations
@@ -64,8 +70,9 @@ class NMPCConfig:
     """Solver settings; the cost weights and barrier margins come from the shared :class:`EnKTSConfig`.
 
     horizon: H >= 1 steps (``None``: the shared tuning's); nu: degrees of freedom of the Student's-t log cost,
-    > 0 (``inf``: the quadratic cost of eq. 21); max_iter: IPOPT iteration cap (>= 0); max_cpu_time [s]: IPOPT
-    CPU-time cap per solve; tol: IPOPT's convergence tolerance; hessian: ``"exact"`` (CasADi AD) or
+    > 0 (``inf``: the quadratic cost of eq. 21); max_iter: IPOPT iteration cap per warm-started solve (>= 0);
+    max_cpu_time [s]: IPOPT CPU-time cap per warm-started solve; cold_max_iter, cold_max_cpu_time: the same for
+    the first solve of an episode; tol: IPOPT's convergence tolerance; hessian: ``"exact"`` (CasADi AD) or
     ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin on the input and rate bounds, so that
     IPOPT's tolerance and the float32 action never cross the env's bound; feasibility_tol: largest constraint
     violation of a capped iterate that is still used; keep_out_power: even exponent p >= 2 of the keep-out
@@ -74,8 +81,10 @@ class NMPCConfig:
 
     horizon: int | None = None
     nu: float = math.inf
-    max_iter: int = 100
-    max_cpu_time: float = 0.5
+    max_iter: int = 30
+    max_cpu_time: float = 1.0
+    cold_max_iter: int = 200
+    cold_max_cpu_time: float = 5.0
     tol: float = 1e-6
     hessian: str = "exact"
     bound_tightening: float = 1e-3
@@ -87,10 +96,10 @@ class NMPCConfig:
             raise ValueError(f"horizon must be >= 1, got {self.horizon}")
         if not self.nu > 0:
             raise ValueError(f"nu must be > 0 (inf for the quadratic cost), got {self.nu}")
-        if self.max_iter < 0:
-            raise ValueError(f"max_iter must be >= 0, got {self.max_iter}")
-        if not self.max_cpu_time > 0 or not self.tol > 0 or not self.feasibility_tol > 0:
-            raise ValueError("max_cpu_time, tol and feasibility_tol must be > 0")
+        if self.max_iter < 0 or self.cold_max_iter < 0:
+            raise ValueError(f"max_iter and cold_max_iter must be >= 0, got {self.max_iter}, {self.cold_max_iter}")
+        if not min(self.max_cpu_time, self.cold_max_cpu_time, self.tol, self.feasibility_tol) > 0:
+            raise ValueError("max_cpu_time, cold_max_cpu_time, tol and feasibility_tol must be > 0")
         if self.hessian not in ("exact", "limited-memory"):
             raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
         if self.keep_out_power < 2 or self.keep_out_power % 2:
@@ -208,9 +217,11 @@ def robust_cost(q, n: int, nu: float):
 # --- the planner ---------------------------------------------------------------------------------------------
 @dataclass
 class _Problem:
-    """A compiled NLP for one scene layout: the solver, its variable / constraint bounds and sizes."""
+    """A compiled NLP for one scene layout: its warm and cold solvers (caps differ), variable and constraint
+    bounds."""
 
     solver: ca.Function
+    cold_solver: ca.Function
     lbx: np.ndarray
     ubx: np.ndarray
     lbg: np.ndarray
@@ -303,11 +314,11 @@ class NMPCPlanner:
                ) -> tuple[bool, tuple[np.ndarray, np.ndarray] | None]:
         """Run IPOPT: whether the result may be used, and its iterate ``(X (H, 4), U (H, 2))`` if finite."""
         H = self.horizon
+        solver = problem.solver if self._guess is not None else problem.cold_solver
         start = time.perf_counter()
         try:
-            out = problem.solver(x0=w0, p=params, lbx=problem.lbx, ubx=problem.ubx, lbg=problem.lbg,
-                                 ubg=problem.ubg)
-            stats = problem.solver.stats()
+            out = solver(x0=w0, p=params, lbx=problem.lbx, ubx=problem.ubx, lbg=problem.lbg, ubg=problem.ubg)
+            stats = solver.stats()
         except RuntimeError:  # CasADi raises on evaluation errors it cannot hand to IPOPT
             self.statuses["exception"] += 1
             return False, None
@@ -408,16 +419,20 @@ class NMPCPlanner:
 
         w = ca.vertcat(ca.vec(X), ca.vec(U))  # X column-major = x_1, x_2, ... row blocks of 4
         nlp = {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}
-        opts = {"print_time": False, "error_on_fail": False, "ipopt": {
-            "print_level": 0, "sb": "yes", "max_iter": cfg.max_iter, "max_cpu_time": cfg.max_cpu_time,
-            "tol": cfg.tol, "acceptable_tol": 1e3 * cfg.tol, "hessian_approximation": cfg.hessian,
-            "constr_viol_tol": cfg.feasibility_tol}}
-        solver = ca.nlpsol("nmpc", "ipopt", nlp, opts)
+
+        def solver(name: str, max_iter: int, max_cpu_time: float) -> ca.Function:
+            return ca.nlpsol(name, "ipopt", nlp, {"print_time": False, "error_on_fail": False, "ipopt": {
+                "print_level": 0, "sb": "yes", "max_iter": max_iter, "max_cpu_time": max_cpu_time,
+                "tol": cfg.tol, "acceptable_tol": 1e3 * cfg.tol, "hessian_approximation": cfg.hessian,
+                "constr_viol_tol": cfg.feasibility_tol}})
+
         lo_u = np.array([keep * b.accel[0], -keep * b.steer])
         hi_u = np.array([keep * b.accel[1], keep * b.steer])
         lbx = np.concatenate([np.full(4 * H, -np.inf), np.tile(lo_u, H)])
         ubx = np.concatenate([np.full(4 * H, np.inf), np.tile(hi_u, H)])
-        return _Problem(solver, lbx, ubx, np.concatenate(lbg), np.concatenate(ubg))
+        return _Problem(solver("nmpc", cfg.max_iter, cfg.max_cpu_time),
+                        solver("nmpc_cold", cfg.cold_max_iter, cfg.cold_max_cpu_time),
+                        lbx, ubx, np.concatenate(lbg), np.concatenate(ubg))
 
 
 def make_nmpc(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> NMPCPlanner:

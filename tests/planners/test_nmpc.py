@@ -166,7 +166,7 @@ def test_student_t_toy_matches_a_grid_search():
 
 def test_infeasible_problem_falls_back_and_counts():
     scene = toy_scene()
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=50), EnKTSConfig(), toy_dynamics())
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=50, cold_max_iter=50), EnKTSConfig(), toy_dynamics())
     u_prev = np.array([-1.0, 0.002])
     lane = float(scene.road.lane_offset(1))
     blocked = [[1.0, 1.0, lane, 0.0, 20.0, 0.0], [0.0] * 6]  # an OV 1 m ahead: every plan is inside its keep-out
@@ -185,7 +185,7 @@ def test_infeasible_problem_falls_back_and_counts():
 
 def test_iteration_cap_uses_a_feasible_iterate():
     scene = toy_scene()
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=0), EnKTSConfig(), toy_dynamics())
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, cold_max_iter=0), EnKTSConfig(), toy_dynamics())
     action = planner.act(toy_obs(scene, 20.0, np.array([0.5, 0.0]), 25.0))
     assert planner.statuses["Maximum_Iterations_Exceeded"] == 1 and planner.capped == 1 and planner.failures == 0
     np.testing.assert_allclose(scene.to_physical(action), [0.5, 0.0], atol=1e-3)  # the initial guess holds u_prev
@@ -210,7 +210,7 @@ def test_actions_are_finite_and_in_the_action_space(scenario, factory):
 
 def test_config_validation_and_unknown_overrides():
     for bad in ({"horizon": 0}, {"nu": 0.0}, {"max_iter": -1}, {"hessian": "bfgs"}, {"keep_out_power": 3},
-                {"bound_tightening": 1.0}, {"max_cpu_time": 0.0}):
+                {"bound_tightening": 1.0}, {"max_cpu_time": 0.0}, {"cold_max_iter": -1}, {"cold_max_cpu_time": 0.0}):
         with pytest.raises(ValueError):
             NMPCConfig(**bad)
     env = gym.make(envs.env_id("overtaking"))
