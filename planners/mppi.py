@@ -17,11 +17,18 @@ Choices: the dynamics wrap :meth:`planners.dynamics.LearnedDynamics.predict` (nu
 copies: float64 CPU tensors share memory with numpy): the same model object as EnKTS, and the faster path at
 N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`planners.virtual.measure`,
 numpy too. Noise: MPPI perturbs the controls ``u_t`` i.i.d. per step, not the increments; the default scale
-``noise_gain * sigma_du`` with gain 1 gives increments of spread ``sqrt(2) sigma_du`` (0.7 m/s^2, 0.003 rad), inside
-the rate bounds, so most samples are not thrown away by the rate barrier, while the nominal sequence accumulates
-larger moves over the receding steps. Actions are clamped to the actuator range (the env clips there); the
-planning bounds are the barriers' business, as for EnKTS. Warm start: the previous nominal sequence shifted by
-one step, its last control held (as EnKTS); the first plan of an episode holds the last input.
+``noise_gain * sigma_du`` with gain 1 gives increments of spread ``sqrt(2) sigma_du`` (0.7 m/s^2 and 0.004 rad
+with the shipped tuning), inside the rate bounds, so most samples are not thrown away by the rate barrier,
+while the nominal sequence accumulates larger moves over the receding steps. Temperature 1: the weights
+``exp(-cost)`` are then the likelihood of the virtual observation, so the update is the importance-sampled
+posterior mean under the sampling prior (the Bayesian reading of MPPI). Actions are clamped to the actuator
+range (the env clips there); the planning bounds are the barriers' business, as for EnKTS. Warm start: the
+previous nominal sequence shifted by one step, its last control held (as EnKTS); the first plan of an episode
+holds the last input.
+
+What to expect: with this exact NLL and the shipped barrier shape, a keep-out penetration of 0.5 costs ~1e3 per
+step and half a metre off the road ~1e2, so when no sample brakes early enough MPPI swerves off the road
+(EnKTS's update does not follow the NLL literally: innovation clipping, barrier gating, relaxation).
 
 Randomness: pytorch_mppi 0.9.1 draws its noise with the global torch RNG (``torch.randn`` in ``_sample_noise``);
 :class:`_SeededMPPI` overrides that one method to draw from a ``torch.Generator`` the planner owns, seeded in
@@ -58,8 +65,8 @@ class MPPIConfig:
     control_cost: weight >= 0 of MPPI's control cost ``lambda U' Sigma^-1 eps`` (``1 - alpha`` of Williams et al.
     2018; 1 = pytorch_mppi's default). That term is the log-prior of controls that are zero-mean a priori; the
     virtual system's prior is on the increments and its input and rate terms are already in the running cost,
-    so by default it is off (with it on, the steering feed-forward of a curve alone costs ~50 per plan and pulls
-    the plan straight off the road); seed: default seed of the planner's generator.
+    so by default it is off (with it on, the steering feed-forward of a curve alone moves a plan's cost by tens,
+    which pulled the plans straight off the road in the curve); seed: default seed of the planner's generator.
     """
 
     n_particles: int | None = None
