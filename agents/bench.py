@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -146,10 +147,13 @@ def report(result: dict) -> str:
                  f"fallbacks {nmpc['solver_failures']}")
     h_rows = result["enkts_vs_horizon"]
     base = next(r for r in h_rows if r["horizon"] == result["horizon"])["median_ms"]
+    first, last = h_rows[0], h_rows[-1]
+    exponent = math.log(last["median_ms"] / first["median_ms"]) / math.log(last["horizon"] / first["horizon"])
     lines.append("EnKTS at N = 50 vs H: " + ", ".join(
         f"H={r['horizon']}: {fmt(r).strip()} ({r['median_ms'] / base:.2f}x)" for r in h_rows)
-        + "  (per step O(N) model work plus an update over the stored controls, which grow with t: "
-          "between linear and quadratic in H)")
+        + f"; time ~ H^{exponent:.2f}")
+    lines.append("  (per horizon step O(N) model and measurement work, linear in H, plus an update over the stored "
+                 "controls, which grow with t: quadratic in H once that update dominates)")
     return "\n".join(lines)
 
 

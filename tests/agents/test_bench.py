@@ -25,7 +25,7 @@ def test_report_lists_every_planner_and_ratio():
     text = bench.report(synthetic_result())
     assert "EnKTS/MPPI" in text and "0.50x" in text
     assert "NMPC/EnKTS(N=50) = 200x" in text and "Solve_Succeeded" in text
-    assert "H=10" in text and "H=40" in text and "(2.00x)" in text
+    assert "H=10" in text and "H=40" in text and "(2.00x)" in text and "H^1.00" in text
     assert text.count("\n") >= 6
 
 
