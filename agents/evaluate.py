@@ -7,7 +7,8 @@ Episode ``i`` of every policy uses seed ``seed + i`` for both the env and the po
 same scenario instances. ``OUT/episodes.jsonl`` gets one line per finished episode, flushed at once; a
 rerun with the same arguments skips the episodes already there, so an interrupted run resumes without
 repeating or losing any. An episode that raises is recorded with its error and the run goes on.
-``OUT/summary.{json,csv,md}`` are rewritten at the end from all the lines.
+``OUT/summary.{json,csv,md}`` are rewritten at the end from all the lines in the folder, so a later run
+that adds a policy on the same seeds extends the same table.
 """
 
 from __future__ import annotations
@@ -158,9 +159,8 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int, seed: int
         else:
             for job in todo:
                 write(run_episode(job))
-    wanted = {j.key for j in jobs}
-    records = [r for r in read_records(out) if (r["scenario"], r["policy"], r["seed"]) in wanted]
-    summary = summarize(records)
+    # The summary covers the whole folder, so policies added by later runs (on the same seeds) join the table.
+    summary = summarize(read_records(out))
     write_summary(summary, out)
     return summary
 
