@@ -1,0 +1,479 @@
+"""Reinforcement-learning baseline: stable-baselines3 PPO or SAC, acting through the :class:`Policy` protocol.
+
+Training (``bimp train-rl``)::
+
+    bimp train-rl --scenario overtaking --algo ppo --timesteps 150000 --seed 0 --vec-env subproc
+
+writes ``{algo}_{scenario}.zip`` (the final model), ``checkpoints/``, ``*.monitor.csv``, ``curve.png`` (episode
+return vs timesteps), ``config.json`` and ``eval.json`` (a quick check against the zero action) to ``--out``
+(default ``runs/rl/{algo}_{scenario}_s{seed}``). Copy the model to ``agents/models/`` to ship it; the shipped
+ones and how they were made: ``docs/rl.md``. Only PPO models ship; ``make_sac`` says so.
+
+Inference: ``make_policy("ppo", env)`` (or ``"sac"``) loads ``agents/models/{algo}_{scenario}.zip``, the scenario
+taken from ``env.spec.id``; ``model_path=...`` picks another file.
+
+highway-env's own SB3 examples feed the raw observation and the raw action space to the agent. For continuous
+control on these scenarios that fails in known ways, so both sides go through fixed transforms, the same at
+training (:class:`PlanningWrapper`) and at inference (:class:`SB3Policy`), built from the raw observation and
+the scene alone (:func:`features`, :func:`to_physical`):
+
+- Observation: world positions grow to hundreds of metres, and the same situation at another place on the
+  road looks new to the network. :func:`features` is ego-relative and scaled to O(1): lateral error to the
+  reference lane, heading error to the road, speed error, the previous input, curvature now and ahead, and
+  each OV's gap along the road, lateral offset and relative speed (road coordinates). Hand-scaled features
+  need no ``VecNormalize`` statistics, which would otherwise have to ship beside the model.
+- Action: the env's [-1, 1] spans actuators far wider than the planning bounds (steering +-0.3 rad against
+  0.05 rad), so uniform exploration mostly spins the car off the road. The agent's [-1, 1] maps onto the
+  *planning* bounds (0 = coast, straight) and the input is then rate-limited around the previous one, so
+  every input the baseline applies satisfies paper eq. 4-5, like the planners it is compared with.
+
+The env's reward is used as it is: it pays tracking of the reference speed *along the road* and of the
+reference lane, so weaving or spinning earns less than driving straight; stopping earns only the lane term
+(0.4 of 1 per step), less than driving at the reference speed, and a crash costs 20 and ends the episode.
+Its speed term is narrow (width 0.2 v_ref), though: following a slower OV earns about what stopping earns,
+and the overtaking model learns to brake to a stop behind OV1 (docs/rl.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import envs
+from envs.scene import Scene
+
+MODEL_DIR = Path(__file__).resolve().parent / "models"
+ALGOS = ("ppo", "sac")
+
+# Feature scales: typical magnitudes, so features are O(1) without running statistics.
+_GAP_SCALE = 50.0  # m along the road
+_SPEED_SCALE = 10.0  # m/s, speed differences
+_V_SCALE = 30.0  # m/s, absolute speeds
+_HEADING_SCALE = 0.1  # rad
+_CURVATURE_SCALE = 100.0  # 1/m -> 0.5 on a 200 m radius
+_ACCEL_SCALE = 7.0  # m/s^2
+_LOOKAHEAD_S = 2.0  # s of travel for the curvature ahead
+_FEATURE_CLIP = 5.0
+
+N_EGO_FEATURES = 11
+N_OV_FEATURES = 5
+
+
+def n_features(scene: Scene) -> int:
+    return N_EGO_FEATURES + scene.n_obstacles * N_OV_FEATURES
+
+
+def _wrap(angle: np.ndarray | float) -> np.ndarray:
+    return np.arctan2(np.sin(angle), np.cos(angle))
+
+
+def _input_to_unit(u: np.ndarray, scene: Scene) -> np.ndarray:
+    """Physical input ``[a, delta]`` -> the agent's units (inverse of the map in :func:`to_physical`)."""
+    a_min, a_max = scene.bounds.accel
+    a = u[0] / a_max if u[0] >= 0 else u[0] / -a_min
+    return np.array([a, u[1] / scene.bounds.steer])
+
+
+def features(obs: np.ndarray, scene: Scene) -> np.ndarray:
+    """Ego-relative, scaled features ``(n_features(scene),)`` float32 of a raw observation ``(scene.obs_dim,)``.
+
+    Ego: lateral error to the reference lane and lateral position (per lane width, per half width), heading
+    error to the road (per 0.1 rad), speed error (per 10 m/s), speed and reference speed (per 30 m/s),
+    reference acceleration (per 7 m/s^2), previous input in the agent's units, road curvature here and
+    ``_LOOKAHEAD_S`` ahead. Per OV: present, gap along the road (per 50 m), lateral offset (per lane width),
+    speed and acceleration relative to the EV; zeros when absent. Clipped to +-5.
+    """
+    ego, prev_u, ovs, ref = scene.split_obs(obs)
+    road = scene.road
+    # One road-coordinate query for the EV and all OVs: it is the costly part of the features.
+    s, lat = road.to_frenet(np.concatenate([ego[None, :2], ovs[:, 1:3]]))
+    s_e, l_e, s_o, l_o = s[0], lat[0], s[1:], lat[1:]
+    v_ref, a_ref, l_ref = ref
+    lane = road.lane_width
+    ego_f = [
+        (l_e - l_ref) / lane,
+        l_e / road.half_width,
+        _wrap(ego[2] - road.heading_at(s_e)) / _HEADING_SCALE,
+        (ego[3] - v_ref) / _SPEED_SCALE,
+        ego[3] / _V_SCALE,
+        v_ref / _V_SCALE,
+        a_ref / _ACCEL_SCALE,
+        *_input_to_unit(prev_u, scene),
+        road.curvature_at(s_e) * _CURVATURE_SCALE,
+        road.curvature_at(s_e + ego[3] * _LOOKAHEAD_S) * _CURVATURE_SCALE,
+    ]
+    present = ovs[:, 0] > 0
+    ov_f = np.stack([
+        np.ones_like(s_o),
+        (s_o - s_e) / _GAP_SCALE,
+        (l_o - l_e) / lane,
+        (ovs[:, 4] - ego[3]) / _SPEED_SCALE,
+        ovs[:, 5] / _ACCEL_SCALE,
+    ], axis=-1) * present[:, None]
+    out = np.concatenate([np.asarray(ego_f, float), ov_f.ravel()])
+    return np.clip(out, -_FEATURE_CLIP, _FEATURE_CLIP).astype(np.float32)
+
+
+def to_physical(action: np.ndarray, obs: np.ndarray, scene: Scene) -> np.ndarray:
+    """The agent's action ``(2,)`` in [-1, 1] -> physical input ``[a m/s^2, delta rad]``.
+
+    Piecewise linear onto the planning bounds with 0 -> coasting straight (the untrained policy's mean then
+    neither brakes nor accelerates), then clipped to the rate bounds around the previous input read from
+    ``obs``, so the output satisfies paper eq. 4-5.
+    """
+    x = np.clip(np.asarray(action, float).reshape(2), -1.0, 1.0)
+    b = scene.bounds
+    u = np.array([x[0] * (b.accel[1] if x[0] >= 0 else -b.accel[0]), x[1] * b.steer])
+    prev = scene.split_obs(obs)[1]
+    rate = np.array([b.accel_rate, b.steer_rate])
+    return np.clip(u, prev - rate, prev + rate)
+
+
+def to_env_action(action: np.ndarray, obs: np.ndarray, scene: Scene) -> np.ndarray:
+    """The agent's action -> the env's normalized action ``(2,)`` float32 in [-1, 1]."""
+    return scene.to_normalized(to_physical(action, obs, scene)).astype(np.float32)
+
+
+class PlanningWrapper(gym.Wrapper):
+    """Training-side view of a bimp env: :func:`features` as observation, the agent's planning-bound action
+    in [-1, 1]^2 (:func:`to_env_action`). Reward, termination and ``info`` pass through unchanged."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        n = n_features(env.unwrapped.scene)
+        self.observation_space = gym.spaces.Box(-_FEATURE_CLIP, _FEATURE_CLIP, shape=(n,), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        self._raw: np.ndarray | None = None
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self._raw = obs
+        return features(obs, self.env.unwrapped.scene), info
+
+    def step(self, action):
+        # The scene is rebuilt at every reset: read it at each step, never cache it.
+        scene = self.env.unwrapped.scene
+        obs, reward, terminated, truncated, info = self.env.step(to_env_action(action, self._raw, scene))
+        self._raw = obs
+        return features(obs, scene), reward, terminated, truncated, info
+
+
+# --- configuration -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RLConfig:
+    """One training run. ``batch_size=None`` takes the algorithm's usual value (PPO 64, SAC 256);
+    ``n_steps``, ``n_epochs``, ``ent_coef`` and ``gae_lambda`` are PPO's, ``buffer_size``, ``learning_starts``
+    and ``tau`` SAC's. ``vec_env``: ``"dummy"`` steps the envs in this process (one core), ``"subproc"`` one
+    process each. ``checkpoint_every``: timesteps between checkpoints (0: none)."""
+
+    scenario: str = "overtaking"
+    algo: str = "ppo"
+    timesteps: int = 150_000
+    seed: int = 0
+    n_envs: int = 2
+    vec_env: str = "dummy"
+    net_arch: tuple[int, ...] = (64, 64)
+    learning_rate: float = 3e-4
+    gamma: float = 0.99
+    batch_size: int | None = None
+    n_steps: int = 512
+    n_epochs: int = 10
+    gae_lambda: float = 0.95
+    ent_coef: float = 0.0
+    buffer_size: int = 200_000
+    learning_starts: int = 2_000
+    tau: float = 0.005
+    checkpoint_every: int = 50_000
+
+    def __post_init__(self) -> None:
+        envs.env_id(self.scenario)  # raises ValueError naming the choices
+        if self.algo not in ALGOS:
+            raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
+        if self.vec_env not in ("dummy", "subproc"):
+            raise ValueError(f"vec_env must be 'dummy' or 'subproc', got {self.vec_env!r}")
+        object.__setattr__(self, "net_arch", tuple(int(n) for n in self.net_arch))
+        positive = {"timesteps": self.timesteps, "n_envs": self.n_envs, "n_steps": self.n_steps,
+                    "n_epochs": self.n_epochs, "buffer_size": self.buffer_size,
+                    "learning_rate": self.learning_rate, "tau": self.tau}
+        for key, value in positive.items():
+            if not value > 0:
+                raise ValueError(f"{key} must be > 0, got {value}")
+        if self.batch_size is not None and self.batch_size < 2:
+            raise ValueError(f"batch_size must be >= 2, got {self.batch_size}")
+        if not self.net_arch or min(self.net_arch) < 1:
+            raise ValueError(f"net_arch must be a non-empty list of positive widths, got {self.net_arch}")
+        if not (0.0 < self.gamma <= 1.0 and 0.0 <= self.gae_lambda <= 1.0):
+            raise ValueError("gamma must lie in (0, 1] and gae_lambda in [0, 1]")
+        if self.ent_coef < 0 or self.learning_starts < 0 or self.checkpoint_every < 0:
+            raise ValueError("ent_coef, learning_starts and checkpoint_every must be >= 0")
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any]) -> RLConfig:
+        """Build from a mapping (YAML overrides); an unknown key raises ``ValueError`` naming it."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown RLConfig key(s) {unknown}; known keys are {sorted(known)}")
+        return cls(**values)
+
+    @property
+    def env_id(self) -> str:
+        return envs.env_id(self.scenario)
+
+    @property
+    def model_name(self) -> str:
+        return model_name(self.algo, self.scenario)
+
+
+def model_name(algo: str, scenario: str) -> str:
+    """File name of a model: ``{algo}_{scenario}.zip`` with the scenario's short name."""
+    short = {v: k for k, v in envs.ENV_IDS.items()}.get(scenario, scenario)
+    return f"{algo}_{short}.zip"
+
+
+def _algo_class(algo: str):
+    from stable_baselines3 import PPO, SAC
+
+    return {"ppo": PPO, "sac": SAC}[algo]
+
+
+# --- training ------------------------------------------------------------------------------------------
+def _progress_callback(total: int):
+    """A tqdm bar over timesteps with the mean return of the last episodes (SB3's own bar needs ``rich``)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm import tqdm
+
+    class TqdmCallback(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(total=total, unit="step", dynamic_ncols=True)
+            self.done = 0
+
+        def _on_step(self) -> bool:
+            # PPO rounds the total up to whole rollouts: keep the bar at its total.
+            now = min(self.num_timesteps, total)
+            self.bar.update(now - self.done)
+            self.done = now
+            episodes = self.model.ep_info_buffer
+            if episodes and self.n_calls % 50 == 0:
+                self.bar.set_postfix(ep_return=f"{np.mean([e['r'] for e in episodes]):.1f}", refresh=False)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return TqdmCallback()
+
+
+def make_model(cfg: RLConfig, venv):
+    """The SB3 model of ``cfg`` on the vectorized, wrapped envs ``venv``."""
+    common = dict(learning_rate=cfg.learning_rate, gamma=cfg.gamma, seed=cfg.seed, device="cpu", verbose=0,
+                  policy_kwargs=dict(net_arch=list(cfg.net_arch)))
+    if cfg.algo == "ppo":
+        from stable_baselines3 import PPO
+
+        return PPO("MlpPolicy", venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size or 64,
+                   n_epochs=cfg.n_epochs, gae_lambda=cfg.gae_lambda, ent_coef=cfg.ent_coef, **common)
+    from stable_baselines3 import SAC
+
+    return SAC("MlpPolicy", venv, buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts,
+               batch_size=cfg.batch_size or 256, tau=cfg.tau, **common)
+
+
+def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
+    """Train ``cfg``, writing the model, checkpoints, monitor logs, ``curve.png`` and ``config.json`` to
+    ``out``. Returns the model's path."""
+    import torch
+    from stable_baselines3.common.callbacks import CheckpointCallback
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    # The nets are tiny: more threads only fight the env processes (and other users) for the cores.
+    torch.set_num_threads(1)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
+    venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, monitor_dir=str(out),
+                        wrapper_class=PlanningWrapper,
+                        vec_env_cls=SubprocVecEnv if cfg.vec_env == "subproc" else DummyVecEnv)
+    model = make_model(cfg, venv)
+    callbacks = []
+    if cfg.checkpoint_every:
+        callbacks.append(CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1),
+                                            save_path=str(out / "checkpoints"),
+                                            name_prefix=cfg.model_name.removesuffix(".zip")))
+    if progress:
+        callbacks.append(_progress_callback(cfg.timesteps))
+    start = time.perf_counter()
+    model.learn(total_timesteps=cfg.timesteps, callback=callbacks)
+    wall = time.perf_counter() - start
+    venv.close()
+    path = out / cfg.model_name
+    model.save(path)
+    (out / "train_time.json").write_text(json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps}) + "\n")
+    plot_curve(out, out / "curve.png", title=f"{cfg.algo.upper()} {cfg.scenario} (seed {cfg.seed})")
+    return path
+
+
+def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
+    """Episode return against timesteps from the Monitor logs in ``monitor_dir``, with a moving mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from stable_baselines3.common.monitor import load_results
+
+    df = load_results(str(monitor_dir))  # episodes of all envs, ordered by wall time
+    steps, returns = np.cumsum(df["l"].to_numpy()), df["r"].to_numpy()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(steps, returns, ".", ms=2, alpha=0.3, label="episode")
+    if len(returns) >= 2:
+        w = max(1, min(50, len(returns) // 10))
+        ax.plot(steps[w - 1:], np.convolve(returns, np.ones(w) / w, mode="valid"), label=f"mean of {w}")
+    ax.set(xlabel="timesteps", ylabel="episode return", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# --- inference -----------------------------------------------------------------------------------------
+class SB3Policy:
+    """A trained SB3 model as a :class:`Policy`: the deterministic prediction on :func:`features` of the raw
+    observation, mapped back to the env's normalized action by :func:`to_env_action`.
+
+    It reads ``env.unwrapped.scene`` at every ``act`` (the env rebuilds it at every reset). Deterministic:
+    ``reset`` has nothing to seed.
+    """
+
+    def __init__(self, env: gym.Env, model_path: str | Path, algo: str):
+        path = Path(model_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no {algo.upper()} model at {path}")
+        self.env, self.algo, self.model_path = env, algo, path
+        # Schedules are pickled closures; replacing them keeps loading independent of the training Python.
+        custom = {"learning_rate": 0.0, "lr_schedule": lambda _: 0.0, "clip_range": lambda _: 0.0}
+        self.model = _algo_class(algo).load(path, device="cpu", custom_objects=custom)
+        n = n_features(env.unwrapped.scene)
+        if self.model.observation_space.shape != (n,) or self.model.action_space.shape != (2,):
+            raise ValueError(f"{path} expects observations {self.model.observation_space.shape} and actions "
+                             f"{self.model.action_space.shape}; this feature set gives ({n},) and (2,)")
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        scene = self.env.unwrapped.scene
+        obs = scene.check_obs(obs)
+        action, _ = self.model.predict(features(obs, scene), deterministic=True)
+        return to_env_action(action, obs, scene)
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+
+def _shipped_model(env: gym.Env, algo: str) -> Path:
+    spec = env.spec or env.unwrapped.spec
+    if spec is None or spec.id not in envs.ENV_IDS.values():
+        raise ValueError(f"cannot tell the scenario of {env}: make it with gym.make(envs.env_id(...)) "
+                         f"or pass model_path=")
+    scenario = {v: k for k, v in envs.ENV_IDS.items()}[spec.id]
+    path = MODEL_DIR / model_name(algo, scenario)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"no {algo.upper()} model is shipped for {scenario} (looked for {path}); train one with "
+            f"`bimp train-rl --scenario {scenario} --algo {algo}` and pass model_path=")
+    return path
+
+
+def make_ppo(env: gym.Env, *, model_path: str | Path | None = None) -> SB3Policy:
+    """The PPO baseline for ``env``: the shipped model of its scenario unless ``model_path`` is given."""
+    return SB3Policy(env, model_path or _shipped_model(env, "ppo"), "ppo")
+
+
+def make_sac(env: gym.Env, *, model_path: str | Path | None = None) -> SB3Policy:
+    """The SAC baseline for ``env``: the shipped model of its scenario unless ``model_path`` is given."""
+    return SB3Policy(env, model_path or _shipped_model(env, "sac"), "sac")
+
+
+class ZeroAction:
+    """The do-nothing reference: action [0, 0] in the env's space (coast straight on, actuators centred)."""
+
+    def __init__(self, env: gym.Env):
+        self.action = np.zeros(env.action_space.shape, dtype=np.float32)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return self.action
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+
+def rollout(env: gym.Env, policy, seed: int) -> dict[str, float]:
+    """One episode of ``policy`` from ``env.reset(seed=seed)``: ``progress`` (m along the road), ``collision``,
+    ``offroad``, ``return`` and ``steps``. A quick check for training and tests, not the full evaluation."""
+    obs, info = env.reset(seed=seed)
+    policy.reset(seed)
+    s0, total, steps, done = info["s"], 0.0, 0, False
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(policy.act(obs))
+        total, steps, done = total + reward, steps + 1, terminated or truncated
+    return {"progress": info["s"] - s0, "collision": float(info["collision"]), "offroad": float(info["offroad"]),
+            "return": total, "steps": steps}
+
+
+def compare_with_zero(env: gym.Env, policy, seeds) -> dict[str, dict[str, float]]:
+    """Means over ``seeds`` of :func:`rollout` for ``policy`` and for :class:`ZeroAction`."""
+    result = {}
+    for name, pol in (("policy", policy), ("zero", ZeroAction(env))):
+        runs = [rollout(env, pol, seed) for seed in seeds]
+        result[name] = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+    return result
+
+
+# --- command line --------------------------------------------------------------------------------------
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp train-rl", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenario", required=True, help=f"one of {sorted(envs.ENV_IDS)}")
+    parser.add_argument("--algo", choices=ALGOS, default="ppo")
+    parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: RLConfig's)")
+    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument("--n-envs", type=int, default=None)
+    parser.add_argument("--vec-env", choices=("dummy", "subproc"), default=None,
+                        help="step the envs in this process (dummy, one core) or one process each (subproc)")
+    parser.add_argument("--config", type=Path, help="YAML file of RLConfig overrides (unknown keys are errors)")
+    parser.add_argument("--out", type=Path, help="output folder (default runs/rl/{algo}_{scenario}_s{seed})")
+    parser.add_argument("--eval-seeds", type=int, default=5, help="episodes of the final check against the zero "
+                        "action (0: skip)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+
+    values: dict[str, Any] = {}
+    if args.config:
+        import yaml
+
+        values.update(yaml.safe_load(args.config.read_text()) or {})
+    values.update(scenario=args.scenario, algo=args.algo)
+    for key in ("timesteps", "seed", "n_envs", "vec_env"):
+        if getattr(args, key) is not None:
+            values[key] = getattr(args, key)
+    try:
+        cfg = RLConfig.from_mapping(values)
+    except (TypeError, ValueError) as err:
+        parser.error(str(err))
+    out = args.out or Path("runs/rl") / f"{cfg.algo}_{cfg.scenario}_s{cfg.seed}"
+    path = train(cfg, out, progress=not args.no_progress)
+    print(f"model: {path}\ncurve: {out / 'curve.png'}\n"
+          f"train wall time: {json.loads((out / 'train_time.json').read_text())['wall_s']} s")
+    if args.eval_seeds:
+        env = gym.make(cfg.env_id)
+        policy = SB3Policy(env, path, cfg.algo)
+        result = compare_with_zero(env, policy, range(1000, 1000 + args.eval_seeds))
+        (out / "eval.json").write_text(json.dumps(result, indent=2) + "\n")
+        for who, r in result.items():
+            print(f"{who:>6}: progress {r['progress']:.1f} m, collisions {r['collision']:.2f}, "
+                  f"off-road {r['offroad']:.2f}, return {r['return']:.1f}")
+    return 0

@@ -1,0 +1,141 @@
+"""The SB3 baseline: its transforms, the shipped models as policies, and a short training run."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs
+from agents import rl
+from agents.policy import Policy
+from agents.registry import make_policy
+
+SHIPPED = sorted(
+    (algo, scenario) for algo in rl.ALGOS for scenario in envs.ENV_IDS
+    if (rl.MODEL_DIR / rl.model_name(algo, scenario)).is_file()
+)
+EVAL_SEEDS = (7, 8, 9)
+
+
+@pytest.fixture
+def overtaking():
+    env = gym.make(envs.env_id("overtaking"))
+    yield env
+    env.close()
+
+
+def test_some_model_is_shipped_for_each_scenario():
+    assert {scenario for _, scenario in SHIPPED} == set(envs.ENV_IDS)
+
+
+def test_features_are_ego_relative_and_scaled(overtaking):
+    obs, _ = overtaking.reset(seed=0)
+    scene = overtaking.unwrapped.scene
+    f = rl.features(obs, scene)
+    assert f.shape == (rl.n_features(scene),) and f.dtype == np.float32
+    assert np.all(np.abs(f) <= 5.0)
+    # At reset the EV sits on its reference lane, along the road, at the reference speed, no previous input.
+    np.testing.assert_allclose(f[[0, 2, 3, 7, 8]], 0.0, atol=1e-5)
+    # OV1 is ahead in the same lane, OV2 ahead one lane to the left.
+    ov1, ov2 = f[11:16], f[16:21]
+    assert ov1[0] == 1 and ov1[1] > 0 and abs(ov1[2]) < 1e-5
+    assert ov2[0] == 1 and ov2[1] > ov1[1] and ov2[2] == pytest.approx(-1.0, abs=1e-5)
+
+
+def test_actions_map_inside_the_planning_bounds(overtaking):
+    obs, _ = overtaking.reset(seed=0)
+    scene = overtaking.unwrapped.scene
+    b, rng = scene.bounds, np.random.default_rng(0)
+    for _ in range(200):
+        obs = obs.copy()
+        obs[4:6] = [rng.uniform(*b.accel), rng.uniform(-b.steer, b.steer)]  # previous input
+        u = rl.to_physical(rng.uniform(-1.5, 1.5, 2), obs, scene)
+        assert b.input_violation(u)[0] <= 1e-9 and b.rate_violation(u - obs[4:6])[0] <= 1e-6
+        a = rl.to_env_action(rng.uniform(-1, 1, 2), obs, scene)
+        assert a.dtype == np.float32 and overtaking.action_space.contains(a)
+    # 0 means coast straight on; +-1 reach the bounds when the rate allows.
+    obs[4:6] = 0.0
+    np.testing.assert_allclose(rl.to_physical(np.zeros(2), obs, scene), 0.0)
+    obs[4:6] = [b.accel[1], b.steer]
+    np.testing.assert_allclose(rl.to_physical(np.ones(2), obs, scene), [b.accel[1], b.steer])
+
+
+def test_config_validates():
+    assert rl.RLConfig().net_arch == (64, 64)
+    with pytest.raises(ValueError, match="n_stepz"):
+        rl.RLConfig.from_mapping({"n_stepz": 8})
+    for bad in ({"algo": "dqn"}, {"scenario": "parking"}, {"timesteps": 0}, {"gamma": 1.5}, {"vec_env": "ray"}):
+        with pytest.raises(ValueError):
+            rl.RLConfig(**bad)
+
+
+def test_factory_errors(overtaking, tmp_path, monkeypatch):
+    with pytest.raises(TypeError, match="modle_path"):
+        rl.make_ppo(overtaking, modle_path="x.zip")
+    monkeypatch.setattr(rl, "MODEL_DIR", tmp_path)
+    with pytest.raises(FileNotFoundError, match="no SAC model is shipped for overtaking"):
+        rl.make_sac(overtaking)
+
+
+@pytest.mark.parametrize(("algo", "scenario"), SHIPPED)
+def test_shipped_model_acts_in_the_action_space(algo, scenario):
+    env = gym.make(envs.env_id(scenario))
+    policy = make_policy(algo, env)
+    assert isinstance(policy, Policy)
+    for seed in (0, 1):  # the scene changes at every reset: the policy must follow it
+        obs, _ = env.reset(seed=seed)
+        policy.reset(seed)
+        for _ in range(20):
+            action = policy.act(obs)
+            assert action.dtype == np.float32 and env.action_space.contains(action)
+            obs, *_ = env.step(action)
+    env.close()
+
+
+@pytest.mark.parametrize(("algo", "scenario"), SHIPPED[:1])
+def test_policy_sees_what_training_saw(algo, scenario):
+    """Policy.act on the raw env equals the model's prediction through the training wrapper."""
+    raw, wrapped = gym.make(envs.env_id(scenario)), rl.PlanningWrapper(gym.make(envs.env_id(scenario)))
+    policy = make_policy(algo, raw)
+    for seed in (3, 4):
+        obs, _ = raw.reset(seed=seed)
+        feats, _ = wrapped.reset(seed=seed)
+        for _ in range(30):
+            x, _ = policy.model.predict(feats, deterministic=True)
+            feats, *_ = wrapped.step(x)
+            obs, *_ = raw.step(policy.act(obs))
+            np.testing.assert_allclose(rl.features(obs, raw.unwrapped.scene), feats, atol=1e-6)
+
+
+@pytest.mark.parametrize(("algo", "scenario"), SHIPPED)
+def test_shipped_model_beats_the_zero_action(algo, scenario):
+    env = gym.make(envs.env_id(scenario))
+    result = rl.compare_with_zero(env, make_policy(algo, env), EVAL_SEEDS)
+    env.close()
+    ours, zero = result["policy"], result["zero"]
+    assert ours["collision"] + ours["offroad"] < zero["collision"] + zero["offroad"]
+    assert ours["collision"] == 0 and ours["offroad"] == 0
+    if scenario == "overtaking":
+        assert ours["progress"] > zero["progress"]
+    else:
+        # The zero action drives into the stopped traffic: stopping short of it is the goal here.
+        assert ours["progress"] > 20.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", rl.ALGOS)
+def test_short_training_writes_a_loadable_model(algo, tmp_path):
+    overrides = {"ppo": "n_steps: 64\n", "sac": "learning_starts: 64\n"}[algo] + "checkpoint_every: 128\n"
+    (tmp_path / "overrides.yaml").write_text(overrides)
+    out = tmp_path / algo
+    code = rl.main(["--scenario", "emergency-brake", "--algo", algo, "--timesteps", "256", "--seed", "1",
+                    "--config", str(tmp_path / "overrides.yaml"), "--out", str(out), "--eval-seeds", "1",
+                    "--no-progress"])
+    assert code == 0
+    path = out / rl.model_name(algo, "emergency-brake")
+    assert path.is_file() and (out / "curve.png").is_file() and list((out / "checkpoints").glob("*.zip"))
+    env = gym.make(envs.env_id("emergency-brake"))
+    policy = getattr(rl, f"make_{algo}")(env, model_path=path)
+    obs, _ = env.reset(seed=0)
+    assert env.action_space.contains(policy.act(obs))
