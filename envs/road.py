@@ -13,6 +13,7 @@ Every query is vectorized over leading dimensions so a planner can ask for all p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -58,11 +59,12 @@ class RoadGeometry:
         """+1 for a right turn, -1 for a left turn (or straight)."""
         return 1.0 if self.arc_angle >= 0 else -1.0
 
-    @property
+    # Cached: queried for every particle batch at every horizon step, and the geometry never changes.
+    @cached_property
     def _centre(self) -> np.ndarray:
         return np.array([self.straight_in, self._turn * self.radius])
 
-    @property
+    @cached_property
     def _arc_end(self) -> np.ndarray:
         return self._arc_point(np.array(abs(self.arc_angle)), np.array(0.0))
 

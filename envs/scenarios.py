@@ -188,6 +188,7 @@ class BimpEnv(AbstractEnv):
         self.ego_lane, self.cruise_speed = lane, ego_speed
         self.last_input = np.zeros(2)
         self.prev_input = np.zeros(2)
+        self._safety_key = None
 
     def _add_obstacle(self, lane: int, s: float, speed: float, **braking) -> None:
         road = self.scene.road
@@ -211,6 +212,13 @@ class BimpEnv(AbstractEnv):
         return super().step(np.clip(action, -1.0, 1.0))
 
     def _safety(self) -> dict:
+        # Reward and info both need these per step: compute them once per simulated step.
+        key = self.steps
+        if getattr(self, "_safety_key", None) != key:
+            self._safety_key, self._safety_value = key, self._compute_safety()
+        return self._safety_value
+
+    def _compute_safety(self) -> dict:
         ev, scene = self.vehicle, self.scene
         state = np.array([*ev.position, ev.heading, ev.speed])
         ovs = np.array([[1.0, *ov.position, ov.heading, ov.speed, ov.acceleration] for ov in self.obstacles])
