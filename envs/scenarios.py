@@ -255,7 +255,7 @@ class BimpEnv(AbstractEnv):
         excess = max(c["accel_min"], c["accel_max"], 0.0) / 3.0 + max(c["steer"], 0.0) / 0.05 \
             + max(c["accel_rate"], 0.0) + max(c["steer_rate"], 0.0) / 0.005
         return {
-            "speed": float(np.exp(-((info["longitudinal_speed"] - self.reference()[0]) / (0.2 * ref_speed)) ** 2)),
+            "speed": float(np.exp(-((info["longitudinal_speed"] - self.reference()[0]) / (0.5 * ref_speed)) ** 2)),
             "lane": float(np.exp(-(info["lateral_error"] / 1.5) ** 2)),
             "inputs": float(min(excess, 5.0)),
             "crash": float(info["collision"] or info["offroad"]),
