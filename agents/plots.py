@@ -22,6 +22,7 @@ from agents.evaluate import read_records  # noqa: E402
 from envs.road import RoadGeometry  # noqa: E402
 from envs.scene import Bounds  # noqa: E402
 
+OV_COLORS = ("tab:cyan", "tab:olive", "tab:gray")  # kept apart from every policy's colour
 COLORS = {"enkts": "tab:red", "enks": "tab:blue", "mppi": "tab:green", "nmpc": "tab:purple",
           "nmpc-t": "tab:pink", "ppo": "tab:orange", "sac": "tab:brown", "lane-keep": "tab:gray"}
 
@@ -61,8 +62,9 @@ def plot_trajectories(scenario: str, runs: dict[str, dict], out: Path) -> Path:
         _road(ax, road, s_max=float(np.max(x)) + 80.0)
         ov = np.array(t["ov_xy"], dtype=float)  # (T, K, 2)
         for k in range(ov.shape[1]):
-            ax.plot(ov[:, k, 0], ov[:, k, 1], ":", color=f"C{k + 2}", label=f"OV{k + 1}")
-            ax.plot(*ov[-1, k], "s", color=f"C{k + 2}")
+            color = OV_COLORS[k % len(OV_COLORS)]
+            ax.plot(ov[:, k, 0], ov[:, k, 1], ":", color=color, label=f"OV{k + 1}")
+            ax.plot(*ov[-1, k], "s", color=color)
         ax.plot(x, y, color=_color(policy), lw=2, label=f"EV ({policy})")
         ax.plot(x[-1], y[-1], "s", color=_color(policy))
         outcome = "collision" if rec["metrics"]["collision_rate"] else (
