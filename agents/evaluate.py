@@ -153,6 +153,9 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int, seed: int
                           f"{record['error']}")
 
         if workers > 1 and len(todo) > 1:
+            # Spawned workers import numpy afresh: one BLAS thread each, or they fight over the cores.
+            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+                os.environ.setdefault(var, "1")
             with mp.get_context("spawn").Pool(workers, initializer=_init_worker) as pool:
                 for record in pool.imap_unordered(run_episode, todo):
                     write(record)
