@@ -87,17 +87,21 @@ class Scene:
         return obs
 
     # --- actions ---------------------------------------------------------------------------------------
+    @property
+    def actuator_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """Physical ``[a, delta]`` at the normalized actions -1 and +1: ``(low (2,), high (2,))``."""
+        return (np.array([self.actuator_accel[0], self.actuator_steer[0]]),
+                np.array([self.actuator_accel[1], self.actuator_steer[1]]))
+
     def to_physical(self, action: np.ndarray) -> np.ndarray:
         """Normalized action ``(..., 2)`` in [-1, 1] -> ``[a m/s^2, delta rad]`` (clipped first)."""
         a = np.clip(np.asarray(action, float), -1.0, 1.0)
-        lo = np.array([self.actuator_accel[0], self.actuator_steer[0]])
-        hi = np.array([self.actuator_accel[1], self.actuator_steer[1]])
+        lo, hi = self.actuator_range
         return lo + (a + 1.0) * (hi - lo) / 2.0
 
     def to_normalized(self, u: np.ndarray) -> np.ndarray:
         """Physical input ``(..., 2)`` -> normalized action in [-1, 1] (clipped to the actuator range)."""
-        lo = np.array([self.actuator_accel[0], self.actuator_steer[0]])
-        hi = np.array([self.actuator_accel[1], self.actuator_steer[1]])
+        lo, hi = self.actuator_range
         return np.clip(2.0 * (np.asarray(u, float) - lo) / (hi - lo) - 1.0, -1.0, 1.0)
 
     # --- geometry --------------------------------------------------------------------------------------

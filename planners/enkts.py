@@ -130,8 +130,6 @@ class EnKTSPlanner:
         scene = self._scene()
         ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
         cfg = self.config
-        lo = np.array([scene.actuator_accel[0], scene.actuator_steer[0]])
-        hi = np.array([scene.actuator_accel[1], scene.actuator_steer[1]])
         nominal = self._warm_start(u_prev)
         obstacles = predict_obstacles(scene, ovs, cfg.horizon)
         v_ref, a_ref = reference_profile(scene, ref, cfg.horizon)
@@ -143,7 +141,7 @@ class EnKTSPlanner:
             self.fallbacks += 1
             controls = np.tile(u_prev, (cfg.horizon, 1))
             U = np.broadcast_to(controls, U.shape)
-        controls = np.clip(controls, lo, hi)
+        controls = np.clip(controls, *scene.actuator_range)
         self._previous = controls
         self._last = (ego, controls, U)
         return scene.to_normalized(controls[0]).astype(np.float32)

@@ -166,8 +166,7 @@ class MPPIPlanner:
         """
         scene = self._scene()
         ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
-        lo = np.array([scene.actuator_accel[0], scene.actuator_steer[0]])
-        hi = np.array([scene.actuator_accel[1], scene.actuator_steer[1]])
+        lo, hi = scene.actuator_range
         mppi = self._mppi
         mppi.u_min, mppi.u_max = torch.from_numpy(lo), torch.from_numpy(hi)
         if not self._warm:

@@ -288,11 +288,9 @@ class NMPCPlanner:
         if not usable:
             self.failures += 1
         u = self._controls[0] if self._controls is not None else u_prev
-        lo = np.array([scene.actuator_accel[0], scene.actuator_steer[0]])
-        hi = np.array([scene.actuator_accel[1], scene.actuator_steer[1]])
         if not np.all(np.isfinite(u)):
             u = u_prev
-        return scene.to_normalized(np.clip(u, lo, hi)).astype(np.float32)
+        return scene.to_normalized(np.clip(u, *scene.actuator_range)).astype(np.float32)
 
     # --- internals ---------------------------------------------------------------------------------------
     def _initial_guess(self, ego: np.ndarray, u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
