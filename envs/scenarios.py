@@ -250,12 +250,13 @@ class BimpEnv(AbstractEnv):
 
     def _rewards(self, action) -> dict[str, float]:
         info = self._safety()
-        ref_speed = max(self.reference()[0], 1.0)
+        v_ref = info["reference"][0]
+        ref_speed = max(v_ref, 1.0)
         c = info["constraints"]
         excess = max(c["accel_min"], c["accel_max"], 0.0) / 3.0 + max(c["steer"], 0.0) / 0.05 \
             + max(c["accel_rate"], 0.0) + max(c["steer_rate"], 0.0) / 0.005
         return {
-            "speed": float(np.exp(-((info["longitudinal_speed"] - self.reference()[0]) / (0.5 * ref_speed)) ** 2)),
+            "speed": float(np.exp(-((info["longitudinal_speed"] - v_ref) / (0.5 * ref_speed)) ** 2)),
             "lane": float(np.exp(-(info["lateral_error"] / 1.5) ** 2)),
             "inputs": float(min(excess, 5.0)),
             "crash": float(info["collision"] or info["offroad"]),
@@ -266,8 +267,8 @@ class BimpEnv(AbstractEnv):
         return 0.6 * r["speed"] + 0.4 * r["lane"] - 0.1 * r["inputs"] - CRASH_PENALTY * r["crash"]
 
     def _is_terminated(self) -> bool:
-        return bool(self.vehicle.crashed or self.scene.edge_distance(
-            np.array([*self.vehicle.position, self.vehicle.heading, self.vehicle.speed])) < 0.0)
+        info = self._safety()
+        return info["collision"] or info["offroad"]
 
     def _is_truncated(self) -> bool:
         return False  # the time limit lives in the registration
