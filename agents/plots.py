@@ -27,7 +27,7 @@ COLORS = {"enkts": "tab:red", "enks": "tab:blue", "mppi": "tab:green", "nmpc": "
           "nmpc-t": "tab:pink", "ppo": "tab:orange", "sac": "tab:brown", "lane-keep": "tab:gray"}
 
 
-def _color(policy: str) -> str:
+def policy_color(policy: str) -> str:
     return COLORS.get(policy, "black")
 
 
@@ -65,8 +65,8 @@ def plot_trajectories(scenario: str, runs: dict[str, dict], out: Path) -> Path:
             color = OV_COLORS[k % len(OV_COLORS)]
             ax.plot(ov[:, k, 0], ov[:, k, 1], ":", color=color, label=f"OV{k + 1}")
             ax.plot(*ov[-1, k], "s", color=color)
-        ax.plot(x, y, color=_color(policy), lw=2, label=f"EV ({policy})")
-        ax.plot(x[-1], y[-1], "s", color=_color(policy))
+        ax.plot(x, y, color=policy_color(policy), lw=2, label=f"EV ({policy})")
+        ax.plot(x[-1], y[-1], "s", color=policy_color(policy))
         outcome = "collision" if rec["metrics"]["collision_rate"] else (
             "off road" if rec["metrics"]["offroad_rate"] else "safe")
         ax.set_title(f"{scenario}, {policy}, seed {rec['seed']}: {outcome}")
@@ -88,7 +88,7 @@ def plot_controls(scenario: str, runs: dict[str, dict], out: Path) -> Path:
         u = np.array(rec["trace"]["input"], dtype=float)
         du = np.diff(np.vstack([np.zeros((1, 2)), u]), axis=0)
         for ax, series in zip(axes.flat, (u[:, 0], u[:, 1], du[:, 0], du[:, 1])):
-            ax.plot(series, color=_color(policy), label=policy)
+            ax.plot(series, color=policy_color(policy), label=policy)
     for ax, (label, (lo, hi)) in zip(axes.flat, panels):
         ax.axhline(lo, color="k", lw=0.8)
         ax.axhline(hi, color="k", lw=0.8)
@@ -106,7 +106,7 @@ def plot_safety(scenario: str, runs: dict[str, dict], out: Path) -> Path:
     k_ovs = len(first["trace"]["ov_distance"][0])
     fig, axes = plt.subplots(1, k_ovs + 2, figsize=(4 * (k_ovs + 2), 3.4))
     for policy, rec in runs.items():
-        t, c = rec["trace"], _color(policy)
+        t, c = rec["trace"], policy_color(policy)
         d = np.array(t["ov_distance"], dtype=float)
         for k in range(k_ovs):
             axes[k].plot(d[:, k], color=c, label=policy)

@@ -37,7 +37,7 @@ def plot_sweep(results: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from agents.plots import _color
+    from agents.plots import policy_color
 
     sizes = sorted(int(n) for n in results)
     entries = next(iter(results.values())).values()
@@ -50,7 +50,7 @@ def plot_sweep(results: dict, path: Path) -> Path:
             ax = axes[i, j]
             for policy in policies:
                 ys = [results[str(n)][f"{policy}/{scenario}"][rate]["mean"] for n in sizes]
-                ax.plot(sizes, ys, "o-", color=_color(policy), label=policy)
+                ax.plot(sizes, ys, "o-", color=policy_color(policy), label=policy)
             ax.set_xscale("log")
             ax.set_xlabel("particles N")
             ax.set_title(f"{scenario}: {rate}", fontsize=8)
