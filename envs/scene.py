@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.road import RoadGeometry, body_corners, box_gap
+from envs.road import RoadGeometry, body_corners, rect_gap
 
 EGO_FIELDS = ("x", "y", "heading", "speed")
 OV_FIELDS = ("present", "x", "y", "heading", "speed", "acceleration")
@@ -112,9 +112,13 @@ class Scene:
         return self.road.edge_distance(lat).min(axis=-1)
 
     def ov_gaps(self, ego: np.ndarray, ovs: np.ndarray) -> np.ndarray:
-        """Footprint gaps [m] ``(K,)`` between ego state ``(4,)`` and OV rows ``(K, >=3)`` of ``[.., x, y]``
-        (columns 1:3); ``inf`` where an OV is absent."""
-        s_e, l_e = self.road.to_frenet(ego[:2])
-        s_o, l_o = self.road.to_frenet(ovs[:, 1:3])
-        gap = box_gap(s_e, l_e, s_o, l_o, self.vehicle_length, self.vehicle_width)
+        """Footprint gaps [m] ``(K,)`` between the ego state ``[x, y, heading, ..] (>=3,)`` and OV rows ``(K, >=4)``
+        of ``[present, x, y, heading, ..]`` (:data:`OV_FIELDS`); ``inf`` where an OV is absent.
+
+        The exact signed distance between the two ``vehicle_length`` x ``vehicle_width`` rectangles at their
+        positions and headings (:func:`envs.road.rect_gap`): > 0 apart, 0 touching, < 0 overlapping (minus the
+        penetration depth). The env's ``info["collision"]`` is ``min(ov_gaps) <= 0``.
+        """
+        ego, ovs = np.asarray(ego, float), np.atleast_2d(np.asarray(ovs, float))
+        gap = rect_gap(ego[:2], ego[2], ovs[:, 1:3], ovs[:, 3], self.vehicle_length, self.vehicle_width)
         return np.where(ovs[:, 0] > 0, gap, np.inf)
