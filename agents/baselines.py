@@ -1,4 +1,4 @@
-"""Simple reference controllers: a floor every planner must beat, and the demo's driver before planning."""
+"""Simple reference controllers: floors every planner must beat (lane keeping blind to the OVs, doing nothing)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ class LaneKeeping:
 
     def __init__(self, env: gym.Env, k_lat: float = 0.004, k_head: float = 0.15, k_speed: float = 0.8):
         self.env, self.k_lat, self.k_head, self.k_speed = env, k_lat, k_head, k_speed
+        self.config = {"k_lat": k_lat, "k_head": k_head, "k_speed": k_speed}
 
     def reset(self, seed: int | None = None) -> None:
         """Deterministic: nothing to seed."""
@@ -30,3 +31,17 @@ class LaneKeeping:
         b = scene.bounds
         u = np.array([np.clip(accel, *b.accel), np.clip(steer, -b.steer, b.steer)])
         return scene.to_normalized(u).astype(np.float32)
+
+
+class ZeroAction:
+    """The do-nothing reference: action [0, 0] in the env's space (coast straight on, actuators centred)."""
+
+    def __init__(self, env: gym.Env):
+        self.action = np.zeros(env.action_space.shape, dtype=np.float32)
+        self.config: dict = {}
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return self.action
+
+    def reset(self, seed: int | None = None) -> None:
+        """Deterministic: nothing to seed."""

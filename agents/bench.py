@@ -44,24 +44,20 @@ def _single_threaded() -> bool:
 
 
 def observations(count: int):
-    """The shared observations: the overtaking env from ``reset(seed=0)`` driven by EnKTS (shared tuning, seed 0),
-    ``count`` of them. Returns ``(env, [obs, ...])``; the env stays open because the planners read its scene (the
-    road is fixed within an episode)."""
+    """The shared observations: the overtaking env from episode seed 0 driven by EnKTS (shared tuning), the first
+    ``count`` observations it acted on. Returns ``(env, [obs, ...])``; the env stays open because the planners read
+    its scene (the road is fixed within an episode)."""
     import gymnasium as gym
 
     import envs
     from agents.registry import make_policy
+    from agents.rollout import rollout
 
     env = gym.make(envs.env_id(SCENARIO))
-    obs, _ = env.reset(seed=0)
-    driver = make_policy("enkts", env)
-    driver.reset(0)
-    recorded = [obs]
-    while len(recorded) < count:
-        obs, _, terminated, truncated, _ = env.step(driver.act(obs))
-        if terminated or truncated:
-            raise RuntimeError(f"the EnKTS driver ended the episode after {len(recorded)} steps; use fewer")
-        recorded.append(obs)
+    recorded: list = []
+    rollout(env, make_policy("enkts", env), 0, max_steps=count, observations=recorded)
+    if len(recorded) < count:
+        raise RuntimeError(f"the EnKTS driver ended the episode after {len(recorded)} steps; use fewer")
     return env, recorded
 
 

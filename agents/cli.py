@@ -6,11 +6,15 @@ Modules load lazily so ``bimp --help`` stays instant and a command pulls in only
 from __future__ import annotations
 
 import importlib
+import os
 import sys
+import tempfile
 
 COMMANDS = {
     "demo": ("agents.demo", "small evaluation of both scenarios and planners, with table and figures"),
     "evaluate": ("agents.evaluate", "run policies x scenarios x seeds and write safety metrics"),
+    "compare": ("agents.compare", "paired per-seed comparison of two policies: McNemar, paired bootstrap"),
+    "render": ("agents.video", "one episode as an MP4 video"),
     "plot": ("agents.plots", "draw the paper's figures from an evaluation folder"),
     "sweep": ("agents.sweep", "sample-efficiency sweep over the ensemble size N"),
     "bench": ("agents.bench", "plan-step timing of the planners, side by side"),
@@ -20,6 +24,9 @@ COMMANDS = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    # pygame (highway-env's renderer) on a headless machine: no audio device, no session runtime dir.
+    os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+    os.environ.setdefault("XDG_RUNTIME_DIR", tempfile.gettempdir())
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in COMMANDS:
         print("usage: bimp COMMAND [options]   (bimp COMMAND --help for its options)\n\ncommands:")

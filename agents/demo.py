@@ -1,5 +1,5 @@
 """``bimp demo``: the main job on a small default: a few episodes of both scenarios with EnKTS and EnKS,
-then the table and the figures."""
+then the table with intervals, the figures and one MP4 per policy and scenario."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/demo")
     args = parser.parse_args(argv)
     summary = evaluate(["overtaking", "emergency-brake"], args.policy, args.episodes, seed=0,
-                       workers=args.workers, out=args.out, traces=1)
+                       workers=args.workers, out=args.out, traces=1, video=1)
     print(markdown_table(summary))
     figures = plot_all(args.out)
     for scenario in ("overtaking", "emergency-brake"):
@@ -26,5 +26,7 @@ def main(argv: list[str] | None = None) -> int:
                                       f"render_{scenario}.png"))
     for path in figures:
         print(f"figure: {path}")
+    for path in sorted((Path(args.out) / "videos").glob("*.mp4")):
+        print(f"video: {path}")
     print(f"table: {Path(args.out) / 'summary.md'}")
     return 0

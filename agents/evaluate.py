@@ -1,14 +1,20 @@
-"""``bimp evaluate``: policies x scenarios x seeds, safety metrics, written episode by episode.
+"""``bimp evaluate``: policies x scenarios x seeds, safety metrics with intervals, written episode by episode.
 
-    bimp evaluate --scenario overtaking emergency-brake --policy enkts enks --episodes 50 --seed 0 \\
+    bimp evaluate --scenario overtaking emergency-brake --policy enkts enks --episodes 50 --seed 1000 \\
                   --workers 2 --out runs/eval
+    bimp evaluate --scenario emergency-brake --policy enkts --set enkts.n_particles=10 --label enkts-n10 ...
+    bimp evaluate ... --seeds 4 10 13 --video 1
 
-Episode ``i`` of every policy uses seed ``seed + i`` for both the env and the policy, so policies face the
-same scenario instances. ``OUT/episodes.jsonl`` gets one line per finished episode, flushed at once; a
-rerun with the same arguments skips the episodes already there, so an interrupted run resumes without
-repeating or losing any. An episode that raises is recorded with its error and the run goes on.
-``OUT/summary.{json,csv,md}`` are rewritten at the end from all the lines in the folder, so a later run
-that adds a policy on the same seeds extends the same table.
+Every policy, scenario and override is validated before the first episode runs: a bad one exits with status
+2 and writes nothing. Each row of the table is an *arm*: a policy under one fully resolved config, named by its
+label (the policy name unless ``--label`` says otherwise). ``OUT/episodes.jsonl`` gets one record per
+finished episode, fsynced at once, carrying the resolved config, its hash, the scenario's drawn parameters,
+the seeds and the code version (``docs/evaluation.md``). A rerun skips the episodes already recorded for the
+same ``(scenario, label, config_hash, seed)``; records made with another config under the same label make it
+refuse (give ``--label``), never reuse them. An episode that raises is recorded with its traceback, shown in
+the ``errors`` column and retried by the next run. A worker process that dies is detected and its episode
+retried alone, then recorded as an error if it dies again; the run never hangs. One run at a time per folder
+(a lock). ``OUT/summary.{json,csv,md}`` cover the episodes this command asked for (``--all``: the folder).
 """
 
 from __future__ import annotations
@@ -16,84 +22,186 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import fcntl
 import json
 import math
 import multiprocessing as mp
 import os
+import sys
 import time
 import traceback
-from dataclasses import dataclass, field
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from tqdm import tqdm
 
-from agents.metrics import METRICS, episode_metrics, summarize
+from agents.metrics import BINARY, METRICS, episode_metrics, summarize
+from agents.provenance import code_version, config_diff, config_hash, resolved_config
+from agents.rollout import SEEDING, rollout
+from agents.video import with_video
 
 EPISODES_FILE = "episodes.jsonl"
+LOCK_FILE = ".lock"
+VIDEO_DIR = "videos"
+
+
+class EvaluationError(ValueError):
+    """A request that cannot be run as given (unknown name, bad override, a label's config conflict)."""
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One row of the table: policy ``policy`` under ``overrides`` on ``scenario``, shown as ``label``;
+    ``config`` is the policy's fully resolved config and ``config_hash`` its hash."""
+
+    scenario: str
+    label: str
+    policy: str
+    overrides: tuple
+    config: str  # canonical JSON: frozen and hashable
+    config_hash: str
+
+    @property
+    def resolved(self) -> dict:
+        return json.loads(self.config)
 
 
 @dataclass(frozen=True)
 class Job:
-    """One episode to run. ``overrides``: keyword overrides for ``make_policy``; ``trace``: keep the
-    per-step trace in the record (for figures)."""
+    """One episode to run: ``arm`` on episode ``seed``; ``trace``: keep the per-step trace (figures);
+    ``video_dir``: record an MP4 there; ``version``: the code version to stamp on the record."""
 
-    scenario: str
-    policy: str
+    arm: Arm
     seed: int
     trace: bool = False
-    overrides: tuple = field(default_factory=tuple)
+    video_dir: str | None = None
+    version: tuple = ()
 
     @property
-    def key(self) -> tuple[str, str, int]:
-        return self.scenario, self.policy, self.seed
+    def key(self) -> tuple[str, str, str, int]:
+        return self.arm.scenario, self.arm.label, self.arm.config_hash, self.seed
+
+
+def record_key(record: dict) -> tuple[str, str, str | None, int]:
+    """``(scenario, label, config_hash, seed)`` of a record (records older than labels use the policy name)."""
+    return record["scenario"], record.get("label", record["policy"]), record.get("config_hash"), record["seed"]
+
+
+# --- resolving and validating a request ----------------------------------------------------------------
+def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | None = None,
+                 labels: dict | None = None) -> list[Arm]:
+    """Validate the whole request and build one :class:`Arm` per scenario and policy, by constructing each
+    policy once on its scenario's env (so every override is checked exactly as an episode would apply it).
+    Raises :class:`EvaluationError` naming the first problem."""
+    import gymnasium as gym
+
+    import envs
+    from agents.registry import POLICIES, is_policy_name, make_policy
+
+    overrides, labels = overrides or {}, labels or {}
+    if not scenarios or not policies:
+        raise EvaluationError("give at least one scenario and one policy")
+    for kind, names in (("scenario", scenarios), ("policy", policies)):
+        if len(set(names)) != len(names):
+            raise EvaluationError(f"a {kind} is named twice: {names}")
+    unknown = [p for p in policies if not is_policy_name(p)]
+    if unknown:
+        raise EvaluationError(f"unknown policy {unknown}; choose from {sorted(POLICIES)} or give 'module:factory'")
+    for name, mapping in (("--set", overrides), ("--label", labels)):
+        stray = sorted(set(mapping) - set(policies))
+        if stray:
+            raise EvaluationError(f"{name} names {stray}, which is not among the policies {policies}")
+    shown = [labels.get(p, p) for p in policies]
+    if len(set(shown)) != len(shown):
+        raise EvaluationError(f"two policies would share a label: {shown}")
+    arms = []
+    for scenario in scenarios:
+        try:
+            env = gym.make(envs.env_id(scenario))
+        except ValueError as err:
+            raise EvaluationError(str(err)) from None
+        for policy in policies:
+            given = overrides.get(policy, {})
+            try:
+                config = resolved_config(make_policy(policy, env, **given))
+            except (ValueError, TypeError, FileNotFoundError, ImportError, AttributeError) as err:
+                raise EvaluationError(f"policy {policy!r} on {scenario} with overrides {given}: {err}") from None
+            arms.append(Arm(scenario, labels.get(policy, policy), policy, tuple(sorted(given.items())),
+                            json.dumps(config, sort_keys=True), config_hash(policy, config)))
+        env.close()
+    return arms
+
+
+def check_conflicts(arms: list[Arm], records: list[dict]) -> None:
+    """Refuse when ``records`` hold episodes of an arm's ``(scenario, label)`` made with another config."""
+    for arm in arms:
+        others = [r for r in records if r["scenario"] == arm.scenario
+                  and r.get("label", r["policy"]) == arm.label and r.get("config_hash") != arm.config_hash]
+        if others:
+            old = others[-1]
+            diff = config_diff(old.get("config") or {}, arm.resolved) or ["(the old records carry no config)"]
+            raise EvaluationError(
+                f"the folder already holds {len(others)} episode(s) of {arm.label!r} on {arm.scenario} made with "
+                f"another config (hash {old.get('config_hash')} here, {arm.config_hash} now):\n  "
+                + "\n  ".join(diff[:12])
+                + "\ngive --label NAME to add this config as a new row, or choose another --out")
+
+
+# --- running one episode -------------------------------------------------------------------------------
+def _base_record(job: Job) -> dict:
+    arm = job.arm
+    return {"scenario": arm.scenario, "label": arm.label, "policy": arm.policy, "seed": job.seed,
+            "config_hash": arm.config_hash, "config": arm.resolved, "overrides": dict(arm.overrides),
+            "seeding": SEEDING, **dict(job.version)}
 
 
 def run_episode(job: Job) -> dict:
-    """Run one episode and return its record: identifiers, ``status`` ("ok" / "error"), ``metrics``, and
-    the ``trace`` if asked for. Never raises for an error inside the episode."""
+    """Run one episode and return its record (see ``docs/evaluation.md``). Never raises for an error inside
+    the episode: it comes back as ``status: "error"`` with the traceback."""
     import gymnasium as gym
 
     import envs
     from agents.registry import make_policy
 
-    record = {"scenario": job.scenario, "policy": job.policy, "seed": job.seed}
+    arm, record = job.arm, _base_record(job)
+    start = time.perf_counter()
     try:
-        env = gym.make(envs.env_id(job.scenario))
-        policy = make_policy(job.policy, env, **dict(job.overrides))
-        obs, _ = env.reset(seed=job.seed)
-        policy.reset(job.seed)
-        trace: dict[str, list] = {k: [] for k in (
-            "x", "y", "heading", "speed", "input", "ov_xy", "ov_distance", "edge_distance", "ttc",
-            "lateral_error", "speed_error", "reference_speed", "collision", "offroad", "constraints", "plan_ms",
-            "s")}
-        terminated = truncated = False
-        while not (terminated or truncated):
-            start = time.perf_counter()
-            action = policy.act(obs)
-            trace["plan_ms"].append(1e3 * (time.perf_counter() - start))
-            obs, _, terminated, truncated, info = env.step(action)
-            ego, _, ovs, ref = env.unwrapped.scene.split_obs(obs)
-            for name, value in zip(("x", "y", "heading", "speed"), ego):
-                trace[name].append(float(value))
-            trace["ov_xy"].append(ovs[:, 1:3].tolist())
-            trace["reference_speed"].append(float(ref[0]))
-            for name in ("input", "ov_distance", "edge_distance", "ttc", "lateral_error", "speed_error",
-                         "collision", "offroad", "constraints", "s"):
-                trace[name].append(info[name])
-        record.update(status="ok", steps=len(trace["plan_ms"]), truncated=bool(truncated),
-                      metrics=episode_metrics(trace, env.unwrapped.scene.dt, truncated=bool(truncated)))
+        env = gym.make(envs.env_id(arm.scenario), render_mode="rgb_array" if job.video_dir else None)
+        if job.video_dir:
+            env = with_video(env, job.video_dir, f"{arm.label}_{arm.scenario}_seed{job.seed}")
+        policy = make_policy(arm.policy, env, **dict(arm.overrides))
+        built = config_hash(arm.policy, resolved_config(policy))
+        if built != arm.config_hash:
+            raise RuntimeError(f"the policy resolved to config {built} in this process, {arm.config_hash} when "
+                               "the run was checked: the config depends on something outside it")
+        episode = rollout(env, policy, job.seed)
+        scene = env.unwrapped.scene
+        record.update(env_seed=episode.env_seed, policy_seed=episode.policy_seed,
+                      scenario_params=episode.params, status="ok", steps=episode.steps,
+                      truncated=episode.truncated,
+                      metrics=episode_metrics(episode.trace, scene.dt, truncated=episode.truncated))
         if job.trace:
-            scene = env.unwrapped.scene
-            record.update(trace=_finite(trace), road=dataclasses.asdict(scene.road),
+            record.update(trace=episode.trace, road=dataclasses.asdict(scene.road),
                           bounds=dataclasses.asdict(scene.bounds))
         env.close()
     except Exception as err:  # recorded, never fatal: one broken episode must not end a long run
         record.update(status="error", error=f"{type(err).__name__}: {err}", traceback=traceback.format_exc())
+    record["wall_s"] = round(time.perf_counter() - start, 3)
     return record
 
 
+def _crash_record(job: Job, attempts: int) -> dict:
+    return {**_base_record(job), "status": "error", "traceback": None,
+            "error": f"WorkerDied: the worker process running this episode died ({attempts} attempts, the last "
+                     "one alone); a crash in native code or the out-of-memory killer are the usual causes"}
+
+
 def _finite(value):
-    """JSON has no inf: infinities become None."""
+    """JSON has no inf: infinities and NaN become None."""
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
@@ -103,8 +211,9 @@ def _finite(value):
     return value
 
 
-def read_records(out: Path) -> list[dict]:
-    """All complete episode records in ``out/episodes.jsonl`` (a line cut by an interruption is skipped)."""
+# --- the folder: records, lock ---------------------------------------------------------------------------
+def read_records(out: str | Path) -> list[dict]:
+    """Every complete record in ``out/episodes.jsonl``, in file order (a line cut by an interruption is skipped)."""
     path = Path(out) / EPISODES_FILE
     records = []
     if path.exists():
@@ -116,67 +225,158 @@ def read_records(out: Path) -> list[dict]:
     return records
 
 
+def latest_records(records: list[dict]) -> list[dict]:
+    """One record per ``(scenario, label, config_hash, seed)``: the last successful one, else the last error
+    (an error that a later run retried successfully is no longer shown)."""
+    chosen: dict[tuple, dict] = {}
+    for r in records:
+        key = record_key(r)
+        if r["status"] == "ok" or chosen.get(key, {}).get("status") != "ok":
+            chosen[key] = r
+    return list(chosen.values())
+
+
+@contextmanager
+def folder_lock(out: Path):
+    """Hold ``out/.lock`` for the run; a second run into the same folder refuses at once. The lock is an
+    ``flock``, so the kernel releases it when the holder dies: no stale locks."""
+    handle = open(out / LOCK_FILE, "a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "another process"
+        handle.close()
+        raise EvaluationError(f"{out} is in use by another bimp run ({holder}); wait for it to end or choose "
+                              "another --out") from None
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        handle.flush()
+        yield
+    finally:
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
+
+
+# --- running many episodes ------------------------------------------------------------------------------
 def _init_worker() -> None:
     import torch
 
     torch.set_num_threads(1)  # workers are the parallelism; oversubscribed threads only slow them down
 
 
-def evaluate(scenarios: list[str], policies: list[str], episodes: int, seed: int = 0, workers: int = 1,
+def _run_pool(todo: list[Job], workers: int, write) -> None:
+    """Run ``todo`` on ``workers`` spawned processes, at most ``workers`` episodes in flight. When a worker
+    dies, every episode then in flight is a suspect: each is rerun alone on a fresh pool, and one that kills
+    its worker alone is recorded as an error (never retried forever, never lost, never a hang)."""
+    # Spawned workers import numpy afresh: one BLAS thread each, or they fight over the cores.
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    make = lambda: ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),  # noqa: E731
+                                       initializer=_init_worker)
+    queue, suspects, attempts = deque(todo), deque(), {}
+    in_flight: dict = {}
+    pool, broken = make(), False
+    try:
+        while queue or suspects or in_flight:
+            if broken and not in_flight:
+                pool.shutdown(wait=True, cancel_futures=True)
+                pool, broken = make(), False
+            if not broken and not any(alone for _, alone in in_flight.values()):
+                if suspects and not in_flight:
+                    job = suspects.popleft()
+                    in_flight[pool.submit(run_episode, job)] = (job, True)
+                while not suspects and queue and len(in_flight) < workers:
+                    job = queue.popleft()
+                    in_flight[pool.submit(run_episode, job)] = (job, False)
+            done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
+            for future in done:
+                job, alone = in_flight.pop(future)
+                try:
+                    write(future.result())
+                except BrokenProcessPool:
+                    broken = True
+                    attempts[job] = attempts.get(job, 0) + 1
+                    if alone:
+                        write(_crash_record(job, attempts[job]))
+                    else:
+                        suspects.append(job)
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed: int = 0, workers: int = 1,
              out: str | Path = "runs/eval", traces: int = 2, overrides: dict | None = None,
-             progress: bool = True) -> dict:
+             progress: bool = True, *, seeds: list[int] | None = None, labels: dict | None = None,
+             video: int = 0, all_records: bool = False) -> dict:
     """Run the missing episodes, append them to ``out/episodes.jsonl``, write and return the summary.
 
-    ``traces``: how many episodes per policy and scenario keep their per-step trace (figures use them);
-    ``overrides``: ``make_policy`` keyword overrides for every policy that is named in it, e.g.
-    ``{"enkts": {"n_particles": 100}}``.
+    Episodes: ``seeds`` if given, else ``seed, seed + 1, ..., seed + episodes - 1``. ``overrides``:
+    ``{policy: {key: value}}`` for ``make_policy``; ``labels``: ``{policy: label}``; ``traces`` / ``video``:
+    how many of the first seeds per arm keep their per-step trace / get an MP4 in ``out/videos``;
+    ``all_records``: summarize the whole folder instead of this request. Raises :class:`EvaluationError`
+    before anything is written when the request is invalid or conflicts with the folder's records.
     """
+    seeds = list(range(seed, seed + episodes)) if seeds is None else [int(s) for s in seeds]
+    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        raise EvaluationError(f"seeds must be distinct ints >= 0, at least one; got {seeds}")
+    arms = resolve_arms(scenarios, policies, overrides, labels)
     out = Path(out)
+    check_conflicts(arms, read_records(out))  # before anything is written: a refusal leaves no trace
     out.mkdir(parents=True, exist_ok=True)
-    done = {(r["scenario"], r["policy"], r["seed"]) for r in read_records(out)}
-    jobs = [Job(s, p, seed + i, trace=i < traces, overrides=tuple(sorted((overrides or {}).get(p, {}).items())))
-            for s in scenarios for p in policies for i in range(episodes)]
-    todo = [j for j in jobs if j.key not in done]
-    path = out / EPISODES_FILE
-    if path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n"):
-        with open(path, "a") as sink:  # end the line an interruption cut, or the next record joins it
-            sink.write("\n")
-    with open(path, "a") as sink, tqdm(total=len(jobs), initial=len(jobs) - len(todo),
-                                                       desc="episodes", disable=not progress) as bar:
-        def write(record: dict) -> None:
-            sink.write(json.dumps(_finite(record)) + "\n")
-            sink.flush()
-            os.fsync(sink.fileno())
-            bar.update()
-            if record["status"] == "error":
-                bar.write(f"episode {record['policy']}/{record['scenario']}/{record['seed']} failed: "
-                          f"{record['error']}")
+    with folder_lock(out):
+        records = read_records(out)
+        check_conflicts(arms, records)  # again under the lock: the folder may have changed meanwhile
+        version = tuple(code_version().items())
+        video_dir = str(out / VIDEO_DIR)
+        jobs = [Job(arm, s, trace=i < traces, video_dir=video_dir if i < video else None, version=version)
+                for arm in arms for i, s in enumerate(seeds)]
+        done = {record_key(r) for r in records if r["status"] == "ok"}
+        todo = [j for j in jobs if j.key not in done]
+        path = out / EPISODES_FILE
+        if path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n"):
+            with open(path, "a") as sink:  # end the line an interruption cut, or the next record joins it
+                sink.write("\n")
+        with open(path, "a") as sink, tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="episodes",
+                                           disable=not progress) as bar:
+            def write(record: dict) -> None:
+                sink.write(json.dumps(_finite(record)) + "\n")
+                sink.flush()
+                os.fsync(sink.fileno())
+                bar.update()
+                if record["status"] == "error":
+                    bar.write(f"episode {record['label']}/{record['scenario']}/seed {record['seed']} failed: "
+                              f"{record['error']}")
 
-        if workers > 1 and len(todo) > 1:
-            # Spawned workers import numpy afresh: one BLAS thread each, or they fight over the cores.
-            for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-                os.environ.setdefault(var, "1")
-            with mp.get_context("spawn").Pool(workers, initializer=_init_worker) as pool:
-                for record in pool.imap_unordered(run_episode, todo):
-                    write(record)
-        else:
-            for job in todo:
-                write(run_episode(job))
-    # The summary covers the whole folder, so policies added by later runs (on the same seeds) join the table.
-    summary = summarize(read_records(out))
-    write_summary(summary, out)
+            if workers > 1 and len(todo) > 1:
+                _run_pool(todo, workers, write)
+            else:
+                for job in todo:
+                    write(run_episode(job))
+        wanted = {j.key for j in jobs}
+        records = latest_records(read_records(out))
+        summary = summarize(records if all_records else [r for r in records if record_key(r) in wanted])
+        write_summary(summary, out)
     return summary
 
 
+# --- the summary files ----------------------------------------------------------------------------------
+STATS = ("mean", "ci_low", "ci_high")
+
+
 def write_summary(summary: dict, out: Path) -> None:
-    """``summary.json`` (every statistic), ``summary.csv`` (mean and std columns), ``summary.md`` (a table)."""
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    """``summary.json`` (every statistic), ``summary.csv`` (mean and interval columns), ``summary.md``."""
+    (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2))
     columns = ["policy", "scenario", "episodes", "errors"]
     with open(out / "summary.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(columns + [f"{m}_{s}" for m in METRICS for s in ("mean", "std")])
+        w.writerow(columns + ["error_seeds", "failed_seeds"] + [f"{m}_{s}" for m in METRICS for s in STATS])
         for e in summary.values():
-            w.writerow([e[c] for c in columns] + [e[m][s] for m in METRICS for s in ("mean", "std")])
+            w.writerow([e[c] for c in columns] + [" ".join(map(str, e["error_seeds"])),
+                                                  " ".join(map(str, e["failed_seeds"]["success"]))]
+                       + [e[m][s] for m in METRICS for s in STATS])
     (out / "summary.md").write_text(markdown_table(summary))
 
 
@@ -184,42 +384,81 @@ def _fmt(stat: dict) -> str:
     if stat["mean"] is None:
         return "-"
     digits = 3 if abs(stat["mean"]) < 10 else 1
-    return f"{stat['mean']:.{digits}f} ± {stat['std']:.{digits}f}"
+    return f"{stat['mean']:.{digits}f} [{stat['ci_low']:.{digits}f}, {stat['ci_high']:.{digits}f}]"
+
+
+def _seeds(seeds: list[int], most: int = 8) -> str:
+    if not seeds:
+        return "0"
+    shown = ", ".join(map(str, seeds[:most])) + (", ..." if len(seeds) > most else "")
+    return f"{len(seeds)} ({shown})"
 
 
 def markdown_table(summary: dict) -> str:
-    """Scenario-by-policy rows, every metric as ``mean ± std`` over episodes."""
-    head = ["scenario", "policy", "episodes"] + list(METRICS)
+    """Scenario-by-arm rows: every metric as ``mean [95% interval]`` (Wilson for the episode outcomes,
+    bootstrap for the rest), the errors and the failed episodes with their seeds."""
+    head = ["scenario", "policy", "episodes", "errors", "failed"] + list(METRICS)
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for e in sorted(summary.values(), key=lambda e: (e["scenario"], e["policy"])):
-        cells = [e["scenario"], e["policy"], str(e["episodes"])] + [_fmt(e[m]) for m in METRICS]
+        cells = [e["scenario"], e["policy"], str(e["episodes"]), _seeds(e["error_seeds"]),
+                 _seeds(e["failed_seeds"]["success"])] + [_fmt(e[m]) for m in METRICS]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    notes = (f"\nIntervals: 95%, Wilson for {', '.join(BINARY)} (per episode), bootstrap of the mean for the "
+             "rest. `errors`: episodes that raised (not results; retried by the next run). `failed`: episodes "
+             "without success. Seeds in parentheses.\n")
+    return "\n".join(lines) + "\n" + notes
 
 
-def _parse_overrides(pairs: list[str]) -> dict:
-    """``policy.key=value`` (YAML value) -> ``{policy: {key: value}}``."""
+# --- command line ---------------------------------------------------------------------------------------
+def parse_overrides(pairs: list[str]) -> dict:
+    """``POLICY.KEY=VALUE`` (VALUE read as YAML) -> ``{policy: {key: value}}``; EvaluationError naming the pair."""
     import yaml
 
     result: dict[str, dict] = {}
     for pair in pairs:
-        name, _, value = pair.partition("=")
-        policy, _, key = name.partition(".")
-        if not key or not _:
-            raise SystemExit(f"--set expects POLICY.KEY=VALUE, got {pair!r}")
-        result.setdefault(policy, {})[key] = yaml.safe_load(value)
+        name, eq, value = pair.partition("=")
+        policy, dot, key = name.partition(".")
+        if not (eq and dot and policy and key):
+            raise EvaluationError(f"--set expects POLICY.KEY=VALUE, got {pair!r}")
+        if key in result.get(policy, {}):
+            raise EvaluationError(f"--set gives {policy}.{key} twice")
+        try:
+            result.setdefault(policy, {})[key] = yaml.safe_load(value)
+        except yaml.YAMLError as err:
+            raise EvaluationError(f"--set {pair!r}: the value is not valid YAML ({err})") from None
     return result
+
+
+def parse_labels(items: list[str], policies: list[str]) -> dict:
+    """``--label NAME`` (one policy) or ``POLICY=NAME`` per policy -> ``{policy: label}``."""
+    labels = {}
+    for item in items:
+        policy, eq, name = item.rpartition("=")
+        if not eq:
+            if len(policies) != 1:
+                raise EvaluationError(f"--label {item!r} is ambiguous with several policies: use POLICY=NAME")
+            policy, name = policies[0], item
+        if not name or "/" in name:
+            raise EvaluationError(f"--label {item!r}: a label is a non-empty name without '/'")
+        labels[policy] = name
+    return labels
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", nargs="+", default=["overtaking", "emergency-brake"])
     parser.add_argument("--policy", nargs="+", default=["enkts", "enks"])
     parser.add_argument("--episodes", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="first episode seed (seeds by role: docs/evaluation.md)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="an explicit list of episode seeds")
     parser.add_argument("--workers", type=int, default=max(1, min(2, os.cpu_count() or 1)))
-    parser.add_argument("--traces", type=int, default=2, help="episodes per policy/scenario that keep traces")
+    parser.add_argument("--traces", type=int, default=2, help="episodes per arm that keep their per-step trace")
+    parser.add_argument("--video", type=int, default=0, metavar="K", help="MP4 of the first K episodes per arm")
     parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="POLICY.KEY=VALUE",
                         help="config override for one policy, e.g. enkts.n_particles=100")
+    parser.add_argument("--label", nargs="*", default=[], metavar="[POLICY=]NAME",
+                        help="the row name of a policy's config (default: the policy name)")
+    parser.add_argument("--all", dest="all_records", action="store_true",
+                        help="summarize every episode in the folder, not only this request's")
     parser.add_argument("--out", default="runs/eval")
 
 
@@ -228,16 +467,20 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
     args = parser.parse_args(argv)
-    from agents.registry import POLICIES
-
-    unknown = sorted(set(args.policy) - set(POLICIES))
-    if unknown:
-        parser.error(f"unknown policy {unknown}; choose from {sorted(POLICIES)}")
-    summary = evaluate(args.scenario, args.policy, args.episodes, args.seed, args.workers, args.out,
-                       args.traces, _parse_overrides(args.overrides))
+    try:
+        if args.episodes < 1 or args.workers < 1 or args.traces < 0 or args.video < 0:
+            raise EvaluationError("--episodes and --workers must be >= 1, --traces and --video >= 0")
+        summary = evaluate(args.scenario, args.policy, args.episodes, args.seed, args.workers, args.out,
+                           args.traces, parse_overrides(args.overrides), seeds=args.seeds,
+                           labels=parse_labels(args.label, args.policy), video=args.video,
+                           all_records=args.all_records)
+    except EvaluationError as err:
+        print(f"bimp evaluate: error: {err}", file=sys.stderr)
+        return 2
     print(markdown_table(summary))
     print(f"wrote {Path(args.out) / EPISODES_FILE} and summary.{{json,csv,md}}")
     return 0
 
 
-__all__ = ["Job", "evaluate", "read_records", "run_episode"]
+__all__ = ["Arm", "EvaluationError", "Job", "evaluate", "latest_records", "read_records", "resolve_arms",
+           "run_episode"]

@@ -1,6 +1,6 @@
 """Safety metrics of one episode, computed from its per-step trace, and their summary over episodes.
 
-A trace is a dict of equal-length per-step lists, as :func:`agents.evaluate.run_episode` records them from
+A trace is a dict of equal-length per-step lists, as :func:`agents.rollout.rollout` records them from
 the env's ``info`` (evaluation never re-derives what the env already measured):
 ``collision``, ``offroad`` (bool); ``ov_distance`` (K floats, m); ``edge_distance`` (m); ``ttc`` (s, inf if no
 closing OV); ``lateral_error`` (m); ``speed_error`` (m/s); ``input`` ([a, delta]); ``constraints`` (dicts of
@@ -14,11 +14,15 @@ import math
 
 import numpy as np
 
+from agents.stats import mean_summary, rate_summary
+
 METRICS = (
     "success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate",
     "min_distance_m", "min_ttc_s", "rms_lateral_error_m", "rms_speed_error_mps", "max_abs_jerk",
     "plan_time_ms_p50", "plan_time_ms_p95", "progress_m",
 )
+# One 0/1 outcome per episode: summarized as a proportion with a Wilson interval.
+BINARY = ("success_rate", "collision_rate", "offroad_rate")
 # Constraint values this small count as satisfied: float32 round-off of an action sitting on its bound.
 TOLERANCE = 1e-6
 
@@ -56,24 +60,35 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
 
 
 def summarize(records: list[dict]) -> dict[str, dict]:
-    """Summary of episode records (``{"scenario", "policy", "status", "metrics"}``) per ``policy/scenario``.
+    """Summary per ``label/scenario`` of episode records (one per label, scenario and seed: see
+    :func:`agents.evaluate.latest_records`).
 
-    Each metric gets ``mean``, ``std`` (over episodes), ``min``, ``max``; an episode that raised counts as
-    an unsuccessful episode and is otherwise left out of the metrics (``errors`` counts them).
+    Results are the episodes that ran to their end (``status`` "ok"); an episode that raised is not a result:
+    it is counted in ``errors`` with its seed in ``error_seeds`` and left out of every metric. Episode
+    outcomes (``BINARY``) get ``{mean, ci_low, ci_high, k, n}`` with the Wilson 95% interval, the other
+    metrics ``{mean, ci_low, ci_high, std, min, max, n}`` with a bootstrap 95% interval of the mean.
+    ``failed_seeds`` lists, per outcome, the seeds where it went wrong (no success, a collision, off-road).
     """
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in records:
-        groups.setdefault((r["policy"], r["scenario"]), []).append(r)
+        groups.setdefault((r.get("label", r["policy"]), r["scenario"]), []).append(r)
     out = {}
-    for (policy, scenario), rs in sorted(groups.items()):
-        ok = [r["metrics"] for r in rs if r["status"] == "ok"]
-        entry: dict = {"policy": policy, "scenario": scenario, "episodes": len(rs), "errors": len(rs) - len(ok)}
+    for (label, scenario), rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: r["seed"])
+        ok = [r for r in rs if r["status"] == "ok"]
+        entry: dict = {
+            "policy": label, "policy_name": rs[0]["policy"], "scenario": scenario,
+            "config_hash": sorted({str(r.get("config_hash")) for r in rs}),
+            "episodes": len(ok), "errors": len(rs) - len(ok),
+            "error_seeds": [r["seed"] for r in rs if r["status"] != "ok"],
+            "failed_seeds": {
+                "success": [r["seed"] for r in ok if not r["metrics"]["success_rate"]],
+                "collision": [r["seed"] for r in ok if r["metrics"]["collision_rate"]],
+                "offroad": [r["seed"] for r in ok if r["metrics"]["offroad_rate"]],
+            },
+        }
         for name in METRICS:
-            values = [m[name] for m in ok if m[name] is not None]
-            if name == "success_rate":
-                values += [0.0] * entry["errors"]
-            entry[name] = ({"mean": float(np.mean(values)), "std": float(np.std(values)),
-                            "min": float(np.min(values)), "max": float(np.max(values))}
-                           if values else {"mean": None, "std": None, "min": None, "max": None})
-        out[f"{policy}/{scenario}"] = entry
+            values = [r["metrics"][name] for r in ok if r["metrics"].get(name) is not None]
+            entry[name] = rate_summary(values) if name in BINARY else mean_summary(values)
+        out[f"{label}/{scenario}"] = entry
     return out

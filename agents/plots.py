@@ -36,7 +36,7 @@ def traced_episodes(records: list[dict]) -> dict[str, dict[str, dict]]:
     by_scenario: dict[str, dict[int, dict[str, dict]]] = {}
     for r in records:
         if r.get("status") == "ok" and "trace" in r:
-            by_scenario.setdefault(r["scenario"], {}).setdefault(r["seed"], {})[r["policy"]] = r
+            by_scenario.setdefault(r["scenario"], {}).setdefault(r["seed"], {})[r.get("label", r["policy"])] = r
     chosen = {}
     for scenario, seeds in by_scenario.items():
         policies = set().union(*seeds.values())
@@ -140,23 +140,24 @@ def render_episode(scenario: str, policy: str, seed: int, path: str | Path, ever
 
     import envs
     from agents.registry import make_policy
+    from agents.rollout import rollout
 
     env = gym.make(envs.env_id(scenario), render_mode="rgb_array")
-    agent = make_policy(policy, env)
-    obs, _ = env.reset(seed=seed)
-    agent.reset(seed)
-    frames, step, done = [env.render()], 0, False
-    while not done:
-        obs, _, terminated, truncated, _ = env.step(agent.act(obs))
-        done, step = terminated or truncated, step + 1
+    frames: list[tuple[int, np.ndarray]] = []
+
+    def keep(env, obs, info) -> None:
+        step = env.unwrapped.steps
+        done = info.get("collision") or info.get("offroad") or env.unwrapped.steps >= env.spec.max_episode_steps
         if step % every == 0 or done:
-            frames.append(env.render())
+            frames.append((step, env.render()))
+
+    rollout(env, make_policy(policy, env), seed, on_step=keep)
     env.close()
     fig, axes = plt.subplots(len(frames), 1, figsize=(8, 2.4 * len(frames)))
-    for k, (ax, frame) in enumerate(zip(np.atleast_1d(axes), frames)):
+    for ax, (step, frame) in zip(np.atleast_1d(axes), frames):
         ax.imshow(frame)
         ax.set_axis_off()
-        ax.set_title(f"{scenario}, {policy}, seed {seed}: step {min(k * every, step)}", fontsize=8)
+        ax.set_title(f"{scenario}, {policy}, seed {seed}: step {step}", fontsize=8)
     return _save(fig, Path(path))
 
 

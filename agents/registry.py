@@ -13,6 +13,7 @@ POLICIES = {
     "enkts": "planners.enkts:make_enkts",
     "enks": "planners.enkts:make_enks",
     "lane-keep": "agents.baselines:LaneKeeping",
+    "zero": "agents.baselines:ZeroAction",
     "ppo": "agents.rl:make_ppo",
     "sac": "agents.rl:make_sac",
     "mppi": "planners.mppi:make_mppi",
@@ -21,10 +22,16 @@ POLICIES = {
 }
 
 
+def is_policy_name(name: str) -> bool:
+    """A registered name, or ``"package.module:factory"`` (your own policy, built like the registered ones)."""
+    return name in POLICIES or (":" in name and all(name.partition(":")[::2]))
+
+
 def make_policy(name: str, env: gym.Env, **overrides) -> Policy:
     """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``overrides`` go to its
-    config and an unknown one raises. ``ValueError`` for an unknown name."""
-    if name not in POLICIES:
-        raise ValueError(f"unknown policy {name!r}; choose from {sorted(POLICIES)}")
-    module, factory = POLICIES[name].split(":")
+    config and an unknown one raises. ``name`` is a key of ``POLICIES`` or ``"module:factory"``.
+    ``ValueError`` for an unknown name."""
+    if not is_policy_name(name):
+        raise ValueError(f"unknown policy {name!r}; choose from {sorted(POLICIES)} or give 'module:factory'")
+    module, factory = POLICIES.get(name, name).split(":")
     return getattr(importlib.import_module(module), factory)(env, **overrides)

@@ -12,20 +12,9 @@ ones and how they were made: ``docs/rl.md``. Only PPO models ship; ``make_sac`` 
 Inference: ``make_policy("ppo", env)`` (or ``"sac"``) loads ``agents/models/{algo}_{scenario}.zip``, the scenario
 taken from ``env.spec.id``; ``model_path=...`` picks another file.
 
-highway-env's own SB3 examples feed the raw observation and the raw action space to the agent. For continuous
-control on these scenarios that fails in known ways, so both sides go through fixed transforms, the same at
-training (:class:`PlanningWrapper`) and at inference (:class:`SB3Policy`), built from the raw observation and
-the scene alone (:func:`features`, :func:`to_physical`):
-
-- Observation: world positions grow to hundreds of metres, and the same situation at another place on the
-  road looks new to the network. :func:`features` is ego-relative and scaled to O(1): lateral error to the
-  reference lane, heading error to the road, speed error, the previous input, curvature now and ahead, and
-  each OV's gap along the road, lateral offset and relative speed (road coordinates). Hand-scaled features
-  need no ``VecNormalize`` statistics, which would otherwise have to ship beside the model.
-- Action: the env's [-1, 1] spans actuators far wider than the planning bounds (steering +-0.3 rad against
-  0.05 rad), so uniform exploration mostly spins the car off the road. The agent's [-1, 1] maps onto the
-  *planning* bounds (0 = coast, straight) and the input is then rate-limited around the previous one, so
-  every input the baseline applies satisfies paper eq. 4-5, like the planners it is compared with.
+Observation and action go through fixed transforms, the same at training (:class:`envs.PlanningWrapper`) and
+at inference (:class:`SB3Policy`): ego-relative scaled features and actions on the planning bounds, rate-limited
+(:mod:`envs.wrappers` says why).
 
 The env's reward is used as it is: it pays tracking of the reference speed *along the road* and of the
 reference lane, so weaving or spinning earns less than driving straight; stopping earns only the lane term
@@ -47,122 +36,12 @@ import gymnasium as gym
 import numpy as np
 
 import envs
-from envs.scene import Scene
+from agents.baselines import ZeroAction
+from agents.rollout import rollout
+from envs.wrappers import PlanningWrapper, features, n_features, to_env_action
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 ALGOS = ("ppo", "sac")
-
-# Feature scales: typical magnitudes, so features are O(1) without running statistics.
-_GAP_SCALE = 50.0  # m along the road
-_SPEED_SCALE = 10.0  # m/s, speed differences
-_V_SCALE = 30.0  # m/s, absolute speeds
-_HEADING_SCALE = 0.1  # rad
-_CURVATURE_SCALE = 100.0  # 1/m -> 0.5 on a 200 m radius
-_ACCEL_SCALE = 7.0  # m/s^2
-_LOOKAHEAD_S = 2.0  # s of travel for the curvature ahead
-_FEATURE_CLIP = 5.0
-
-N_EGO_FEATURES = 11
-N_OV_FEATURES = 5
-
-
-def n_features(scene: Scene) -> int:
-    return N_EGO_FEATURES + scene.n_obstacles * N_OV_FEATURES
-
-
-def _wrap(angle: np.ndarray | float) -> np.ndarray:
-    return np.arctan2(np.sin(angle), np.cos(angle))
-
-
-def _input_to_unit(u: np.ndarray, scene: Scene) -> np.ndarray:
-    """Physical input ``[a, delta]`` -> the agent's units (inverse of the map in :func:`to_physical`)."""
-    a_min, a_max = scene.bounds.accel
-    a = u[0] / a_max if u[0] >= 0 else u[0] / -a_min
-    return np.array([a, u[1] / scene.bounds.steer])
-
-
-def features(obs: np.ndarray, scene: Scene) -> np.ndarray:
-    """Ego-relative, scaled features ``(n_features(scene),)`` float32 of a raw observation ``(scene.obs_dim,)``.
-
-    Ego: lateral error to the reference lane and lateral position (per lane width, per half width), heading
-    error to the road (per 0.1 rad), speed error (per 10 m/s), speed and reference speed (per 30 m/s),
-    reference acceleration (per 7 m/s^2), previous input in the agent's units, road curvature here and
-    ``_LOOKAHEAD_S`` ahead. Per OV: present, gap along the road (per 50 m), lateral offset (per lane width),
-    speed and acceleration relative to the EV; zeros when absent. Clipped to +-5.
-    """
-    ego, prev_u, ovs, ref = scene.split_obs(obs)
-    road = scene.road
-    # One road-coordinate query for the EV and all OVs: it is the costly part of the features.
-    s, lat = road.to_frenet(np.concatenate([ego[None, :2], ovs[:, 1:3]]))
-    s_e, l_e, s_o, l_o = s[0], lat[0], s[1:], lat[1:]
-    v_ref, a_ref, l_ref = ref
-    lane = road.lane_width
-    ego_f = [
-        (l_e - l_ref) / lane,
-        l_e / road.half_width,
-        _wrap(ego[2] - road.heading_at(s_e)) / _HEADING_SCALE,
-        (ego[3] - v_ref) / _SPEED_SCALE,
-        ego[3] / _V_SCALE,
-        v_ref / _V_SCALE,
-        a_ref / _ACCEL_SCALE,
-        *_input_to_unit(prev_u, scene),
-        road.curvature_at(s_e) * _CURVATURE_SCALE,
-        road.curvature_at(s_e + ego[3] * _LOOKAHEAD_S) * _CURVATURE_SCALE,
-    ]
-    present = ovs[:, 0] > 0
-    ov_f = np.stack([
-        np.ones_like(s_o),
-        (s_o - s_e) / _GAP_SCALE,
-        (l_o - l_e) / lane,
-        (ovs[:, 4] - ego[3]) / _SPEED_SCALE,
-        ovs[:, 5] / _ACCEL_SCALE,
-    ], axis=-1) * present[:, None]
-    out = np.concatenate([np.asarray(ego_f, float), ov_f.ravel()])
-    return np.clip(out, -_FEATURE_CLIP, _FEATURE_CLIP).astype(np.float32)
-
-
-def to_physical(action: np.ndarray, obs: np.ndarray, scene: Scene) -> np.ndarray:
-    """The agent's action ``(2,)`` in [-1, 1] -> physical input ``[a m/s^2, delta rad]``.
-
-    Piecewise linear onto the planning bounds with 0 -> coasting straight (the untrained policy's mean then
-    neither brakes nor accelerates), then clipped to the rate bounds around the previous input read from
-    ``obs``, so the output satisfies paper eq. 4-5.
-    """
-    x = np.clip(np.asarray(action, float).reshape(2), -1.0, 1.0)
-    b = scene.bounds
-    u = np.array([x[0] * (b.accel[1] if x[0] >= 0 else -b.accel[0]), x[1] * b.steer])
-    prev = scene.split_obs(obs)[1]
-    rate = np.array([b.accel_rate, b.steer_rate])
-    return np.clip(u, prev - rate, prev + rate)
-
-
-def to_env_action(action: np.ndarray, obs: np.ndarray, scene: Scene) -> np.ndarray:
-    """The agent's action -> the env's normalized action ``(2,)`` float32 in [-1, 1]."""
-    return scene.to_normalized(to_physical(action, obs, scene)).astype(np.float32)
-
-
-class PlanningWrapper(gym.Wrapper):
-    """Training-side view of a bimp env: :func:`features` as observation, the agent's planning-bound action
-    in [-1, 1]^2 (:func:`to_env_action`). Reward, termination and ``info`` pass through unchanged."""
-
-    def __init__(self, env: gym.Env):
-        super().__init__(env)
-        n = n_features(env.unwrapped.scene)
-        self.observation_space = gym.spaces.Box(-_FEATURE_CLIP, _FEATURE_CLIP, shape=(n,), dtype=np.float32)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-        self._raw: np.ndarray | None = None
-
-    def reset(self, **kwargs):
-        obs, info = self.env.reset(**kwargs)
-        self._raw = obs
-        return features(obs, self.env.unwrapped.scene), info
-
-    def step(self, action):
-        # The scene is rebuilt at every reset: read it at each step, never cache it.
-        scene = self.env.unwrapped.scene
-        obs, reward, terminated, truncated, info = self.env.step(to_env_action(action, self._raw, scene))
-        self._raw = obs
-        return features(obs, scene), reward, terminated, truncated, info
 
 
 # --- configuration -------------------------------------------------------------------------------------
@@ -357,6 +236,7 @@ class SB3Policy:
         if not path.is_file():
             raise FileNotFoundError(f"no {algo.upper()} model at {path}")
         self.env, self.algo, self.model_path = env, algo, path
+        self.config = {"algo": algo, "model_path": str(path), "model_sha256": _sha256(path)}
         # Schedules are pickled closures; replacing them keeps loading independent of the training Python.
         custom = {"learning_rate": 0.0, "lr_schedule": lambda _: 0.0, "clip_range": lambda _: 0.0}
         self.model = _algo_class(algo).load(path, device="cpu", custom_objects=custom)
@@ -373,6 +253,12 @@ class SB3Policy:
 
     def reset(self, seed: int | None = None) -> None:
         pass
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _shipped_model(env: gym.Env, algo: str) -> Path:
@@ -399,37 +285,20 @@ def make_sac(env: gym.Env, *, model_path: str | Path | None = None) -> SB3Policy
     return SB3Policy(env, model_path or _shipped_model(env, "sac"), "sac")
 
 
-class ZeroAction:
-    """The do-nothing reference: action [0, 0] in the env's space (coast straight on, actuators centred)."""
-
-    def __init__(self, env: gym.Env):
-        self.action = np.zeros(env.action_space.shape, dtype=np.float32)
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        return self.action
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
-
-
-def rollout(env: gym.Env, policy, seed: int) -> dict[str, float]:
-    """One episode of ``policy`` from ``env.reset(seed=seed)``: ``progress`` (m along the road), ``collision``,
-    ``offroad``, ``return`` and ``steps``. A quick check for training and tests, not the full evaluation."""
-    obs, info = env.reset(seed=seed)
-    policy.reset(seed)
-    s0, total, steps, done = info["s"], 0.0, 0, False
-    while not done:
-        obs, reward, terminated, truncated, info = env.step(policy.act(obs))
-        total, steps, done = total + reward, steps + 1, terminated or truncated
-    return {"progress": info["s"] - s0, "collision": float(info["collision"]), "offroad": float(info["offroad"]),
-            "return": total, "steps": steps}
+def quick_check(env: gym.Env, policy, seed: int) -> dict[str, float]:
+    """One episode of :func:`agents.rollout.rollout`: ``progress`` (m along the road), ``collision``, ``offroad``,
+    ``return`` and ``steps``. A quick check for training and tests, not the full evaluation."""
+    episode = rollout(env, policy, seed)
+    t = episode.trace
+    return {"progress": t["s"][-1] - t["s"][0], "collision": float(any(t["collision"])),
+            "offroad": float(any(t["offroad"])), "return": episode.total_reward, "steps": episode.steps}
 
 
 def compare_with_zero(env: gym.Env, policy, seeds) -> dict[str, dict[str, float]]:
-    """Means over ``seeds`` of :func:`rollout` for ``policy`` and for :class:`ZeroAction`."""
+    """Means over ``seeds`` of :func:`quick_check` for ``policy`` and for :class:`ZeroAction`."""
     result = {}
     for name, pol in (("policy", policy), ("zero", ZeroAction(env))):
-        runs = [rollout(env, pol, seed) for seed in seeds]
+        runs = [quick_check(env, pol, seed) for seed in seeds]
         result[name] = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
     return result
 

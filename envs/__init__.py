@@ -8,6 +8,7 @@ from gymnasium.envs.registration import register, registry
 
 from envs.road import RoadGeometry
 from envs.scene import Bounds, Scene
+from envs.wrappers import PlanningWrapper
 
 ENV_IDS = {"overtaking": "bimp/Overtaking-v0", "emergency-brake": "bimp/EmergencyBrake-v0"}
 _ENTRY_POINTS = {
@@ -30,4 +31,4 @@ def env_id(scenario: str) -> str:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {sorted(ENV_IDS)}") from None
 
 
-__all__ = ["ENV_IDS", "Bounds", "RoadGeometry", "Scene", "env_id"]
+__all__ = ["ENV_IDS", "Bounds", "PlanningWrapper", "RoadGeometry", "Scene", "env_id"]

@@ -58,14 +58,22 @@ def test_known_minimum_ttc_and_errors():
     assert m["plan_time_ms_p50"] == pytest.approx(5.5)
 
 
-def test_summary_has_every_key_with_spreads_and_counts_errors_as_failures():
-    ok = {"scenario": "s", "policy": "p", "status": "ok",
-          "metrics": episode_metrics(trace(), dt=0.1, truncated=True)}
-    bad = {"scenario": "s", "policy": "p", "status": "error", "error": "boom"}
-    summary = summarize([ok, ok, bad])
-    e = summary["p/s"]
-    assert e["episodes"] == 3 and e["errors"] == 1
+def test_summary_intervals_and_errors_that_are_not_results():
+    ok = {"scenario": "s", "policy": "p", "status": "ok", "metrics": episode_metrics(trace(), dt=0.1, truncated=True)}
+    crashed = episode_metrics(trace(collision=[False] * 9 + [True], ov_distance=[[20.0, 30.0]] * 9 + [[-0.2, 30.0]]),
+                              dt=0.1, truncated=False)
+    records = [{**ok, "seed": s} for s in range(4)] + [{**ok, "seed": 4, "metrics": crashed},
+                                                      {"scenario": "s", "policy": "p", "status": "error",
+                                                       "error": "boom", "seed": 9}]
+    e = summarize(records)["p/s"]
+    assert e["episodes"] == 5 and e["errors"] == 1 and e["error_seeds"] == [9]
+    assert e["failed_seeds"] == {"success": [4], "collision": [4], "offroad": []}
     for name in METRICS:
-        assert set(e[name]) == {"mean", "std", "min", "max"}
-    assert e["success_rate"]["mean"] == pytest.approx(2 / 3)
+        assert {"mean", "ci_low", "ci_high", "n"} <= set(e[name])
+    # 4 of 5 successes: the error is not a result; Wilson (0.376, 0.964) for 4/5
+    assert e["success_rate"]["mean"] == pytest.approx(0.8) and e["success_rate"]["n"] == 5
+    assert e["success_rate"]["ci_low"] == pytest.approx(0.3755, abs=1e-3)
+    assert e["success_rate"]["ci_high"] == pytest.approx(0.9638, abs=1e-3)
+    d = e["min_distance_m"]
+    assert d["mean"] == pytest.approx((4 * 20.0 - 0.2) / 5) and d["ci_low"] <= d["mean"] <= d["ci_high"]
     assert e["min_ttc_s"]["mean"] is None

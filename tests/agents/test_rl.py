@@ -10,6 +10,7 @@ import envs
 from agents import rl
 from agents.policy import Policy
 from agents.registry import make_policy
+from envs.wrappers import features
 
 SHIPPED = sorted(
     (algo, scenario) for algo in rl.ALGOS for scenario in envs.ENV_IDS
@@ -27,38 +28,6 @@ def overtaking():
 
 def test_some_model_is_shipped_for_each_scenario():
     assert {scenario for _, scenario in SHIPPED} == set(envs.ENV_IDS)
-
-
-def test_features_are_ego_relative_and_scaled(overtaking):
-    obs, _ = overtaking.reset(seed=0)
-    scene = overtaking.unwrapped.scene
-    f = rl.features(obs, scene)
-    assert f.shape == (rl.n_features(scene),) and f.dtype == np.float32
-    assert np.all(np.abs(f) <= 5.0)
-    # At reset the EV sits on its reference lane, along the road, at the reference speed, no previous input.
-    np.testing.assert_allclose(f[[0, 2, 3, 7, 8]], 0.0, atol=1e-5)
-    # OV1 is ahead in the same lane, OV2 ahead one lane to the left.
-    ov1, ov2 = f[11:16], f[16:21]
-    assert ov1[0] == 1 and ov1[1] > 0 and abs(ov1[2]) < 1e-5
-    assert ov2[0] == 1 and ov2[1] > ov1[1] and ov2[2] == pytest.approx(-1.0, abs=1e-5)
-
-
-def test_actions_map_inside_the_planning_bounds(overtaking):
-    obs, _ = overtaking.reset(seed=0)
-    scene = overtaking.unwrapped.scene
-    b, rng = scene.bounds, np.random.default_rng(0)
-    for _ in range(200):
-        obs = obs.copy()
-        obs[4:6] = [rng.uniform(*b.accel), rng.uniform(-b.steer, b.steer)]  # previous input
-        u = rl.to_physical(rng.uniform(-1.5, 1.5, 2), obs, scene)
-        assert b.input_violation(u)[0] <= 1e-9 and b.rate_violation(u - obs[4:6])[0] <= 1e-6
-        a = rl.to_env_action(rng.uniform(-1, 1, 2), obs, scene)
-        assert a.dtype == np.float32 and overtaking.action_space.contains(a)
-    # 0 means coast straight on; +-1 reach the bounds when the rate allows.
-    obs[4:6] = 0.0
-    np.testing.assert_allclose(rl.to_physical(np.zeros(2), obs, scene), 0.0)
-    obs[4:6] = [b.accel[1], b.steer]
-    np.testing.assert_allclose(rl.to_physical(np.ones(2), obs, scene), [b.accel[1], b.steer])
 
 
 def test_config_validates():
@@ -96,7 +65,7 @@ def test_shipped_model_acts_in_the_action_space(algo, scenario):
 @pytest.mark.parametrize(("algo", "scenario"), SHIPPED[:1])
 def test_policy_sees_what_training_saw(algo, scenario):
     """Policy.act on the raw env equals the model's prediction through the training wrapper."""
-    raw, wrapped = gym.make(envs.env_id(scenario)), rl.PlanningWrapper(gym.make(envs.env_id(scenario)))
+    raw, wrapped = gym.make(envs.env_id(scenario)), envs.PlanningWrapper(gym.make(envs.env_id(scenario)))
     policy = make_policy(algo, raw)
     for seed in (3, 4):
         obs, _ = raw.reset(seed=seed)
@@ -105,7 +74,7 @@ def test_policy_sees_what_training_saw(algo, scenario):
             x, _ = policy.model.predict(feats, deterministic=True)
             feats, *_ = wrapped.step(x)
             obs, *_ = raw.step(policy.act(obs))
-            np.testing.assert_allclose(rl.features(obs, raw.unwrapped.scene), feats, atol=1e-6)
+            np.testing.assert_allclose(features(obs, raw.unwrapped.scene), feats, atol=1e-6)
 
 
 @pytest.mark.parametrize(("algo", "scenario"), SHIPPED)

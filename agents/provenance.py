@@ -1,0 +1,74 @@
+"""What produced an episode: the policy's fully resolved config, its hash, and the code version.
+
+Every episode record carries these so a result can never be attributed to the wrong configuration:
+resume in :mod:`agents.evaluate` matches on ``(scenario, label, config_hash, seed)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import subprocess
+from importlib import metadata
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def resolved_config(policy) -> dict:
+    """The policy's complete configuration as plain JSON-able data: its ``config`` (and ``tuning``, the
+    shared problem tuning of the peers), dataclasses or dicts. ``TypeError`` for a policy that exposes
+    neither: its results could not be attributed."""
+    parts = {}
+    for attr in ("config", "tuning"):
+        value = getattr(policy, attr, None)
+        if dataclasses.is_dataclass(value):
+            parts[attr] = dataclasses.asdict(value)
+        elif isinstance(value, dict):
+            parts[attr] = dict(value)
+    if "config" not in parts:
+        raise TypeError(f"{type(policy).__name__} exposes no `config` (a dataclass or dict): "
+                        "evaluation cannot record what produced its episodes")
+    return json.loads(json.dumps(parts, default=str))  # tuples -> lists, paths -> str: what a record holds
+
+
+def config_hash(policy_name: str, config: dict) -> str:
+    """16 hex digits of SHA-256 over the policy name and its resolved config (canonical JSON)."""
+    blob = json.dumps({"policy": policy_name, "config": config}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """``key: old -> new`` for every leaf where two resolved configs differ (dotted keys)."""
+    lines = []
+    for key in sorted(set(a) | set(b)):
+        va, vb = a.get(key), b.get(key)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            lines += config_diff(va, vb, f"{prefix}{key}.")
+        elif va != vb:
+            lines.append(f"{prefix}{key}: {va!r} -> {vb!r}")
+    return lines
+
+
+@functools.lru_cache(maxsize=1)
+def code_version() -> dict:
+    """``{"bimp_version", "git_commit", "git_dirty"}``; the git entries are None outside a git checkout."""
+    try:
+        version = metadata.version("bimp")
+    except metadata.PackageNotFoundError:
+        version = None
+    commit = dirty = None
+    try:
+        run = functools.partial(subprocess.run, cwd=REPO_ROOT, capture_output=True, text=True, timeout=10)
+        head = run(["git", "rev-parse", "HEAD"])
+        if head.returncode == 0:
+            commit = head.stdout.strip()
+            dirty = bool(run(["git", "status", "--porcelain", "--untracked-files=no"]).stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"bimp_version": version, "git_commit": commit, "git_dirty": dirty}
+
+
+__all__ = ["code_version", "config_diff", "config_hash", "resolved_config"]

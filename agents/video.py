@@ -1,0 +1,60 @@
+"""MP4 video of episodes, through gymnasium's ``RecordVideo`` (moviepy), headless, at real time.
+
+    bimp render --scenario overtaking --policy enkts --seed 0 --out runs/render
+
+``bimp evaluate --video K`` records the first K episodes of every arm the same way (:func:`with_video`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+from pathlib import Path
+
+import gymnasium as gym
+
+
+def with_video(env: gym.Env, folder: str | Path, name: str) -> gym.Env:
+    """``env`` (made with ``render_mode="rgb_array"``) wrapped to write every episode to
+    ``folder/{name}-episode-{i}.mp4`` at one frame per control step, i.e. real time (10 fps for dt = 0.1 s)."""
+    if env.render_mode != "rgb_array":
+        raise ValueError(f"video needs an env made with render_mode='rgb_array', got {env.render_mode!r}")
+    with warnings.catch_warnings():  # many episodes share one folder; each file has its own name
+        warnings.filterwarnings("ignore", message=".*Overwriting existing videos.*")
+        return gym.wrappers.RecordVideo(env, str(folder), episode_trigger=lambda _: True, name_prefix=name,
+                                        fps=env.unwrapped.config["policy_frequency"], disable_logger=True)
+
+
+def render_video(scenario: str, policy: str, seed: int, out: str | Path, overrides: dict | None = None) -> Path:
+    """One episode of ``policy`` on ``scenario`` from episode ``seed`` as an MP4 in ``out``; returns its path."""
+    import envs
+    from agents.registry import make_policy
+    from agents.rollout import rollout
+
+    name = f"{policy}_{scenario}_seed{seed}"
+    env = with_video(gym.make(envs.env_id(scenario), render_mode="rgb_array"), out, name)
+    rollout(env, make_policy(policy, env, **(overrides or {})), seed)
+    env.close()  # writes the file
+    return Path(out) / f"{name}-episode-0.mp4"
+
+
+def main(argv: list[str] | None = None) -> int:
+    from agents.evaluate import EvaluationError, parse_overrides
+
+    parser = argparse.ArgumentParser(prog="bimp render", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenario", default="overtaking")
+    parser.add_argument("--policy", default="enkts")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="POLICY.KEY=VALUE")
+    parser.add_argument("--out", default="runs/render")
+    args = parser.parse_args(argv)
+    try:
+        overrides = parse_overrides(args.overrides)
+        stray = sorted(set(overrides) - {args.policy})
+        if stray:
+            raise EvaluationError(f"--set names {stray}, not the policy {args.policy!r}")
+    except EvaluationError as err:
+        parser.error(str(err))
+    print(render_video(args.scenario, args.policy, args.seed, args.out, overrides.get(args.policy)))
+    return 0

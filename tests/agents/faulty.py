@@ -1,0 +1,31 @@
+"""A policy that fails on purpose, for the evaluation's failure tests (importable by spawned workers as
+``tests.agents.faulty:Faulty``)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from agents.baselines import LaneKeeping
+
+
+class Faulty:
+    """Lane keeping that fails in ``act`` while the file ``flag`` does not exist: ``mode="raise"`` raises,
+    ``mode="die"`` ends its process at once (as a segfault or the OOM killer would). ``once``: create the flag
+    before failing, so only the first attempt fails."""
+
+    def __init__(self, env, flag: str, mode: str = "raise", once: bool = False):
+        self.inner, self.flag, self.mode, self.once = LaneKeeping(env), Path(flag), mode, once
+        self.config = {"flag": str(flag), "mode": mode, "once": once}
+
+    def reset(self, seed=None) -> None:
+        self.inner.reset(seed)
+
+    def act(self, obs):
+        if not self.flag.exists():
+            if self.once:
+                self.flag.touch()
+            if self.mode == "die":
+                os._exit(3)
+            raise RuntimeError("injected failure")
+        return self.inner.act(obs)
