@@ -9,14 +9,22 @@ Configuration: ``gym.make(id, config={...})``. Scenario parameters given as a 2-
 drawn uniformly from ``self.np_random`` at every ``reset(seed=...)``; a number fixes them. An unknown key
 raises ``ValueError`` naming it. ``reset(options={"config": {...}})`` overrides them the same way.
 
+Collision: ``info["collision"]`` is true exactly when the EV's footprint touches or overlaps an OV's, i.e. when
+``min(info["ov_distance"]) <= 0``, the exact signed distance between the two 5 m x 2 m rectangles
+(:meth:`envs.scene.Scene.ov_gaps`). It is measured on the simulated state itself: highway-env's collision handling
+(which predicts an intersection one step ahead, pushes both vehicles apart by an "impact" translation and then
+brakes crashed vehicles to a stop) is switched off for all vehicles, so no contact moves anyone, OV-OV contacts
+included. The env checks the gap after every simulation step and ends the step at the first overlapping state.
+The EV and the OVs it touches are marked ``crashed`` only so that highway-env draws them so.
+
 Observation (flat ``Box``, float32, see :mod:`envs.scene`): EV ``[x, y, heading, speed]``, the previous
 physical input ``[a, delta]``, per OV ``[present, x, y, heading, speed, acceleration]``, and the reference
 ``[v_ref, dv_ref/dt, lateral offset of the reference lane]``.
 
-``info`` per step: ``collision``, ``offroad`` (any body corner past a road edge), ``ov_distance`` (footprint
-gap to each OV), ``edge_distance`` (least corner distance to the edge), ``ttc`` (time to collision with the
-nearest closing OV in the EV's lane), ``reference``, ``lateral_error``, ``speed_error``, ``input`` (the
-physical input applied) and ``constraints`` (paper eq. 2-5 as values that are <= 0 when satisfied).
+``info`` per step: ``collision``, ``offroad`` (any body corner past a road edge), ``ov_distance`` (signed
+footprint gap to each OV, see above), ``edge_distance`` (least corner distance to the edge), ``ttc`` (time to
+collision with the nearest closing OV in the EV's lane), ``reference``, ``lateral_error``, ``speed_error``,
+``input`` (the physical input applied) and ``constraints`` (paper eq. 2-5 as values that are <= 0 when satisfied).
 
 Reward (for RL): tracking of the reference speed measured *along the road* and of the reference lane,
 in [0, 1] per step, minus small penalties for inputs and rate beyond the planning bounds; -20 and
@@ -51,23 +59,66 @@ OBS_BOUND = 1e4
 _HIGHWAY_KEYS = frozenset(AbstractEnv.default_config()) | {"observation", "action"}
 
 
-class EgoVehicle(Vehicle):
+# --- vehicles ------------------------------------------------------------------------------------------------------
+class _FootprintContact:
+    """highway-env's collision handling switched off: the env decides contacts from the footprint gap itself.
+
+    highway-env's ``Road.step`` calls ``handle_collisions`` for every pair; when the pair *will* intersect within
+    the step at constant velocity it stores an ``impact`` translation (the separating vector, half to each) that
+    the next ``Vehicle.step`` adds to the position, and it sets ``crashed``; a crashed vehicle then has its input
+    overridden (steering 0, braking to a stop). All three would change the recorded motion. Here vehicles are not
+    collidable, ``handle_collisions`` does nothing, and ``crashed`` (which the env sets, so highway-env draws the
+    contact) never changes the dynamics.
+    """
+
+    def _no_collision_handling(self) -> None:
+        self.collidable = False
+        self.impact = None
+
+    def handle_collisions(self, other, dt: float = 0.0) -> None:
+        return None
+
+    @classmethod
+    def create_from(cls, vehicle) -> Vehicle:
+        """A plain snapshot, for highway-env's trajectory history (``show_trajectories``); highway-env's own
+        ``ControlledVehicle.create_from`` passes arguments ``ObstacleVehicle`` does not take."""
+        snapshot = Vehicle(vehicle.road, vehicle.position, vehicle.heading, vehicle.speed)
+        snapshot.crashed = vehicle.crashed
+        if getattr(vehicle, "color", None):
+            snapshot.color = vehicle.color
+        return snapshot
+
+    def clip_actions(self) -> None:
+        crashed, self.crashed = self.crashed, False
+        try:
+            super().clip_actions()
+        finally:
+            self.crashed = crashed
+
+
+class EgoVehicle(_FootprintContact, Vehicle):
     """highway-env's kinematic bicycle with the speed clamped at >= 0 (highway-env lets braking reverse)."""
 
     MIN_SPEED = 0.0
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._no_collision_handling()
 
     def step(self, dt: float) -> None:
         super().step(dt)
         self.speed = max(self.speed, 0.0)
 
 
-class ObstacleVehicle(ControlledVehicle):
+class ObstacleVehicle(_FootprintContact, ControlledVehicle):
     """An OV that keeps its lane centre (highway-env's lateral controller) and follows a scripted
-    acceleration: zero, or ``-decel`` from ``brake_onset`` seconds until it stands still."""
+    acceleration: zero, or ``-decel`` from ``brake_onset`` seconds until it stands still (``decel`` is a
+    magnitude, m/s^2)."""
 
     def __init__(self, road, position, heading, speed, lane_index, brake_onset=np.inf, decel=0.0):
         super().__init__(road, position, heading, speed, target_lane_index=lane_index, target_speed=speed)
         self.brake_onset, self.decel, self.clock, self.acceleration = brake_onset, decel, 0.0, 0.0
+        self._no_collision_handling()
 
     def act(self, action=None) -> None:
         self.follow_road()
@@ -211,6 +262,41 @@ class BimpEnv(AbstractEnv):
         self.last_input = self.scene.to_physical(action)
         return super().step(np.clip(action, -1.0, 1.0))
 
+    def _simulate(self, action=None) -> None:
+        """highway-env's ``_simulate`` (the action is applied at the first of the policy step's simulation steps),
+        plus the contact check after every simulation step: the first state whose footprints overlap ends the
+        step there (``time`` then says when), so the contact is what the observation and ``info`` show."""
+        frames = int(self.config["simulation_frequency"] // self.config["policy_frequency"])
+        dt = 1.0 / self.config["simulation_frequency"]
+        for frame in range(frames):
+            if frame == 0 and action is not None and not self.config["manual_control"]:
+                self.action_type.act(action)
+            self.road.act()
+            self.road.step(dt)
+            self.steps += 1
+            if self._mark_contacts():
+                self.time -= (frames - 1 - frame) * dt
+                break
+            if frame < frames - 1:
+                self._automatic_rendering()
+        self.enable_auto_render = False
+
+    def _ov_rows(self) -> np.ndarray:
+        return np.array([[1.0, *ov.position, ov.heading, ov.speed, ov.acceleration] for ov in self.obstacles])
+
+    def _ev_state(self) -> np.ndarray:
+        ev = self.vehicle
+        return np.array([*ev.position, ev.heading, ev.speed])
+
+    def _mark_contacts(self) -> bool:
+        """Footprint contact EV-OV in the current simulated state (gap <= 0); marks the EV and the OVs it touches
+        ``crashed`` (highway-env draws crashed OVs red; it does not change their motion here)."""
+        hit = self.scene.ov_gaps(self._ev_state(), self._ov_rows()) <= 0.0
+        for ov, touched in zip(self.obstacles, hit):
+            ov.crashed |= bool(touched)
+        self.vehicle.crashed |= bool(hit.any())
+        return bool(hit.any())
+
     def _safety(self) -> dict:
         # Reward and info both need these per step: compute them once per simulated step.
         key = self.steps
@@ -220,8 +306,7 @@ class BimpEnv(AbstractEnv):
 
     def _compute_safety(self) -> dict:
         ev, scene = self.vehicle, self.scene
-        state = np.array([*ev.position, ev.heading, ev.speed])
-        ovs = np.array([[1.0, *ov.position, ov.heading, ov.speed, ov.acceleration] for ov in self.obstacles])
+        state, ovs = self._ev_state(), self._ov_rows()
         gaps = scene.ov_gaps(state, ovs)
         edge = float(scene.edge_distance(state))
         s_e, l_e = scene.road.to_frenet(ev.position)
@@ -238,7 +323,7 @@ class BimpEnv(AbstractEnv):
         }
         heading_err = ev.heading - float(scene.road.heading_at(s_e))
         return {
-            "collision": bool(ev.crashed), "offroad": edge < 0.0, "ov_distance": gaps.tolist(),
+            "collision": bool(np.any(gaps <= 0.0)), "offroad": edge < 0.0, "ov_distance": gaps.tolist(),
             "edge_distance": edge, "ttc": float(ttc.min()), "reference": ref.tolist(),
             "lateral_error": float(l_e - ref[2]), "speed_error": float(ev.speed - ref[0]),
             "longitudinal_speed": float(ev.speed * np.cos(heading_err)), "s": float(s_e),
