@@ -34,6 +34,8 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.sac.policies import SACPolicy
 
 import envs
 from agents.baselines import ZeroAction
@@ -123,6 +125,36 @@ def _algo_class(algo: str):
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
+class _FeaturesOnly:
+    """Mixin for an SB3 policy that acts on :func:`envs.wrappers.features`: refuses any other input.
+
+    The raw observation and the features have the same length here, so SB3's own shape check passes and a
+    model handed the raw env (``evaluate_policy(model, gym.make(...))``) would silently drive on nonsense.
+    Features lie inside the observation box; a raw observation never does (positions and speeds are far
+    outside +-5), so the box tells them apart."""
+
+    def obs_to_tensor(self, observation):
+        box = self.observation_space
+        x = np.asarray(observation, dtype=np.float32)
+        if x.shape[-1:] == box.shape and not np.all((x >= box.low - 1e-5) & (x <= box.high + 1e-5)):
+            raise ValueError(
+                "this bimp model acts on the planning features, not the raw observation: evaluate it on "
+                "envs.PlanningWrapper(gym.make(...)) (SB3's evaluate_policy), or use "
+                "agents.make_policy('ppo', env), which applies the features itself")
+        return super().obs_to_tensor(observation)
+
+
+class PPOFeaturePolicy(_FeaturesOnly, ActorCriticPolicy):
+    """PPO's MLP policy on the planning features (refuses raw observations)."""
+
+
+class SACFeaturePolicy(_FeaturesOnly, SACPolicy):
+    """SAC's MLP policy on the planning features (refuses raw observations)."""
+
+
+FEATURE_POLICIES = {"ppo": PPOFeaturePolicy, "sac": SACFeaturePolicy}
+
+
 # --- training ------------------------------------------------------------------------------------------
 def _progress_callback(total: int):
     """A tqdm bar over timesteps with the mean return of the last episodes (SB3's own bar needs ``rich``)."""
@@ -157,11 +189,11 @@ def make_model(cfg: RLConfig, venv):
     if cfg.algo == "ppo":
         from stable_baselines3 import PPO
 
-        return PPO("MlpPolicy", venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size or 64,
+        return PPO(PPOFeaturePolicy, venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size or 64,
                    n_epochs=cfg.n_epochs, gae_lambda=cfg.gae_lambda, ent_coef=cfg.ent_coef, **common)
     from stable_baselines3 import SAC
 
-    return SAC("MlpPolicy", venv, buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts,
+    return SAC(SACFeaturePolicy, venv, buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts,
                batch_size=cfg.batch_size or 256, tau=cfg.tau, **common)
 
 

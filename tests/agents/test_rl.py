@@ -108,3 +108,16 @@ def test_short_training_writes_a_loadable_model(algo, tmp_path):
     policy = getattr(rl, f"make_{algo}")(env, model_path=path)
     obs, _ = env.reset(seed=0)
     assert env.action_space.contains(policy.act(obs))
+
+
+@pytest.mark.parametrize(("algo", "scenario"), SHIPPED[:1])
+def test_sb3_evaluate_policy_refuses_the_raw_env_and_runs_on_the_wrapper(algo, scenario):
+    """Raw observations and features have the same length: without the check SB3 would drive on nonsense."""
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    model = rl._algo_class(algo).load(rl.MODEL_DIR / rl.model_name(algo, scenario), device="cpu")
+    env = gym.make(envs.env_id(scenario))
+    with pytest.raises(ValueError, match="PlanningWrapper"):
+        evaluate_policy(model, env, n_eval_episodes=1, warn=False)
+    mean, _ = evaluate_policy(model, envs.PlanningWrapper(env), n_eval_episodes=1, warn=False)
+    assert mean > 0  # a crash costs 20: it drove
