@@ -5,9 +5,17 @@ Both share :class:`BimpEnv`: a two-lane road of 4 m lanes, dt = 0.1 s (simulatio
 onto actuator ranges wider than the planning bounds (so violations of the bounds are measurable).
 **Actions outside [-1, 1] are clipped; a non-finite action raises ValueError.** Speeds never go negative.
 
-Configuration: ``gym.make(id, config={...})``. Scenario parameters given as a 2-sequence ``(lo, hi)`` are
-drawn uniformly from ``self.np_random`` at every ``reset(seed=...)``; a number fixes them. An unknown key
-raises ``ValueError`` naming it. ``reset(options={"config": {...}})`` overrides them the same way.
+Configuration: ``gym.make(id, config={...})`` sets the base configuration. Scenario parameters (``PARAMS`` of
+each env, listed with units and accepted values in its docstring) given as a 2-sequence ``(lo, hi)`` are drawn
+uniformly from ``self.np_random`` at every ``reset``; a number fixes them. ``reset(options={"config": {...}})``
+overrides the configuration *for that episode only* (Gymnasium's convention; highway-env would keep it): the next
+plain ``reset()`` is back on the ``gym.make`` config. Both are validated before anything is simulated, and every
+error is a ``ValueError`` naming the key and the value: an unknown key; a value that is not a finite real number or
+a ``(lo, hi)`` pair of them with ``lo <= hi`` (bools, strings, NaN, inf, other lengths are refused); a value outside
+the parameter's interval (speeds in [0, 40] m/s, gaps >= one vehicle length + d_min = 6 m between centres so
+the vehicles start clear of each other and of the distance constraint, ``brake_decel`` a magnitude > 0, ...);
+and orders that must hold for the worst case of the ranges, not only for one draw (OV2 ahead of OV1, the
+reference's ``ref_zero_step`` after ``ref_hold``). highway-env's own keys (rendering, frequencies) pass through.
 
 Collision: ``info["collision"]`` is true exactly when the EV's footprint touches or overlaps an OV's, i.e. when
 ``min(info["ov_distance"]) <= 0``, the exact signed distance between the two 5 m x 2 m rectangles
@@ -34,6 +42,9 @@ spinning earn nothing, and stopping earns nothing while the reference speed is p
 
 from __future__ import annotations
 
+import copy
+import numbers
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -54,9 +65,126 @@ ACTUATOR_STEER = (-0.3, 0.3)
 N_OBSTACLES = 2
 CRASH_PENALTY = 20.0
 OBS_BOUND = 1e4
+LANE_WIDTH, LANES = RoadGeometry.lane_width, RoadGeometry.lanes
+ROAD_HALF_WIDTH = LANES * LANE_WIDTH / 2.0
+# Least centre gap [m] between two vehicles that start in the same lane: a vehicle length, so the footprints do
+# not overlap, plus the planning bound d_min (1 m), so the initial scene already satisfies the distance constraint
+# (eq. 5) that the planners enforce; a smaller gap starts the episode in violation, or in a crash at 0.
+MIN_CENTRE_GAP = Vehicle.LENGTH + Bounds().d_min
+MAX_SPEED = Vehicle.MAX_SPEED  # highway-env's Vehicle.clip_actions pulls any faster vehicle back to this speed
 
 # Keys highway-env's AbstractEnv reads; accepted as overrides, mostly for rendering.
 _HIGHWAY_KEYS = frozenset(AbstractEnv.default_config()) | {"observation", "action"}
+
+
+# --- scenario parameters ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Param:
+    """One scenario parameter: its default (a number, or a ``(lo, hi)`` range drawn uniformly at each reset) and
+    the interval ``[low, high]`` (ends excluded where ``*_open``) that every value must lie in; ``integer``
+    parameters take integers and are drawn uniformly among the integers of the range."""
+
+    default: float | tuple[float, float]
+    doc: str
+    low: float = -np.inf
+    high: float = np.inf
+    low_open: bool = False
+    high_open: bool = False
+    integer: bool = False
+
+    @property
+    def rule(self) -> str:
+        lo_op, hi_op = (">" if self.low_open else ">="), ("<" if self.high_open else "<=")
+        kind = "an integer " if self.integer else ""
+        if np.isfinite(self.low) and np.isfinite(self.high):
+            return f"{kind}in {'(' if self.low_open else '['}{_fmt(self.low)}, {_fmt(self.high)}" \
+                   f"{')' if self.high_open else ']'}"
+        if np.isfinite(self.low):
+            return f"{kind}{lo_op} {_fmt(self.low)}"
+        if np.isfinite(self.high):
+            return f"{kind}{hi_op} {_fmt(self.high)}"
+        return kind.strip() or "a finite number"
+
+    def admits(self, v: float) -> bool:
+        above = v > self.low if self.low_open else v >= self.low
+        below = v < self.high if self.high_open else v <= self.high
+        return bool(above and below and (not self.integer or float(v).is_integer()))
+
+
+@dataclass(frozen=True)
+class Order:
+    """``later`` comes after ``earlier`` by at least ``by`` (more than ``by`` where ``strict``) for *every* pair of
+    draws, i.e. ``min(later) - max(earlier)``; ``later_in_steps``: ``later`` counts policy steps and is compared in
+    seconds (``x dt``)."""
+
+    earlier: str
+    later: str
+    doc: str
+    by: float = 0.0
+    strict: bool = False
+    later_in_steps: bool = False
+
+    @property
+    def rule(self) -> str:
+        later = f"{self.later} x dt" if self.later_in_steps else self.later
+        return f"{later} {'>' if self.strict else '>='} {self.earlier}" + (f" + {_fmt(self.by)}" if self.by else "")
+
+    def check(self, config: dict) -> None:
+        scale = 1.0 / config["policy_frequency"] if self.later_in_steps else 1.0
+        later, earlier = config[self.later], config[self.earlier]
+        room = np.min(later) * scale - np.max(earlier)
+        if room > self.by if self.strict else room >= self.by - 1e-9:
+            return
+        in_s = f" (x dt = {_fmt(np.min(later) * scale)} s at its least)" if self.later_in_steps else ""
+        raise ValueError(f"config must have {self.rule} for every draw of the ranges ({self.doc}), got "
+                         f"{self.later}={_fmt(later)}{in_s} and {self.earlier}={_fmt(earlier)}")
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, tuple):
+        return "(" + ", ".join(_fmt(v) for v in value) + ")"
+    if isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
+        return f"{float(value):g}" if float(value).is_integer() or not np.isfinite(value) else repr(float(value))
+    return repr(value)
+
+
+def _is_real(v: Any) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
+def _checked_param(key: str, value: Any, param: Param) -> float | int | tuple:
+    """``value`` normalized to a float (int for integer parameters) or a ``(lo, hi)`` tuple of them; raises
+    ValueError naming ``key`` and the value when it is not a number / a 2-sequence of finite numbers in order
+    inside the parameter's interval."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value.item()
+    if _is_real(value):
+        values = (value,)
+    elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2 and all(_is_real(v) for v in value):
+        values = tuple(value)
+    else:
+        raise ValueError(f"{key} must be a number or a (lo, hi) range of two numbers, got {value!r}")
+    shown = _fmt(values if len(values) == 2 else values[0])
+    if not all(np.isfinite(v) for v in values):
+        raise ValueError(f"{key} must be finite, got {shown}")
+    if len(values) == 2 and values[0] > values[1]:
+        raise ValueError(f"{key} range (lo, hi) must have lo <= hi, got {shown}")
+    for v in values:
+        if not param.admits(v):
+            raise ValueError(f"{key} must be {param.rule} ({param.doc}), got {shown}")
+    cast = int if param.integer else float
+    out = tuple(cast(v) for v in values)
+    return out if len(out) == 2 else out[0]
+
+
+def _check_frequencies(config: dict) -> None:
+    for key in ("simulation_frequency", "policy_frequency"):
+        v = config[key]
+        if not (_is_real(v) and float(v).is_integer() and v > 0):
+            raise ValueError(f"{key} must be a positive integer [Hz], got {v!r}")
+    if config["simulation_frequency"] % config["policy_frequency"]:
+        raise ValueError(f"simulation_frequency must be an integer multiple of policy_frequency, got "
+                         f"{config['simulation_frequency']!r} and {config['policy_frequency']!r}")
 
 
 # --- vehicles ------------------------------------------------------------------------------------------------------
@@ -177,35 +305,73 @@ class BimpObservation(ObservationType):
 
 
 class BimpEnv(AbstractEnv):
-    """Common machinery of the two scenarios; subclasses define ``PARAMS``, ``_scene_road`` and ``_populate``."""
+    """Common machinery of the two scenarios; subclasses define ``PARAMS`` (and ``ORDERS``), ``_scene_road`` and
+    ``_populate``. The accepted values of every parameter are appended to each subclass's docstring from the
+    very table the checks read."""
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
-    PARAMS: dict[str, Any] = {}
+    PARAMS: dict[str, Param] = {}
+    ORDERS: tuple[Order, ...] = ()
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.PARAMS and cls.__doc__:
+            lines = [f"    - ``{k}`` = {_fmt(p.default)}: {p.doc}; {p.rule}" for k, p in cls.PARAMS.items()]
+            lines += [f"    - {o.rule} for every draw of the ranges: {o.doc}" for o in cls.ORDERS]
+            cls.__doc__ = cls.__doc__.rstrip() + "\n\n    Parameters (default; meaning; accepted values):\n\n" \
+                + "\n".join(lines) + "\n"
 
     @classmethod
     def default_config(cls) -> dict:
         config = super().default_config()
         config.update(
             simulation_frequency=10, policy_frequency=10, screen_width=800, screen_height=240,
-            centering_position=[0.35, 0.5], scaling=4.0, **cls.PARAMS,
+            centering_position=[0.35, 0.5], scaling=4.0, **{k: p.default for k, p in cls.PARAMS.items()},
         )
         return config
 
-    def configure(self, config: dict | None) -> None:
-        unknown = sorted(set(config or {}) - set(self.PARAMS) - _HIGHWAY_KEYS)
+    # --- configuration ---------------------------------------------------------------------------------------
+    def _checked_config(self, base: dict, overrides: dict | None) -> dict:
+        """``base`` updated with ``overrides``, every scenario parameter validated and normalized, the orders
+        checked; raises ValueError (naming the key and the value) before anything is changed or simulated."""
+        overrides = dict(overrides or {})
+        unknown = sorted(set(overrides) - set(self.PARAMS) - _HIGHWAY_KEYS)
         if unknown:
             raise ValueError(f"unknown config key(s) {unknown} for {type(self).__name__}; "
                              f"scenario keys are {sorted(self.PARAMS)}")
-        for key, value in (config or {}).items():
-            if key in self.PARAMS and not (np.isscalar(value) or len(value) == 2):
-                raise ValueError(f"config {key!r} must be a number or a (lo, hi) range, got {value!r}")
-        super().configure(config)
-        if self.config["simulation_frequency"] % self.config["policy_frequency"]:
-            raise ValueError("simulation_frequency must be an integer multiple of policy_frequency")
+        config = {**base, **overrides}
+        for key, param in self.PARAMS.items():
+            config[key] = _checked_param(key, config[key], param)
+        _check_frequencies(config)
+        for order in self.ORDERS:
+            order.check(config)
+        return config
+
+    def configure(self, config: dict | None) -> None:
+        """Permanent configuration (``gym.make(id, config=...)``, or highway-env's ``env.unwrapped.configure``):
+        the base that every ``reset`` starts from."""
+        checked = self._checked_config(self.config, config)
+        super().configure({k: checked[k] for k in (config or {})})
+        self._base_config = copy.deepcopy(self.config)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Gymnasium's reset; ``options={"config": {...}}`` overrides the configuration for this episode only
+        (highway-env's own reset would ``configure`` it permanently): every reset starts from the config given
+        at ``gym.make``."""
+        options = dict(options or {})
+        overrides = options.pop("config", None)
+        config = self._checked_config(copy.deepcopy(self._base_config), overrides)
+        self.config.clear()  # in place: highway-env's viewer keeps a reference to this dict
+        self.config.update(config)
+        return super().reset(seed=seed, options=options or None)
 
     def _draw(self, key: str) -> float:
         value = self.config[key]
-        return float(value) if np.isscalar(value) else float(self.np_random.uniform(*value))
+        if np.isscalar(value):
+            return value
+        if self.PARAMS[key].integer:
+            return int(self.np_random.integers(value[0], value[1] + 1))
+        return float(self.np_random.uniform(*value))
 
     # --- spaces ------------------------------------------------------------------------------------
     def define_spaces(self) -> None:
@@ -375,14 +541,18 @@ class OvertakingEnv(BimpEnv):
     ``arc_angle_deg`` > 0 turns right. Episode: 15 s (150 steps)."""
 
     PARAMS = {
-        "ev_speed": (23.0, 27.0),
-        "ov1_gap": (25.0, 35.0),
-        "ov1_speed": (15.0, 18.0),
-        "ov2_gap": (100.0, 130.0),
-        "ov2_speed": (17.0, 20.0),
-        "radius": (180.0, 220.0),
-        "arc_angle_deg": (50.0, 70.0),
+        "ev_speed": Param((23.0, 27.0), "EV initial and reference speed, m/s", 0.0, MAX_SPEED),
+        "ov1_gap": Param((25.0, 35.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP),
+        "ov1_speed": Param((15.0, 18.0), "OV1 speed, m/s", 0.0, MAX_SPEED),
+        "ov2_gap": Param((100.0, 130.0), "centre gap of OV2 (left lane) ahead of the EV, m", MIN_CENTRE_GAP),
+        "ov2_speed": Param((17.0, 20.0), "OV2 speed, m/s", 0.0, MAX_SPEED),
+        "radius": Param((180.0, 220.0), "arc radius of the centreline, m, beyond the road's half width",
+                        ROAD_HALF_WIDTH, low_open=True),
+        "arc_angle_deg": Param((50.0, 70.0), "arc angle, degrees, > 0 turns right; at most a quarter turn, "
+                               "so the straight after the arc never runs back beside the road", -90.0, 90.0),
     }
+    ORDERS = (Order("ov1_gap", "ov2_gap", "OV2 starts further ahead than OV1, clear of it even in one lane",
+                    by=MIN_CENTRE_GAP),)
 
     def _scene_road(self) -> RoadGeometry:
         return RoadGeometry(straight_in=100.0, radius=self._draw("radius"),
@@ -396,21 +566,24 @@ class OvertakingEnv(BimpEnv):
 
 
 class EmergencyBrakeEnv(BimpEnv):
-    """Paper V-B: straight two-lane road; an OV ahead in each lane brakes hard (``brake_decel`` m/s^2) to
-    a full stop from ``brake_onset`` s (sudden traffic build-up). The reference speed holds the cruise
+    """Paper V-B: straight two-lane road; an OV ahead in each lane brakes hard (``brake_decel`` m/s^2, a
+    magnitude: the OVs accelerate by ``-brake_decel``) to a full stop from ``brake_onset`` s (sudden traffic
+    build-up). The reference speed holds the cruise
     value (the EV's initial speed) for ``ref_hold`` s, then falls linearly to 0 at step ``ref_zero_step``.
     The EV must stop without collision and stay on the road. Episode: 12 s (120 steps)."""
 
     PARAMS = {
-        "ev_speed": (23.0, 27.0),
-        "ov1_gap": (40.0, 55.0),
-        "ov2_gap": (35.0, 55.0),
-        "ov_speed": (20.0, 24.0),
-        "brake_onset": (0.8, 1.2),
-        "brake_decel": (5.0, 7.0),
-        "ref_hold": 3.0,
-        "ref_zero_step": 80,
+        "ev_speed": Param((23.0, 27.0), "EV initial (cruise) speed, m/s", 0.0, MAX_SPEED),
+        "ov1_gap": Param((40.0, 55.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP),
+        "ov2_gap": Param((35.0, 55.0), "centre gap of OV2 (left lane) ahead of the EV, m", MIN_CENTRE_GAP),
+        "ov_speed": Param((20.0, 24.0), "OV speed before braking (drawn per OV), m/s", 0.0, MAX_SPEED),
+        "brake_onset": Param((0.8, 1.2), "time at which the OVs start braking, s", 0.0),
+        "brake_decel": Param((5.0, 7.0), "a deceleration magnitude, m/s^2", 0.0, low_open=True),
+        "ref_hold": Param(3.0, "time the reference speed holds the cruise speed, s", 0.0),
+        "ref_zero_step": Param(80, "policy step at which the reference speed reaches 0", 1, integer=True),
     }
+    ORDERS = (Order("ref_hold", "ref_zero_step", "the reference falls to 0 only after it stops holding",
+                    strict=True, later_in_steps=True),)
 
     def _scene_road(self) -> RoadGeometry:
         return RoadGeometry(straight_in=100.0, arc_angle=0.0, straight_out=400.0)
@@ -420,9 +593,8 @@ class EmergencyBrakeEnv(BimpEnv):
         onset, decel = self._draw("brake_onset"), self._draw("brake_decel")
         self._add_obstacle(1, self._draw("ov1_gap"), self._draw("ov_speed"), brake_onset=onset, decel=decel)
         self._add_obstacle(0, self._draw("ov2_gap"), self._draw("ov_speed"), brake_onset=onset, decel=decel)
+        # ORDERS guarantees ref_zero > ref_hold for every draw.
         self.ref_hold, self.ref_zero = self._draw("ref_hold"), self._draw("ref_zero_step") * self.scene.dt
-        if self.ref_zero <= self.ref_hold:
-            raise ValueError("ref_zero_step must come after ref_hold")
         return ev_speed, 1
 
     def reference(self) -> np.ndarray:
