@@ -25,6 +25,10 @@ brakes crashed vehicles to a stop) is switched off for all vehicles, so no conta
 included. The env checks the gap after every simulation step and ends the step at the first overlapping state.
 The EV and the OVs it touches are marked ``crashed`` only so that highway-env draws them so.
 
+Rendering: ``metadata["render_fps"]`` is the policy frequency, one frame per step as gymnasium's ``RecordVideo``
+captures them, so videos play in real time (highway-env would double it, in a dict shared by all instances).
+It is set per instance at every reset; ``RecordVideo`` reads it once, when it wraps the env.
+
 Observation (flat ``Box``, float32, see :mod:`envs.scene`): EV ``[x, y, heading, speed]``, the previous
 physical input ``[a, delta]``, per OV ``[present, x, y, heading, speed, acceleration]``, and the reference
 ``[v_ref, dv_ref/dt, lateral offset of the reference lane]``.
@@ -364,6 +368,14 @@ class BimpEnv(AbstractEnv):
         self.config.clear()  # in place: highway-env's viewer keeps a reference to this dict
         self.config.update(config)
         return super().reset(seed=seed, options=options or None)
+
+    def update_metadata(self, video_real_time_ratio: float = 1) -> None:
+        """``render_fps`` in real time: one frame per policy step (what gymnasium's ``RecordVideo`` captures),
+        or per simulation step once highway-env's own ``set_record_video_wrapper`` captures the intermediate
+        frames. highway-env's default doubles the rate (``video_real_time_ratio=2``) and writes it into the
+        class-level dict shared by every instance; here each instance gets its own dict."""
+        frames = self.config["simulation_frequency" if self._record_video_wrapper else "policy_frequency"]
+        self.metadata = {**type(self).metadata, "render_fps": video_real_time_ratio * frames}
 
     def _draw(self, key: str) -> float:
         value = self.config[key]

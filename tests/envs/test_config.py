@@ -3,7 +3,9 @@
 import gymnasium as gym
 import numpy as np
 import pytest
+from gymnasium.wrappers import RecordVideo
 
+import envs
 from envs.scenarios import MIN_CENTRE_GAP, EmergencyBrakeEnv, OvertakingEnv
 
 EB, OT = "bimp/EmergencyBrake-v0", "bimp/Overtaking-v0"
@@ -121,8 +123,22 @@ def test_reset_config_applies_to_that_reset_only():
 def test_reset_config_changing_the_policy_frequency_is_undone_too():
     env = gym.make(EB)
     env.reset(seed=0, options={"config": {"policy_frequency": 5}})
-    assert env.unwrapped.scene.dt == pytest.approx(0.2)
+    assert env.unwrapped.scene.dt == pytest.approx(0.2) and env.unwrapped.metadata["render_fps"] == 5
     env.step(np.zeros(2))
     assert env.unwrapped.time == pytest.approx(0.2)
     env.reset(seed=0)
-    assert env.unwrapped.scene.dt == pytest.approx(0.1)
+    assert env.unwrapped.scene.dt == pytest.approx(0.1) and env.unwrapped.metadata["render_fps"] == 10
+
+
+# --- render rate ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("env_id", list(envs.ENV_IDS.values()))
+def test_render_fps_is_the_policy_frequency_per_instance(env_id, tmp_path):
+    slow = gym.make(env_id, render_mode="rgb_array", config={"policy_frequency": 5})
+    fast = gym.make(env_id, render_mode="rgb_array")
+    assert slow.metadata["render_fps"] == 5 and fast.metadata["render_fps"] == 10
+    slow.reset(seed=0)
+    assert slow.metadata["render_fps"] == 5 and fast.metadata["render_fps"] == 10
+    assert type(slow.unwrapped).metadata["render_fps"] == 10 and slow.unwrapped.metadata is not fast.unwrapped.metadata
+    video = RecordVideo(slow, str(tmp_path / "videos"), episode_trigger=lambda _: False, disable_logger=True)
+    assert video.frames_per_sec == 5
+    video.close()
