@@ -158,7 +158,7 @@ def rect_gap(xy1, heading1, xy2, heading2, length: float, width: float) -> np.nd
 
 
 def _vertex_edge_distance(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Least distance ``(...)`` from the vertices of polygon ``p (..., n, 2)`` to the edges of polygon ``q (..., m, 2)``."""
+    """Least distance ``(...)`` from the vertices of polygon ``p (..., n, 2)`` to the edges of ``q (..., m, 2)``."""
     start, edge = q, np.roll(q, -1, axis=-2) - q                     # (..., m, 2)
     rel = p[..., :, None, :] - start[..., None, :, :]                 # (..., n, m, 2)
     t = np.clip(np.sum(rel * edge[..., None, :, :], -1) / np.sum(edge**2, -1)[..., None, :], 0.0, 1.0)
