@@ -1,4 +1,4 @@
-"""``bimp bench``: plan-step time of EnKTS, EnKS, MPPI and NMPC side by side, in one run (DESIGN.md section 5).
+"""``bimp bench``: plan-step time of EnKTS, EnKS, MPPI and NMPC side by side, in one run (targets: README "Benchmark").
 
     bimp bench [--repeats 30] [--quick] [--out bench.json]
 

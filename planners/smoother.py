@@ -46,7 +46,7 @@ def student_t_update(
     X: np.ndarray, Y: np.ndarray, y: np.ndarray, nu: float, adapt_spread: bool = True,
     max_spread: float = math.inf,
 ) -> tuple[np.ndarray, float]:
-    """One Student's-t ensemble Kalman update (paper eq. 16-19, as read in DESIGN.md section 3).
+    """One Student's-t ensemble Kalman update (paper eq. 16-19, as read in docs/design.md).
 
     X: ensemble ``(N, D)``; Y: predicted measurement samples ``(N, m)``, noise included (eq. 14);
     y: the observation ``(m,)``; nu: degrees of freedom (> 2; ``math.inf`` = Gaussian / EnKS).
