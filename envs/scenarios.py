@@ -378,12 +378,21 @@ class BimpEnv(AbstractEnv):
         self.metadata = {**type(self).metadata, "render_fps": video_real_time_ratio * frames}
 
     def _draw(self, key: str) -> float:
+        """This episode's value of ``key``, recorded in ``self.drawn_params`` (a list where a key is drawn more
+        than once, e.g. ``ov_speed`` once per OV)."""
         value = self.config[key]
         if np.isscalar(value):
-            return value
-        if self.PARAMS[key].integer:
-            return int(self.np_random.integers(value[0], value[1] + 1))
-        return float(self.np_random.uniform(*value))
+            drawn = value
+        elif self.PARAMS[key].integer:
+            drawn = int(self.np_random.integers(value[0], value[1] + 1))
+        else:
+            drawn = float(self.np_random.uniform(*value))
+        if key in self.drawn_params:
+            previous = self.drawn_params[key]
+            self.drawn_params[key] = [*previous, drawn] if isinstance(previous, list) else [previous, drawn]
+        else:
+            self.drawn_params[key] = drawn
+        return drawn
 
     # --- spaces ------------------------------------------------------------------------------------
     def define_spaces(self) -> None:
@@ -402,6 +411,7 @@ class BimpEnv(AbstractEnv):
 
     # --- episode -----------------------------------------------------------------------------------
     def _reset(self) -> None:
+        self.drawn_params: dict[str, Any] = {}
         self.scene = self._make_scene(self._scene_road())
         self.road = Road(network=_build_network(self.scene.road, speed_limit=40.0),
                          np_random=self.np_random, record_history=self.config["show_trajectories"])

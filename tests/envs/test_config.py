@@ -142,3 +142,15 @@ def test_render_fps_is_the_policy_frequency_per_instance(env_id, tmp_path):
     video = RecordVideo(slow, str(tmp_path / "videos"), episode_trigger=lambda _: False, disable_logger=True)
     assert video.frames_per_sec == 5
     video.close()
+
+
+def test_drawn_parameters_are_recorded_per_episode():
+    env = gym.make(EB, config={"ev_speed": 24.0, "ov_speed": (20.0, 24.0)})
+    env.reset(seed=0)
+    drawn = dict(env.unwrapped.drawn_params)
+    assert set(drawn) == set(EmergencyBrakeEnv.PARAMS)
+    assert drawn["ev_speed"] == 24.0 and drawn["ref_zero_step"] == 80 and isinstance(drawn["ref_zero_step"], int)
+    assert len(drawn["ov_speed"]) == 2 and drawn["ov_speed"][0] != drawn["ov_speed"][1]  # one per OV
+    assert 40.0 <= drawn["ov1_gap"] <= 55.0 and env.unwrapped.obstacles[0].speed == drawn["ov_speed"][0]
+    env.reset(seed=1)
+    assert env.unwrapped.drawn_params["ov1_gap"] != drawn["ov1_gap"]
