@@ -1,12 +1,24 @@
-"""YAML overrides for the frozen dataclass configs. A YAML file holds overrides only; an unknown key is an error.
+"""The frozen dataclass configs: YAML overrides and one field check shared by every config.
+
+A YAML file holds overrides only; an unknown key is an error.
 
 >>> from configs import load_config
 >>> cfg = load_config(EnKTSConfig, "planner.yaml", n_particles=100)
+
+Every config calls :func:`check_fields` first thing in its ``__post_init__``, so a value of the wrong type is
+rejected however the config is built (YAML, keyword overrides, direct construction), and then checks its own
+ranges. Both raise :class:`ConfigError` (a ``ValueError``) naming the key and the value:
+``n_particles must be an int, got 50.7``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
+import types
+import typing
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -14,6 +26,20 @@ import yaml
 
 CONFIG_DIR = Path(__file__).resolve().parent
 T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A rejected config value. ``key``: the field (dotted inside a nested config: ``barrier.widths``),
+    ``value``: what it was given, ``requirement``: what it must be. Message:
+    ``"{key} must be {requirement}, got {value!r}"``, then ``" ({detail})"`` if a detail is given."""
+
+    def __init__(self, key: str, requirement: str, value: Any, detail: str = "") -> None:
+        self.key, self.requirement, self.value, self.detail = key, requirement, value, detail
+        super().__init__(f"{key} must be {requirement}, got {value!r}" + (f" ({detail})" if detail else ""))
+
+    def under(self, parent: str) -> ConfigError:
+        """The same error for the field seen from the config holding it in ``parent``."""
+        return ConfigError(f"{parent}.{self.key}", self.requirement, self.value, self.detail)
 
 
 def _plain(value: Any) -> Any:
@@ -25,7 +51,11 @@ def _plain(value: Any) -> Any:
 
 def load_config(cls: type[T], source: str | Path | None = None, **overrides: Any) -> T:
     """Build ``cls`` from its defaults, then the YAML ``source`` (a path, or a file name under ``configs/``),
-    then ``overrides``. Raises ``ValueError`` naming any key that ``cls`` does not have."""
+    then ``overrides``. Raises ``ValueError`` naming any key that ``cls`` does not have, and whatever ``cls``
+    raises for a bad value (:class:`ConfigError` for the configs that call :func:`check_fields`).
+
+    ``load_config(cls, None, **dataclasses.asdict(config))`` rebuilds ``config``; so does dumping that dict to
+    YAML and loading the file (nested configs come back from their mappings)."""
     values: dict[str, Any] = {}
     if source is not None:
         path = Path(source)
@@ -37,10 +67,139 @@ def load_config(cls: type[T], source: str | Path | None = None, **overrides: Any
         values.update({k: _plain(v) for k, v in data.items()})
     values.update({k: _plain(v) for k, v in overrides.items()})
     fields = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - fields)
+    unknown = sorted(set(values) - fields, key=str)
     if unknown:
         raise ValueError(f"unknown {cls.__name__} key(s) {unknown}; valid keys: {sorted(fields)}")
     return cls(**values)
 
 
-__all__ = ["CONFIG_DIR", "load_config"]
+# --- field check ----------------------------------------------------------------------------------------------
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    # ``from __future__ import annotations`` leaves the annotations as strings: resolve them once per class.
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _number(key: str, value: Any, allow_inf: bool) -> float:
+    finite = "a finite number" if not allow_inf else "a number (inf allowed)"
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ConfigError(key, finite, value)
+    value = float(value)
+    if math.isnan(value) or (math.isinf(value) and not allow_inf):
+        raise ConfigError(key, finite, value)
+    return value
+
+
+def _check_value(key: str, hint: Any, value: Any, allow_inf: bool) -> Any:
+    """``value`` checked against the annotation ``hint``, normalized (int/float of the plain Python type, tuples,
+    nested configs built from mappings); raises :class:`ConfigError`."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        options = [a for a in args if a is not type(None)]
+        if len(options) != 1:
+            raise TypeError(f"check_fields: unsupported annotation {hint} of {key}")
+        try:
+            return _check_value(key, options[0], value, allow_inf)
+        except ConfigError as err:
+            if err.key != key:  # an element or nested field: its own message is the precise one
+                raise
+            none = " or None" if type(None) in args else ""
+            raise ConfigError(key, err.requirement + none, value, err.detail) from None
+    if origin is typing.Literal:
+        if value not in args or type(value) not in {type(a) for a in args}:
+            raise ConfigError(key, "one of " + ", ".join(repr(a) for a in args), value)
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(key, "a bool (true or false)", value)
+        return value
+    if hint is int:
+        # No integral floats (50.0): an int field given a float is more likely a slip than an intent.
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise ConfigError(key, "an int", value)
+        return int(value)
+    if hint is float:
+        return _number(key, value, allow_inf)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(key, "a string", value)
+        return value
+    if origin is tuple:
+        variable = len(args) == 2 and args[1] is Ellipsis
+        element = args[0] if variable else None
+        names = {float: "numbers", int: "ints", str: "strings", bool: "bools"}
+        if variable:
+            what = f"a list of {names.get(element, element)}"
+        elif len(set(args)) == 1:
+            what = f"a list of {len(args)} {names.get(args[0], args[0])}"
+        else:
+            what = f"a list of {len(args)} entries ({', '.join(getattr(a, '__name__', str(a)) for a in args)})"
+        if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, Iterable):
+            raise ConfigError(key, what, value)
+        items = tuple(value)
+        if not variable and len(items) != len(args):
+            raise ConfigError(key, what, value, f"length {len(items)}")
+        kinds = [element] * len(items) if variable else list(args)
+        return tuple(_check_value(f"{key}[{i}]", k, v, allow_inf) for i, (k, v) in enumerate(zip(kinds, items)))
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        if isinstance(value, hint):
+            return value  # checked when it was built
+        if not isinstance(value, Mapping):
+            raise ConfigError(key, f"a {hint.__name__} or a mapping of its keys", value)
+        try:
+            return load_config(hint, None, **{str(k): v for k, v in value.items()})
+        except ConfigError as err:
+            raise err.under(key) from None
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"{key}: {err}") from None
+    if isinstance(hint, type):
+        if not isinstance(value, hint):
+            raise ConfigError(key, f"a {hint.__name__}", value)
+        return value
+    raise TypeError(f"check_fields: unsupported annotation {hint} of {key}")
+
+
+def check_fields(config: Any, allow_inf: Iterable[str] = ()) -> None:
+    """Check every field of the dataclass instance ``config`` against its type annotation, in place.
+
+    Call it first thing in ``__post_init__`` (frozen or not), then check ranges, raising :class:`ConfigError`::
+
+        def __post_init__(self) -> None:
+            check_fields(self)
+            if self.n_steps < 1:
+                raise ConfigError("n_steps", "an int >= 1", self.n_steps)
+
+    Rules: ``int``: an int, not a bool and not a float (not even 50.0); ``float``: an int or float, not a bool,
+    finite unless the field is named in ``allow_inf`` (NaN never); ``bool``: only ``True``/``False`` (so YAML's
+    ``"no"`` in quotes is rejected); ``str``: a string; ``X | None``: None or an X; ``Literal[...]``: one of the
+    values; ``tuple[float, float]``: a list or tuple of exactly that many entries, each checked;
+    ``tuple[int, ...]``: any length; a nested dataclass: an instance, or a mapping of its keys (unknown keys
+    raise), checked recursively with dotted keys (``barrier.widths[2]``); any other class: an instance of it.
+    Values are normalized in place: lists become tuples, numpy scalars and ints in float fields plain ``int``
+    and ``float``, nested mappings configs, so the config is hashable and ``dataclasses.asdict`` of it is plain
+    YAML data. Raises :class:`ConfigError` (a ``ValueError``) naming the key and the value, or ``TypeError``
+    for an annotation it does not know (a bug in the config class, not in the user's value).
+    """
+    if not dataclasses.is_dataclass(config) or isinstance(config, type):
+        raise TypeError(f"check_fields expects a dataclass instance, got {config!r}")
+    hints = _hints(type(config))
+    inf_ok = set(allow_inf)
+    names = {f.name for f in dataclasses.fields(config)}
+    if not inf_ok <= names:
+        raise TypeError(f"check_fields: allow_inf names unknown fields {sorted(inf_ok - names)}")
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        checked = _check_value(f.name, hints[f.name], value, f.name in inf_ok)
+        if checked is not value:
+            object.__setattr__(config, f.name, checked)
+
+
+__all__ = ["CONFIG_DIR", "ConfigError", "check_fields", "load_config"]

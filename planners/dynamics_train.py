@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
 
+from configs import ConfigError, check_fields
 from planners.dynamics import (
     ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, MLP, WEIGHTS_PATH, BicycleModel, LearnedDynamics, features,
     save_model,
@@ -43,9 +44,14 @@ class DataConfig:
     max_speed: float = MAX_SPEED
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            if getattr(self, f.name) < 0 or (f.name in ("sequence_steps", "max_speed") and getattr(self, f.name) <= 0):
-                raise ValueError(f"{f.name} must be positive, got {getattr(self, f.name)}")
+        check_fields(self)
+        for key in ("n_sequences", "n_uniform", "n_stop"):
+            if getattr(self, key) < 0:
+                raise ConfigError(key, "an int >= 0", getattr(self, key))
+        if self.sequence_steps < 1:
+            raise ConfigError("sequence_steps", "an int >= 1", self.sequence_steps)
+        if not self.max_speed > 0:
+            raise ConfigError("max_speed", "a finite number > 0", self.max_speed)
 
 
 @dataclass(frozen=True)
@@ -61,10 +67,14 @@ class TrainConfig:
     hidden: int = 128
 
     def __post_init__(self) -> None:
-        if self.steps < 1 or self.batch_size < 1 or self.hidden < 1:
-            raise ValueError("steps, batch_size and hidden must be >= 1")
-        if not 0 < self.lr_final <= self.lr:
-            raise ValueError(f"need 0 < lr_final <= lr, got lr={self.lr}, lr_final={self.lr_final}")
+        check_fields(self)
+        for key in ("steps", "batch_size", "hidden"):
+            if getattr(self, key) < 1:
+                raise ConfigError(key, "an int >= 1", getattr(self, key))
+        if not self.lr_final > 0:
+            raise ConfigError("lr_final", "a finite number > 0", self.lr_final)
+        if not self.lr >= self.lr_final:
+            raise ConfigError("lr", f"a finite number >= lr_final = {self.lr_final!r}", self.lr)
 
 
 # --- data ----------------------------------------------------------------------------------------------------

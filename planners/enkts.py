@@ -27,13 +27,14 @@ from typing import Callable
 
 import numpy as np
 
-from configs import load_config
+from configs import ConfigError, check_fields, load_config
 from envs.scene import Scene
 from planners.smoother import student_t, student_t_update
 from planners.virtual import N_TRACK, BarrierShape, measure, n_measurements, predict_obstacles, reference_profile
 
 Dynamics = Callable[[np.ndarray, np.ndarray], np.ndarray]
 _ACTIVE = 1e-3  # a barrier value below this for every particle counts as not touched
+DYNAMICS_NAMES = ("mlp", "bicycle")
 
 
 @dataclass(frozen=True)
@@ -43,13 +44,16 @@ class EnKTSConfig:
     n_particles: ensemble size N >= 2; horizon: H >= 1 steps; nu: degrees of freedom > 2 of the joint
     Student's-t approximation and of the process / measurement noise (``inf``: EnKS); adapt_spread: rescale
     the posterior anomalies by the Student's-t factor; grow_nu: ``nu <- nu + m`` after each update (eq. 19);
-    max_spread: cap on that factor; max_innovation: how many predicted standard deviations the virtual
-    observation may lie from the predicted mean, per row and step (see ``_target``); relaxation: share of
-    the spread an update removed that is given back (0 = none, see ``_relax``); iterations: smoothing passes per step (1 = the paper's single pass);
+    max_spread: cap on that factor (``inf``: none); max_innovation: how many predicted standard deviations the
+    virtual observation may lie from the predicted mean, per row and step (see ``_target``); relaxation: share of
+    the spread an update removed that is given back (0 = none, see ``_relax``); iterations: smoothing passes per
+    step (1 = the paper's single pass);
     sigma_du: process noise scale of ``[da, ddelta]`` per step; sigma_ref: measurement noise of the reference
     state ``[lateral, heading, speed]``; sigma_input: of the reference input ``[a, delta]``; sigma_barrier: of
     each barrier value (the barriers' tightness); barrier: margins and widths; dynamics: ``"mlp"`` (shipped
     model) or ``"bicycle"`` (exact model); seed: default seed of the planner's generator.
+    Values are checked by :func:`configs.check_fields` (types, lengths) and then for range: a bad one raises
+    :class:`configs.ConfigError` naming the key and the value.
     """
 
     n_particles: int = 50
@@ -70,23 +74,27 @@ class EnKTSConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if isinstance(self.barrier, dict):  # from YAML
-            object.__setattr__(self, "barrier", load_config(BarrierShape, **self.barrier))
+        check_fields(self, allow_inf=("nu", "max_spread"))  # types, lengths; a barrier mapping -> BarrierShape
         if self.n_particles < 2:
-            raise ValueError(f"n_particles must be >= 2, got {self.n_particles}")
+            raise ConfigError("n_particles", "an int >= 2", self.n_particles)
         if self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+            raise ConfigError("horizon", "an int >= 1", self.horizon)
         if not self.nu > 2:
-            raise ValueError(f"nu must be > 2 (inf for EnKS), got {self.nu}")
-        if self.iterations < 1 or self.max_spread < 1 or not self.max_innovation > 0:
-            raise ValueError("iterations must be >= 1, max_spread >= 1 and max_innovation > 0")
+            raise ConfigError("nu", "> 2 (inf for EnKS)", self.nu)
+        if self.iterations < 1:
+            raise ConfigError("iterations", "an int >= 1", self.iterations)
+        if not self.max_spread >= 1:
+            raise ConfigError("max_spread", ">= 1 (inf: no cap)", self.max_spread)
+        if not self.max_innovation > 0:
+            raise ConfigError("max_innovation", "> 0", self.max_innovation)
         if not 0 <= self.relaxation < 1:
-            raise ValueError(f"relaxation must lie in [0, 1), got {self.relaxation}")
-        scales = (*self.sigma_du, *self.sigma_ref, *self.sigma_input, self.sigma_barrier)
-        if not all(np.isfinite(scales)) or min(scales) <= 0:
-            raise ValueError(f"noise scales must be finite and > 0, got {scales}")
-        if self.dynamics not in ("mlp", "bicycle"):
-            raise ValueError(f"dynamics must be 'mlp' or 'bicycle', got {self.dynamics!r}")
+            raise ConfigError("relaxation", "in [0, 1)", self.relaxation)
+        for key in ("sigma_du", "sigma_ref", "sigma_input", "sigma_barrier"):
+            value = getattr(self, key)
+            if min(np.atleast_1d(value)) <= 0:
+                raise ConfigError(key, "> 0" if key == "sigma_barrier" else "a list of numbers > 0", value)
+        if self.dynamics not in DYNAMICS_NAMES:
+            raise ConfigError("dynamics", "'mlp' or 'bicycle'", self.dynamics)
 
 
 @dataclass(frozen=True)

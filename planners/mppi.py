@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from pytorch_mppi import MPPI
 
-from configs import load_config
+from configs import ConfigError, check_fields, load_config
 from envs.scene import Scene
 from planners.enkts import CONFIG_FILE, EnKTSConfig
 from planners.virtual import N_TRACK, measure, n_measurements, predict_obstacles, reference_profile
@@ -67,6 +67,8 @@ class MPPIConfig:
     virtual system's prior is on the increments and its input and rate terms are already in the running cost,
     so by default it is off (with it on, the steering feed-forward of a curve alone moves a plan's cost by tens,
     which pulled the plans straight off the road in the curve); seed: default seed of the planner's generator.
+    A bad value raises :class:`configs.ConfigError` naming the key and the value (types by
+    :func:`configs.check_fields`).
     """
 
     n_particles: int | None = None
@@ -77,16 +79,17 @@ class MPPIConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        check_fields(self)
         if self.n_particles is not None and self.n_particles < 2:
-            raise ValueError(f"n_particles must be >= 2, got {self.n_particles}")
+            raise ConfigError("n_particles", "an int >= 2 or None", self.n_particles)
         if self.horizon is not None and self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
-        if not self.temperature > 0 or not np.isfinite(self.temperature):
-            raise ValueError(f"temperature must be finite and > 0, got {self.temperature}")
-        if not self.noise_gain > 0 or not np.isfinite(self.noise_gain):
-            raise ValueError(f"noise_gain must be finite and > 0, got {self.noise_gain}")
-        if not self.control_cost >= 0 or not np.isfinite(self.control_cost):
-            raise ValueError(f"control_cost must be finite and >= 0, got {self.control_cost}")
+            raise ConfigError("horizon", "an int >= 1 or None", self.horizon)
+        if not self.temperature > 0:
+            raise ConfigError("temperature", "a finite number > 0", self.temperature)
+        if not self.noise_gain > 0:
+            raise ConfigError("noise_gain", "a finite number > 0", self.noise_gain)
+        if not self.control_cost >= 0:
+            raise ConfigError("control_cost", "a finite number >= 0", self.control_cost)
 
 
 class _SeededMPPI(MPPI):

@@ -54,7 +54,7 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from configs import load_config
+from configs import ConfigError, check_fields, load_config
 from envs.road import RoadGeometry
 from envs.scene import Scene
 from planners.enkts import CONFIG_FILE, EnKTSConfig
@@ -76,7 +76,8 @@ class NMPCConfig:
     ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin on the input and rate bounds, so that
     IPOPT's tolerance and the float32 action never cross the env's bound; feasibility_tol: largest constraint
     violation of a capped iterate that is still used; keep_out_power: even exponent p >= 2 of the keep-out
-    superellipse (2: an ellipse).
+    superellipse (2: an ellipse). A bad value raises :class:`configs.ConfigError` naming the key and the value
+    (types by :func:`configs.check_fields`).
     """
 
     horizon: int | None = None
@@ -92,20 +93,23 @@ class NMPCConfig:
     keep_out_power: int = 4
 
     def __post_init__(self) -> None:
+        check_fields(self, allow_inf=("nu",))
         if self.horizon is not None and self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+            raise ConfigError("horizon", "an int >= 1 or None", self.horizon)
         if not self.nu > 0:
-            raise ValueError(f"nu must be > 0 (inf for the quadratic cost), got {self.nu}")
-        if self.max_iter < 0 or self.cold_max_iter < 0:
-            raise ValueError(f"max_iter and cold_max_iter must be >= 0, got {self.max_iter}, {self.cold_max_iter}")
-        if not min(self.max_cpu_time, self.cold_max_cpu_time, self.tol, self.feasibility_tol) > 0:
-            raise ValueError("max_cpu_time, cold_max_cpu_time, tol and feasibility_tol must be > 0")
+            raise ConfigError("nu", "> 0 (inf for the quadratic cost)", self.nu)
+        for key in ("max_iter", "cold_max_iter"):
+            if getattr(self, key) < 0:
+                raise ConfigError(key, "an int >= 0", getattr(self, key))
+        for key in ("max_cpu_time", "cold_max_cpu_time", "tol", "feasibility_tol"):
+            if not getattr(self, key) > 0:
+                raise ConfigError(key, "a finite number > 0", getattr(self, key))
         if self.hessian not in ("exact", "limited-memory"):
-            raise ValueError(f"hessian must be 'exact' or 'limited-memory', got {self.hessian!r}")
+            raise ConfigError("hessian", "'exact' or 'limited-memory'", self.hessian)
         if self.keep_out_power < 2 or self.keep_out_power % 2:
-            raise ValueError(f"keep_out_power must be an even integer >= 2, got {self.keep_out_power}")
+            raise ConfigError("keep_out_power", "an even int >= 2", self.keep_out_power)
         if not 0 <= self.bound_tightening < 1:
-            raise ValueError(f"bound_tightening must lie in [0, 1), got {self.bound_tightening}")
+            raise ConfigError("bound_tightening", "in [0, 1)", self.bound_tightening)
 
 
 # --- CasADi building blocks (each mirrors a numpy function elsewhere; tests check they agree) ---------------

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from configs import ConfigError, check_fields
 from envs.scene import Scene
 
 N_TRACK = 5  # r (3) + s (2)
@@ -42,15 +43,30 @@ class BarrierShape:
     the ensemble mean settles a little past where they start to read);
     widths: the constraint violation that makes a barrier read 1, per family, in its own units
     [share of the keep-out ellipse, m, m/s^2, rad, m/s^2, rad]; sharpness: softplus sharpness in those normalized units.
+    Checked by :func:`configs.check_fields`, then headway, lateral_clearance >= 0, brake_decel, widths,
+    sharpness > 0, bound_margin in [0, 1): a bad value raises :class:`configs.ConfigError` naming it.
     """
 
     headway: float = 0.6
     brake_decel: float = 6.0
     lateral_clearance: float = 1.0
     edge_margin: float = 0.3
-    widths: tuple[float, ...] = (0.1, 0.5, 1.0, 0.01, 0.5, 0.002)
+    widths: tuple[float, float, float, float, float, float] = (0.1, 0.5, 1.0, 0.01, 0.5, 0.002)
     sharpness: float = 8.0
     bound_margin: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        for key in ("headway", "lateral_clearance"):
+            if getattr(self, key) < 0:
+                raise ConfigError(key, ">= 0", getattr(self, key))
+        for key in ("brake_decel", "sharpness"):
+            if not getattr(self, key) > 0:
+                raise ConfigError(key, "> 0", getattr(self, key))
+        if min(self.widths) <= 0:
+            raise ConfigError("widths", "a list of 6 numbers > 0", self.widths)
+        if not 0 <= self.bound_margin < 1:
+            raise ConfigError("bound_margin", "in [0, 1)", self.bound_margin)
 
 
 def predict_obstacles(scene: Scene, ovs: np.ndarray, horizon: int) -> tuple[np.ndarray, ...]:
