@@ -332,6 +332,17 @@ def load_model(path: str | Path | None = None) -> LearnedDynamics:
     return model
 
 
+def model_from_name(name: str) -> BicycleModel | LearnedDynamics:
+    """The model a planner config's ``dynamics`` names: ``"mlp"`` the shipped weights (:func:`load_model`),
+    ``"bicycle"`` the exact :class:`BicycleModel`, anything else the path of a weights file written by
+    ``bimp train-dynamics`` (relative to the working directory; errors of :func:`load_model` name the file)."""
+    if name == "mlp":
+        return load_model()
+    if name == "bicycle":
+        return BicycleModel()
+    return load_model(name)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``bimp train-dynamics``: see :mod:`planners.dynamics_train`."""
     from planners import dynamics_train  # torch training and the env roll-outs load only for this command
@@ -340,4 +351,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 __all__ = ["BicycleModel", "LearnedDynamics", "MLP", "WEIGHTS_PATH", "features", "apply_change", "load_model",
-           "save_model", "main"]
+           "model_from_name", "save_model", "main"]

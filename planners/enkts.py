@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -51,7 +52,8 @@ class EnKTSConfig:
     sigma_du: process noise scale of ``[da, ddelta]`` per step; sigma_ref: measurement noise of the reference
     state ``[lateral, heading, speed]``; sigma_input: of the reference input ``[a, delta]``; sigma_barrier: of
     each barrier value (the barriers' tightness); barrier: margins and widths; dynamics: ``"mlp"`` (shipped
-    model) or ``"bicycle"`` (exact model); seed: default seed of the planner's generator.
+    model), ``"bicycle"`` (exact model) or the path of a weights file written by ``bimp train-dynamics`` (relative
+    to the working directory; checked when the config is built); seed: default seed of the planner's generator.
     Values are checked by :func:`configs.check_fields` (types, lengths) and then for range: a bad one raises
     :class:`configs.ConfigError` naming the key and the value.
     """
@@ -93,8 +95,24 @@ class EnKTSConfig:
             value = getattr(self, key)
             if min(np.atleast_1d(value)) <= 0:
                 raise ConfigError(key, "> 0" if key == "sigma_barrier" else "a list of numbers > 0", value)
-        if self.dynamics not in DYNAMICS_NAMES:
-            raise ConfigError("dynamics", "'mlp' or 'bicycle'", self.dynamics)
+        check_dynamics(self.dynamics)
+
+
+def check_dynamics(name: str, key: str = "dynamics") -> None:
+    """Raise :class:`configs.ConfigError` unless ``name`` is ``"mlp"``, ``"bicycle"`` or the path of a readable
+    weights file written by ``bimp train-dynamics`` (the file is loaded once here, so a bad path fails when the
+    config is built, not at the first action)."""
+    if name in DYNAMICS_NAMES:
+        return
+    from planners.dynamics import load_model
+
+    requirement = "'mlp', 'bicycle' or the path of a weights file written by `bimp train-dynamics`"
+    try:
+        load_model(name)
+    except FileNotFoundError:
+        raise ConfigError(key, requirement, name, f"no such file: {Path(name).resolve()}") from None
+    except ValueError as err:
+        raise ConfigError(key, requirement, name, str(err)) from None
 
 
 @dataclass(frozen=True)
@@ -247,9 +265,9 @@ def _mean_std(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _default_dynamics(name: str) -> Dynamics:
-    from planners.dynamics import BicycleModel, load_model
+    from planners.dynamics import model_from_name
 
-    return load_model() if name == "mlp" else BicycleModel()
+    return model_from_name(name)
 
 
 CONFIG_FILE = "planner.yaml"

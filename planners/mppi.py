@@ -130,7 +130,8 @@ class MPPIPlanner:
 
     scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
     config: MPPI settings; tuning: the shared planner tuning (noise scales, barriers, default N and H); dynamics:
-    any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the shipped MLP, as EnKTS).
+    any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the model ``tuning.dynamics`` names, as
+    EnKTS: the shipped MLP, the bicycle model or a weights file).
 
     ``fallbacks`` counts plans that came out non-finite and were replaced by holding the last input.
     """
@@ -142,9 +143,9 @@ class MPPIPlanner:
         self.horizon = config.horizon or tuning.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         if dynamics is None:
-            from planners.dynamics import load_model
+            from planners.dynamics import model_from_name
 
-            dynamics = load_model()
+            dynamics = model_from_name(tuning.dynamics)
         self.dynamics = dynamics
         self.generator = torch.Generator()
         noise_std = config.noise_gain * torch.tensor(tuning.sigma_du, dtype=torch.float64)

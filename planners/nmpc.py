@@ -144,6 +144,28 @@ def mlp_function(model=None) -> ca.Function:
     return ca.Function("mlp_step", [x, u], [nxt], ["x", "u"], ["x_next"])
 
 
+def bicycle_function(model=None) -> ca.Function:
+    """The exact kinematic bicycle as a CasADi ``Function f(x (4,), u (2,)) -> x_next (4,)``, float64: the same
+    math as :meth:`planners.dynamics.BicycleModel.predict` (tests check they agree). ``model``: a
+    ``BicycleModel`` (default: the env's vehicle)."""
+    if model is None:
+        from planners.dynamics import BicycleModel
+
+        model = BicycleModel()
+    x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
+    h, v = x[2], x[3]
+    a, delta = u[0], u[1]
+    if model.clip_inputs:
+        a = ca.fmin(ca.fmax(a, model.accel_range[0]), model.accel_range[1])
+        delta = ca.fmin(ca.fmax(delta, model.steer_range[0]), model.steer_range[1])
+    a = ca.if_else(v > model.max_speed, ca.fmin(a, model.max_speed - v), ca.if_else(v < 0, ca.fmax(a, -v), a))
+    beta = ca.atan(0.5 * ca.tan(delta))
+    dt = model.dt
+    nxt = ca.vertcat(x[0] + v * ca.cos(h + beta) * dt, x[1] + v * ca.sin(h + beta) * dt,
+                     h + v * ca.sin(beta) / (model.length / 2) * dt, ca.fmax(v + a * dt, 0.0))
+    return ca.Function("bicycle_step", [x, u], [nxt], ["x", "u"], ["x_next"])
+
+
 ROAD_PARAMS = ("straight_in", "radius", "arc_angle")
 
 
@@ -237,7 +259,9 @@ class NMPCPlanner:
 
     scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
     config: solver settings; tuning: the shared planner tuning (cost weights = inverse squared noise scales,
-    barrier margins); dynamics: a CasADi ``Function f(x (4,), u (2,)) -> (4,)`` (default: :func:`mlp_function`).
+    barrier margins); dynamics: a CasADi ``Function f(x (4,), u (2,)) -> (4,)`` (default: the model
+    ``tuning.dynamics`` names, as EnKTS: :func:`mlp_function` of the shipped MLP or of a weights file, or
+    :func:`bicycle_function`).
 
     Attributes after ``act``: ``failures`` (fallback actions), ``capped`` (cap-stopped but feasible solves used),
     ``statuses`` (IPOPT return statuses), ``solve_times`` [s] and ``iterations`` per solve, ``plan`` (the last
@@ -251,10 +275,11 @@ class NMPCPlanner:
         self._scene = scene if callable(scene) else (lambda: scene)
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
         if dynamics is None:
-            from planners.dynamics import load_model
+            from planners.dynamics import BicycleModel, model_from_name
 
-            model = load_model()
-            dynamics, self._model_dt = mlp_function(model), model.dt
+            model = model_from_name(tuning.dynamics)
+            build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
+            dynamics, self._model_dt = build(model), model.dt
         self.f = dynamics
         self._problems: dict[tuple, _Problem] = {}
         self.failures = self.capped = 0
@@ -451,5 +476,5 @@ def make_nmpc_t(env, config: str | None = None, tuning: str | None = CONFIG_FILE
                        load_config(NMPCConfig, config, **{"nu": shared.nu, **overrides}), shared)
 
 
-__all__ = ["NMPCConfig", "NMPCPlanner", "make_nmpc", "make_nmpc_t", "mlp_function", "frenet",
+__all__ = ["NMPCConfig", "NMPCPlanner", "make_nmpc", "make_nmpc_t", "mlp_function", "bicycle_function", "frenet",
            "keep_out_semi_axes", "robust_cost"]

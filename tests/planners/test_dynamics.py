@@ -1,5 +1,6 @@
 """planners.dynamics: the exact bicycle model against the env's vehicle, the shipped MLP's accuracy on fresh
-scenario runs, batching, numpy/torch agreement, the loader's errors and a short training run."""
+scenario runs, batching, numpy/torch agreement, the loader's errors, a short training run and weights files named by a
+planner config."""
 
 from __future__ import annotations
 
@@ -7,11 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from configs import load_config
 from planners import dynamics
-from planners.dynamics import BicycleModel, LearnedDynamics, load_model, save_model
+from planners.dynamics import BicycleModel, LearnedDynamics, load_model, model_from_name, save_model
 from planners.dynamics_train import (
     DataConfig, TrainConfig, generate_data, open_loop_errors, rollout_scenarios, simulate_vehicle, train,
 )
+from planners.enkts import EnKTSConfig
 
 
 @pytest.fixture(scope="module")
@@ -146,3 +149,29 @@ def test_short_training_lowers_the_loss_and_is_seeded():
     _, again = train(x, u, y, config)
     np.testing.assert_array_equal(losses, again)
     assert isinstance(trained, LearnedDynamics) and trained(x[:5], u[:5]).shape == (5, 4)
+
+
+# --- weights files in planner configs; where `bimp train-dynamics` writes ---------------------------------------
+def test_model_from_name(model, tmp_path):
+    assert isinstance(model_from_name("bicycle"), BicycleModel)
+    copy = save_model(model, tmp_path / "copy.pt")
+    x, u = random_rows(np.random.default_rng(4), 50)
+    for name in ("mlp", str(copy)):
+        np.testing.assert_array_equal(model_from_name(name)(x, u), model(x, u))
+    with pytest.raises(FileNotFoundError, match="nope.pt"):
+        model_from_name(str(tmp_path / "nope.pt"))
+
+
+def test_planner_config_rejects_a_bad_weights_file_when_built(tmp_path):
+    missing = tmp_path / "nope.pt"
+    with pytest.raises(ValueError, match=r"dynamics must be .*nope\.pt.*no such file"):
+        EnKTSConfig(dynamics=str(missing))
+    (tmp_path / "p.yaml").write_text(f"dynamics: {missing}\n")
+    with pytest.raises(ValueError, match=r"dynamics .*nope\.pt"):
+        load_config(EnKTSConfig, tmp_path / "p.yaml")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a model")
+    with pytest.raises(ValueError, match=r"dynamics .*garbage\.pt"):
+        EnKTSConfig(dynamics=str(garbage))
+    with pytest.raises(ValueError, match="dynamics"):
+        EnKTSConfig(dynamics="")

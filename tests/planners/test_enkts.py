@@ -7,7 +7,7 @@ import pytest
 import envs
 from agents import make_policy
 from configs import load_config
-from planners.dynamics import BicycleModel
+from planners.dynamics import BicycleModel, load_model, save_model
 from planners.enkts import EnKTSConfig, EnKTSPlanner, make_enks, make_enkts
 
 
@@ -135,3 +135,19 @@ def test_enkts_completes_each_scenario_on_the_default_seed_safely(scenario):
         obs, _, terminated, truncated, info = env.step(planner.act(obs))
         done = terminated or truncated
     assert truncated and not info["collision"] and not info["offroad"]
+
+
+def test_dynamics_may_be_a_weights_file_a_copy_acts_like_the_shipped_model(tmp_path):
+    copy = save_model(load_model(), tmp_path / "copy.pt")
+    (tmp_path / "p.yaml").write_text(f"n_particles: 10\nhorizon: 5\ndynamics: {copy}\n")
+    runs = []
+    for config in (load_config(EnKTSConfig, tmp_path / "p.yaml"), EnKTSConfig(n_particles=10, horizon=5)):
+        env, obs = env_at("bimp/Overtaking-v0", seed=2)
+        planner = EnKTSPlanner(env.unwrapped.scene, config)
+        actions = []
+        for _ in range(4):
+            actions.append(planner.act(obs))
+            obs, *_ = env.step(actions[-1])
+        runs.append(np.array(actions))
+    np.testing.assert_array_equal(*runs)
+    assert isinstance(EnKTSPlanner(env.unwrapped.scene, EnKTSConfig(dynamics="bicycle")).dynamics, BicycleModel)

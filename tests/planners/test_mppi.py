@@ -12,7 +12,7 @@ import torch
 import envs
 from envs.road import RoadGeometry
 from envs.scene import Bounds, Scene
-from planners.dynamics import load_model
+from planners.dynamics import BicycleModel, load_model, save_model
 from planners.enkts import EnKTSConfig
 from planners.mppi import MPPIConfig, MPPIPlanner, make_mppi
 from planners.virtual import measure, predict_obstacles, reference_profile
@@ -136,3 +136,13 @@ def test_config_validation_and_unknown_overrides():
         make_mppi(env, lambda_=2.0)
     planner = make_mppi(env, n_particles=20, horizon=5)
     assert (planner.n_particles, planner.horizon) == (20, 5)
+
+
+def test_default_dynamics_follow_the_tuning_key(tmp_path):
+    copy = save_model(load_model(), tmp_path / "copy.pt")
+    x = np.column_stack([np.zeros(5), np.zeros(5), np.linspace(-1, 1, 5), np.linspace(0, 35, 5)])
+    u = np.column_stack([np.linspace(-8, 3, 5), np.linspace(-0.2, 0.2, 5)])
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), EnKTSConfig(dynamics=str(copy)))
+    np.testing.assert_array_equal(planner.dynamics(x, u), load_model()(x, u))
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), EnKTSConfig(dynamics="bicycle"))
+    assert isinstance(planner.dynamics, BicycleModel)

@@ -14,11 +14,11 @@ import pytest
 import envs
 from envs.road import RoadGeometry
 from envs.scene import Bounds, Scene
-from planners.dynamics import load_model
+from planners.dynamics import BicycleModel, load_model, save_model
 from planners.enkts import EnKTSConfig
 from planners.nmpc import (
-    NMPCConfig, NMPCPlanner, curvature_at, frenet, heading_at, keep_out_semi_axes, make_nmpc, make_nmpc_t,
-    mlp_function, road_params, robust_cost,
+    NMPCConfig, NMPCPlanner, bicycle_function, curvature_at, frenet, heading_at, keep_out_semi_axes, make_nmpc,
+    make_nmpc_t, mlp_function, road_params, robust_cost,
 )
 from planners.virtual import N_TRACK, BarrierShape, measure
 
@@ -58,6 +58,31 @@ def test_casadi_mlp_equals_learned_dynamics(model):
     got = np.asarray(mlp_function(model).map(n)(x.T, u.T)).T
     # predict runs the net in float32: agreement to float32 rounding of a step's change (metres, rad, m/s)
     np.testing.assert_allclose(got, model.predict(x, u), rtol=0, atol=1e-5)
+
+
+def test_casadi_bicycle_equals_bicycle_model():
+    rng = np.random.default_rng(5)
+    n = 300
+    x = np.column_stack([rng.uniform(-300, 300, n), rng.uniform(-10, 10, n), rng.uniform(-4, 4, n),
+                         rng.uniform(0, 42, n)])
+    x[::7, 3] = 0.0
+    u = np.column_stack([rng.uniform(-12, 12, n), rng.uniform(-0.4, 0.4, n)])
+    for bicycle in (BicycleModel(), BicycleModel(clip_inputs=False)):
+        got = np.asarray(bicycle_function(bicycle).map(n)(x.T, u.T)).T
+        np.testing.assert_allclose(got, bicycle.predict(x, u), rtol=0, atol=1e-12)
+
+
+def test_default_dynamics_follow_the_tuning_key(model, tmp_path):
+    copy = save_model(model, tmp_path / "copy.pt")
+    rng = np.random.default_rng(6)
+    x = np.column_stack([rng.uniform(-50, 50, (20, 2)), rng.uniform(-1, 1, 20), rng.uniform(0, 35, 20)])
+    u = np.column_stack([rng.uniform(-8, 3, 20), rng.uniform(-0.2, 0.2, 20)])
+    shipped = np.asarray(mlp_function(model).map(20)(x.T, u.T)).T
+    for name, expected in ((str(copy), shipped), ("mlp", shipped)):
+        planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), EnKTSConfig(dynamics=name))
+        np.testing.assert_array_equal(np.asarray(planner.f.map(20)(x.T, u.T)).T, expected)
+    planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), EnKTSConfig(dynamics="bicycle"))
+    np.testing.assert_allclose(np.asarray(planner.f.map(20)(x.T, u.T)).T, BicycleModel()(x, u), atol=1e-12)
 
 
 @pytest.mark.parametrize("arc_deg", [60.0, -45.0, 0.0])
