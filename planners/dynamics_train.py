@@ -10,7 +10,9 @@ trajectories of the two scenarios driven by random smooth inputs within the plan
 open-loop error after ``horizon`` steps from every window start). The exact :class:`BicycleModel` is reported beside
 the MLP as a check that the env runs the model we think it does (its errors should be ~1e-12).
 
-Reproduce the shipped weights: ``bimp train-dynamics --seed 0`` (writes ``planners/weights/mlp.pt``).
+Weights go to ``--out`` (default ``runs/dynamics/mlp.pt``, relative to the working directory); the shipped file is
+written only when named: reproduce it with ``bimp train-dynamics --seed 0 --out planners/weights/mlp.pt``. A planner
+uses other weights through its config: ``dynamics: runs/dynamics/mlp.pt``.
 """
 
 from __future__ import annotations
@@ -18,14 +20,14 @@ from __future__ import annotations
 import argparse
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from configs import ConfigError, check_fields
 from planners.dynamics import (
-    ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, MLP, WEIGHTS_PATH, BicycleModel, LearnedDynamics, features,
-    save_model,
+    ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, MLP, BicycleModel, LearnedDynamics, features, save_model,
 )
 
 STATE_NAMES = ("x [m]", "y [m]", "heading [rad]", "speed [m/s]")
@@ -314,15 +316,25 @@ def accuracy_report(model: LearnedDynamics, rng: np.random.Generator, episodes: 
     return "\n".join(lines)
 
 
-def main(argv: list[str]) -> int:
+DEFAULT_OUT = Path("runs") / "dynamics" / "mlp.pt"
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``bimp train-dynamics``."""
     p = argparse.ArgumentParser(prog="bimp train-dynamics", description="Train the MLP vehicle model on the env's "
                                 "own vehicle, save its weights and print its accuracy on held-out data.")
     p.add_argument("--seed", type=int, default=0, help="seed of the data, the training and the report")
-    p.add_argument("--out", default=str(WEIGHTS_PATH), help="where to write the weights (default: the shipped file)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                   help=f"where to write the weights (default: {DEFAULT_OUT}; the shipped model is replaced only "
+                   f"when named: --out planners/weights/mlp.pt). A planner config uses them with `dynamics: PATH`")
     p.add_argument("--steps", type=int, default=TrainConfig.steps, help="Adam steps")
     p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
     p.add_argument("--episodes", type=int, default=10, help="held-out runs per scenario in the report")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str]) -> int:
+    args = parser().parse_args(argv)
     config = TrainConfig(seed=args.seed, steps=args.steps, batch_size=args.batch_size)
     data_config = DataConfig()
     train_seq, report_seq = np.random.SeedSequence(args.seed).spawn(2)
@@ -338,4 +350,5 @@ def main(argv: list[str]) -> int:
     print(f"wrote {path} ({path.stat().st_size / 1024:.0f} kB)\n")
     print(accuracy_report(model, np.random.default_rng(report_seq), episodes=args.episodes))
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+    print(f"weights: {path} (use them in a planner config with `dynamics: {path}`)")
     return 0

@@ -1,18 +1,22 @@
 """planners.dynamics: the exact bicycle model against the env's vehicle, the shipped MLP's accuracy on fresh
-scenario runs, batching, numpy/torch agreement, the loader's errors, a short training run and weights files named by a
-planner config."""
+scenario runs, batching, numpy/torch agreement, the loader's errors, a short training run, weights files named by a
+planner config, and where ``bimp train-dynamics`` writes."""
 
 from __future__ import annotations
+
+import hashlib
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from configs import load_config
-from planners import dynamics
+from planners import dynamics, dynamics_train
 from planners.dynamics import BicycleModel, LearnedDynamics, load_model, model_from_name, save_model
 from planners.dynamics_train import (
-    DataConfig, TrainConfig, generate_data, open_loop_errors, rollout_scenarios, simulate_vehicle, train,
+    DEFAULT_OUT, DataConfig, TrainConfig, generate_data, open_loop_errors, parser, rollout_scenarios, simulate_vehicle,
+    train,
 )
 from planners.enkts import EnKTSConfig
 
@@ -175,3 +179,28 @@ def test_planner_config_rejects_a_bad_weights_file_when_built(tmp_path):
         EnKTSConfig(dynamics=str(garbage))
     with pytest.raises(ValueError, match="dynamics"):
         EnKTSConfig(dynamics="")
+
+
+def test_train_dynamics_writes_under_runs_by_default_not_the_shipped_file():
+    out = parser().parse_args([]).out
+    assert out == DEFAULT_OUT and Path(out).parts[0] == "runs"
+    assert Path(out).resolve() != dynamics.WEIGHTS_PATH.resolve()
+    assert parser().parse_args(["--out", "planners/weights/mlp.pt"]).out == Path("planners/weights/mlp.pt")
+
+
+def test_train_dynamics_main_writes_the_default_path_and_leaves_the_shipped_weights(tmp_path, monkeypatch, capsys):
+    """The whole command with a toy data set and two Adam steps (the data and the report are stubbed out)."""
+    shipped = hashlib.sha256(dynamics.WEIGHTS_PATH.read_bytes()).hexdigest()
+    small = generate_data(np.random.default_rng(0), DataConfig(n_sequences=2, sequence_steps=5, n_uniform=50,
+                                                               n_stop=10))
+    monkeypatch.setattr(dynamics_train, "generate_data", lambda rng, config: small)
+    monkeypatch.setattr(dynamics_train, "accuracy_report", lambda model, rng, episodes: "(report)")
+    monkeypatch.chdir(tmp_path)
+    assert dynamics_train.main(["--steps", "2", "--batch-size", "8"]) == 0
+    written = tmp_path / "runs" / "dynamics" / "mlp.pt"
+    assert isinstance(load_model(written), LearnedDynamics)
+    assert capsys.readouterr().out.rstrip().splitlines()[-1].startswith(
+        f"weights: {written.relative_to(tmp_path)}")
+    assert dynamics_train.main(["--steps", "2", "--batch-size", "8", "--out", "elsewhere/m.pt"]) == 0
+    assert (tmp_path / "elsewhere" / "m.pt").is_file()
+    assert hashlib.sha256(dynamics.WEIGHTS_PATH.read_bytes()).hexdigest() == shipped
