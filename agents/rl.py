@@ -38,6 +38,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.sac.policies import SACPolicy
 
 import envs
+from configs import check_fields
 from agents.baselines import ZeroAction
 from agents.rollout import rollout
 from envs.wrappers import PlanningWrapper, features, n_features, to_env_action
@@ -74,12 +75,12 @@ class RLConfig:
     checkpoint_every: int = 50_000
 
     def __post_init__(self) -> None:
+        check_fields(self)  # types and lengths, errors naming the key
         envs.env_id(self.scenario)  # raises ValueError naming the choices
         if self.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
         if self.vec_env not in ("dummy", "subproc"):
             raise ValueError(f"vec_env must be 'dummy' or 'subproc', got {self.vec_env!r}")
-        object.__setattr__(self, "net_arch", tuple(int(n) for n in self.net_arch))
         positive = {"timesteps": self.timesteps, "n_envs": self.n_envs, "n_steps": self.n_steps,
                     "n_epochs": self.n_epochs, "buffer_size": self.buffer_size,
                     "learning_rate": self.learning_rate, "tau": self.tau}

@@ -34,8 +34,10 @@ def test_config_validates():
     assert rl.RLConfig().net_arch == (64, 64)
     with pytest.raises(ValueError, match="n_stepz"):
         rl.RLConfig.from_mapping({"n_stepz": 8})
-    for bad in ({"algo": "dqn"}, {"scenario": "parking"}, {"timesteps": 0}, {"gamma": 1.5}, {"vec_env": "ray"}):
-        with pytest.raises(ValueError):
+    for bad in ({"algo": "dqn"}, {"scenario": "parking"}, {"timesteps": 0}, {"gamma": 1.5}, {"vec_env": "ray"},
+                {"timesteps": 1.5}, {"net_arch": [64, "x"]}, {"ent_coef": True}, {"gamma": float("nan")}):
+        key = next(iter(bad))
+        with pytest.raises(ValueError, match=key):
             rl.RLConfig(**bad)
 
 
