@@ -284,13 +284,18 @@ def _run_pool(todo: list[Job], workers: int, write) -> None:
             if broken and not in_flight:
                 pool.shutdown(wait=True, cancel_futures=True)
                 pool, broken = make(), False
-            if not broken and not any(alone for _, alone in in_flight.values()):
-                if suspects and not in_flight:
-                    job = suspects.popleft()
-                    in_flight[pool.submit(run_episode, job)] = (job, True)
-                while not suspects and queue and len(in_flight) < workers:
-                    job = queue.popleft()
-                    in_flight[pool.submit(run_episode, job)] = (job, False)
+            try:
+                if not broken and not any(alone for _, alone in in_flight.values()):
+                    if suspects and not in_flight:
+                        future = pool.submit(run_episode, suspects[0])  # raises before the job leaves its queue
+                        in_flight[future] = (suspects.popleft(), True)
+                    while not suspects and queue and len(in_flight) < workers:
+                        future = pool.submit(run_episode, queue[0])
+                        in_flight[future] = (queue.popleft(), False)
+            except BrokenProcessPool:  # it broke since the last look: the job stays queued
+                broken = True
+                if not in_flight:
+                    continue
             done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
             for future in done:
                 job, alone = in_flight.pop(future)
