@@ -41,7 +41,7 @@ from tqdm import tqdm
 
 from agents.metrics import BINARY, METRICS, episode_metrics, summarize
 from agents.provenance import code_version, config_diff, config_hash, resolved_config
-from agents.rollout import SEEDING, rollout
+from agents.rollout import SEEDING, rollout, rollout_batch
 from agents.video import with_video
 
 EPISODES_FILE = "episodes.jsonl"
@@ -194,6 +194,46 @@ def run_episode(job: Job) -> dict:
     return record
 
 
+def run_group(group: tuple[Job, ...]) -> list[dict]:
+    """Records of a group of episodes: one episode as :func:`run_episode`; several (the same arm, no video) as one
+    batched planner over one env per episode (:func:`agents.rollout.rollout_batch`)."""
+    if len(group) == 1:
+        return [run_episode(group[0])]
+    import gymnasium as gym
+
+    import envs
+    from agents.registry import make_policy
+
+    arm = group[0].arm
+    records = [_base_record(job) for job in group]
+    start = time.perf_counter()
+    try:
+        envs_ = [gym.make(envs.env_id(arm.scenario)) for _ in group]
+        policy = make_policy(arm.policy, envs_, **dict(arm.overrides))
+        built = config_hash(arm.policy, resolved_config(policy))
+        if built != arm.config_hash:
+            raise RuntimeError(f"the policy resolved to config {built} in this process, {arm.config_hash} when "
+                               "the run was checked: the config depends on something outside it")
+        episodes = rollout_batch(envs_, policy, [job.seed for job in group])
+        for record, job, episode, env in zip(records, group, episodes, envs_):
+            scene = env.unwrapped.scene
+            record.update(env_seed=episode.env_seed, policy_seed=episode.policy_seed, batch=len(group),
+                          scenario_params=episode.params, status="ok", steps=episode.steps,
+                          truncated=episode.truncated,
+                          metrics=episode_metrics(episode.trace, scene.dt, truncated=episode.truncated))
+            if job.trace:
+                record.update(trace=episode.trace, road=dataclasses.asdict(scene.road),
+                              bounds=dataclasses.asdict(scene.bounds))
+            env.close()
+    except Exception as err:  # the whole group is recorded as failed; the next run retries each episode
+        for record in records:
+            record.update(status="error", error=f"{type(err).__name__}: {err}", traceback=traceback.format_exc())
+    wall = round(time.perf_counter() - start, 3)
+    for record in records:
+        record["wall_s"] = wall
+    return records
+
+
 def _crash_record(job: Job, attempts: int) -> dict:
     return {**_base_record(job), "status": "error", "traceback": None,
             "error": f"WorkerDied: the worker process running this episode died ({attempts} attempts, the last "
@@ -267,13 +307,14 @@ def _init_worker() -> None:
     torch.set_num_threads(1)  # workers are the parallelism; oversubscribed threads only slow them down
 
 
-def _run_pool(todo: list[Job], workers: int, write) -> None:
-    """Run ``todo`` on ``workers`` spawned processes, at most ``workers`` episodes in flight. When a worker
-    dies, every episode then in flight is a suspect: each is rerun alone on a fresh pool, and one that kills
-    its worker alone is recorded as an error (never retried forever, never lost, never a hang)."""
+def _run_pool(todo: list[tuple[Job, ...]], workers: int, write) -> None:
+    """Run the groups of episodes ``todo`` on ``workers`` spawned processes, at most ``workers`` groups in flight.
+    When a worker dies, every group then in flight is a suspect: each is rerun alone on a fresh pool, and one that
+    kills its worker alone is recorded as an error (never retried forever, never lost, never a hang)."""
     # Spawned workers import numpy afresh: one BLAS thread each, or they fight over the cores.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
     make = lambda: ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),  # noqa: E731
                                        initializer=_init_worker)
     queue, suspects, attempts = deque(todo), deque(), {}
@@ -287,27 +328,29 @@ def _run_pool(todo: list[Job], workers: int, write) -> None:
             try:
                 if not broken and not any(alone for _, alone in in_flight.values()):
                     if suspects and not in_flight:
-                        future = pool.submit(run_episode, suspects[0])  # raises before the job leaves its queue
+                        future = pool.submit(run_group, suspects[0])  # raises before the group leaves its queue
                         in_flight[future] = (suspects.popleft(), True)
                     while not suspects and queue and len(in_flight) < workers:
-                        future = pool.submit(run_episode, queue[0])
+                        future = pool.submit(run_group, queue[0])
                         in_flight[future] = (queue.popleft(), False)
-            except BrokenProcessPool:  # it broke since the last look: the job stays queued
+            except BrokenProcessPool:  # it broke since the last look: the group stays queued
                 broken = True
                 if not in_flight:
                     continue
             done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
             for future in done:
-                job, alone = in_flight.pop(future)
+                group, alone = in_flight.pop(future)
                 try:
-                    write(future.result())
+                    for record in future.result():
+                        write(record)
                 except BrokenProcessPool:
                     broken = True
-                    attempts[job] = attempts.get(job, 0) + 1
+                    attempts[group] = attempts.get(group, 0) + 1
                     if alone:
-                        write(_crash_record(job, attempts[job]))
+                        for job in group:
+                            write(_crash_record(job, attempts[group]))
                     else:
-                        suspects.append(job)
+                        suspects.append(group)
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
 
@@ -315,19 +358,27 @@ def _run_pool(todo: list[Job], workers: int, write) -> None:
 def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed: int = 0, workers: int = 1,
              out: str | Path = "runs/eval", traces: int = 2, overrides: dict | None = None,
              progress: bool = True, *, seeds: list[int] | None = None, labels: dict | None = None,
-             video: int = 0, all_records: bool = False) -> dict:
+             video: int = 0, all_records: bool = False, batch: int = 1) -> dict:
     """Run the missing episodes, append them to ``out/episodes.jsonl``, write and return the summary.
 
     Episodes: ``seeds`` if given, else ``seed, seed + 1, ..., seed + episodes - 1``. ``overrides``:
     ``{policy: {key: value}}`` for ``make_policy``; ``labels``: ``{policy: label}``; ``traces`` / ``video``:
     how many of the first seeds per arm keep their per-step trace / get an MP4 in ``out/videos``;
-    ``all_records``: summarize the whole folder instead of this request. Raises :class:`EvaluationError`
+    ``all_records``: summarize the whole folder instead of this request; ``batch``: plan up to this many episodes
+    of an arm in one batched call (policies with ``batched = True``; episodes with video run alone). Raises
+    :class:`EvaluationError`
     before anything is written when the request is invalid or conflicts with the folder's records.
     """
     seeds = list(range(seed, seed + episodes)) if seeds is None else [int(s) for s in seeds]
     if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
         raise EvaluationError(f"seeds must be distinct ints >= 0, at least one; got {seeds}")
+    if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
+        raise EvaluationError(f"batch must be an int >= 1, got {batch!r}")
     arms = resolve_arms(scenarios, policies, overrides, labels)
+    if batch > 1:
+        single = sorted({arm.policy for arm in arms if not _batched(arm.policy)})
+        if single:
+            raise EvaluationError(f"--batch needs policies that plan batches; {single} do not")
     out = Path(out)
     check_conflicts(arms, read_records(out))  # before anything is written: a refusal leaves no trace
     out.mkdir(parents=True, exist_ok=True)
@@ -355,16 +406,41 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
                     bar.write(f"episode {record['label']}/{record['scenario']}/seed {record['seed']} failed: "
                               f"{record['error']}")
 
-            if workers > 1 and len(todo) > 1:
-                _run_pool(todo, workers, write)
+            groups = _groups(todo, batch)
+            if workers > 1 and len(groups) > 1:
+                _run_pool(groups, workers, write)
             else:
-                for job in todo:
-                    write(run_episode(job))
+                for group in groups:
+                    for record in run_group(group):
+                        write(record)
         wanted = {j.key for j in jobs}
         records = latest_records(read_records(out))
         summary = summarize(records if all_records else [r for r in records if record_key(r) in wanted])
         write_summary(summary, out)
     return summary
+
+
+def _batched(policy: str) -> bool:
+    from agents.registry import policy_class
+
+    return bool(getattr(policy_class(policy), "batched", False))
+
+
+def _groups(todo: list[Job], batch: int) -> list[tuple[Job, ...]]:
+    """Consecutive episodes of one arm, up to ``batch`` each; an episode with video alone."""
+    groups: list[tuple[Job, ...]] = []
+    current: list[Job] = []
+    for job in todo:
+        if current and (len(current) == batch or job.arm != current[0].arm or job.video_dir):
+            groups.append(tuple(current))
+            current = []
+        if job.video_dir:
+            groups.append((job,))
+        else:
+            current.append(job)
+    if current:
+        groups.append(tuple(current))
+    return groups
 
 
 # --- the summary files ----------------------------------------------------------------------------------
@@ -462,6 +538,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="config override for one policy, e.g. enkts.n_particles=100")
     parser.add_argument("--label", nargs="*", default=[], metavar="[POLICY=]NAME",
                         help="the row name of a policy's config (default: the policy name)")
+    parser.add_argument("--batch", type=int, default=1, metavar="B",
+                        help="plan B episodes of an arm in one batched call (enkts, enks)")
     parser.add_argument("--all", dest="all_records", action="store_true",
                         help="summarize every episode in the folder, not only this request's")
     parser.add_argument("--out", default="runs/eval")
@@ -478,7 +556,7 @@ def main(argv: list[str] | None = None) -> int:
         summary = evaluate(args.scenario, args.policy, args.episodes, args.seed, args.workers, args.out,
                            args.traces, parse_overrides(args.overrides), seeds=args.seeds,
                            labels=parse_labels(args.label, args.policy), video=args.video,
-                           all_records=args.all_records)
+                           all_records=args.all_records, batch=args.batch)
     except EvaluationError as err:
         print(f"bimp evaluate: error: {err}", file=sys.stderr)
         return 2

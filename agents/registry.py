@@ -27,11 +27,16 @@ def is_policy_name(name: str) -> bool:
     return name in POLICIES or (":" in name and all(name.partition(":")[::2]))
 
 
+def policy_class(name: str):
+    """The factory (a class or function) behind ``name``; a factory may declare ``batched = True``."""
+    if not is_policy_name(name):
+        raise ValueError(f"unknown policy {name!r}; choose from {sorted(POLICIES)} or give 'module:factory'")
+    module, factory = POLICIES.get(name, name).split(":")
+    return getattr(importlib.import_module(module), factory)
+
+
 def make_policy(name: str, env: gym.Env, **overrides) -> Policy:
     """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``overrides`` go to its
     config and an unknown one raises. ``name`` is a key of ``POLICIES`` or ``"module:factory"``.
     ``ValueError`` for an unknown name."""
-    if not is_policy_name(name):
-        raise ValueError(f"unknown policy {name!r}; choose from {sorted(POLICIES)} or give 'module:factory'")
-    module, factory = POLICIES.get(name, name).split(":")
-    return getattr(importlib.import_module(module), factory)(env, **overrides)
+    return policy_class(name)(env, **overrides)

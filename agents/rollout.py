@@ -54,6 +54,34 @@ class Episode:
         return float(np.sum(self.trace["reward"]))
 
 
+def _new_trace() -> dict[str, list]:
+    return {k: [] for k in ("x", "y", "heading", "speed", "ov_xy", "reference_speed", "reward", "plan_ms", *INFO_KEYS)}
+
+
+def _record(episode: Episode, scene, obs, reward, terminated, truncated, info, plan_ms: float) -> None:
+    """Append one step to ``episode``: the EV state and OV positions from ``obs``, the rest from ``info``."""
+    trace = episode.trace
+    ego, _, ovs, ref = scene.split_obs(obs)
+    for name, value in zip(("x", "y", "heading", "speed"), ego):
+        trace[name].append(float(value))
+    trace["ov_xy"].append(ovs[:, 1:3].tolist())
+    trace["reference_speed"].append(float(ref[0]))
+    trace["reward"].append(float(reward))
+    trace["plan_ms"].append(plan_ms)
+    for name in INFO_KEYS:
+        trace[name].append(info[name])
+    episode.steps += 1
+    episode.terminated, episode.truncated = bool(terminated), bool(truncated)
+
+
+def _start(env: gym.Env, seed: int) -> tuple[Episode, np.ndarray, dict]:
+    env_seed, policy_seed = episode_seeds(seed)
+    obs, info = env.reset(seed=env_seed)
+    episode = Episode(seed=int(seed), env_seed=env_seed, policy_seed=policy_seed,
+                      params=dict(getattr(env.unwrapped, "drawn_params", {})), trace=_new_trace())
+    return episode, obs, info
+
+
 def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
             on_step: Callable[[gym.Env, np.ndarray, dict], None] | None = None,
             observations: list | None = None) -> Episode:
@@ -62,14 +90,9 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
     ``on_step(env, obs, info)`` is called after the reset (``info`` of the reset) and after every step (for
     rendering); ``observations``, if given, receives every observation the policy acted on.
     """
-    env_seed, policy_seed = episode_seeds(seed)
-    obs, info = env.reset(seed=env_seed)
-    policy.reset(policy_seed)
+    episode, obs, info = _start(env, seed)
+    policy.reset(episode.policy_seed)
     scene = env.unwrapped.scene
-    episode = Episode(seed=int(seed), env_seed=env_seed, policy_seed=policy_seed,
-                      params=dict(getattr(env.unwrapped, "drawn_params", {})))
-    trace = episode.trace = {k: [] for k in (
-        "x", "y", "heading", "speed", "ov_xy", "reference_speed", "reward", "plan_ms", *INFO_KEYS)}
     if on_step:
         on_step(env, obs, info)
     done = False
@@ -78,22 +101,42 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
             observations.append(obs)
         start = time.perf_counter()
         action = policy.act(obs)
-        trace["plan_ms"].append(1e3 * (time.perf_counter() - start))
+        plan_ms = 1e3 * (time.perf_counter() - start)
         obs, reward, terminated, truncated, info = env.step(action)
-        ego, _, ovs, ref = scene.split_obs(obs)
-        for name, value in zip(("x", "y", "heading", "speed"), ego):
-            trace[name].append(float(value))
-        trace["ov_xy"].append(ovs[:, 1:3].tolist())
-        trace["reference_speed"].append(float(ref[0]))
-        trace["reward"].append(float(reward))
-        for name in INFO_KEYS:
-            trace[name].append(info[name])
-        episode.steps += 1
-        episode.terminated, episode.truncated = bool(terminated), bool(truncated)
+        _record(episode, scene, obs, reward, terminated, truncated, info, plan_ms)
         done = terminated or truncated
         if on_step:
             on_step(env, obs, info)
     return episode
 
 
-__all__ = ["Episode", "INFO_KEYS", "SEEDING", "episode_seeds", "rollout"]
+def rollout_batch(envs: list[gym.Env], policy, seeds: list[int]) -> list[Episode]:
+    """Episodes of a batched ``policy`` on ``envs`` (one per seed) in lockstep: one ``act(obs (B, d))`` per step
+    after ``reset(seed=[...])`` with the episodes' policy seeds, row ``i`` planning for ``envs[i]``. An env whose
+    episode has ended is no longer stepped (its row keeps planning on its last observation, unused). Each episode's
+    ``plan_ms`` is the time of the whole batched call.
+
+    A list of envs rather than a gymnasium vector env: a vector env resets an ended env itself, and an episode
+    here must end as the single-env loop ends it. Row ``i`` equals :func:`rollout` of ``seeds[i]`` (the planner's
+    rows are independent; a test pins it)."""
+    if len(envs) != len(seeds) or not envs:
+        raise ValueError(f"one env per seed: got {len(envs)} envs and {len(seeds)} seeds")
+    started = [_start(env, seed) for env, seed in zip(envs, seeds)]
+    episodes = [e for e, _, _ in started]
+    obs = [o for _, o, _ in started]
+    policy.reset([e.policy_seed for e in episodes])
+    done = [False] * len(envs)
+    while not all(done):
+        start = time.perf_counter()
+        actions = policy.act(np.stack(obs))
+        plan_ms = 1e3 * (time.perf_counter() - start)
+        for i, env in enumerate(envs):
+            if done[i]:
+                continue
+            obs[i], reward, terminated, truncated, info = env.step(actions[i])
+            _record(episodes[i], env.unwrapped.scene, obs[i], reward, terminated, truncated, info, plan_ms)
+            done[i] = terminated or truncated
+    return episodes
+
+
+__all__ = ["Episode", "INFO_KEYS", "SEEDING", "episode_seeds", "rollout", "rollout_batch"]

@@ -18,7 +18,7 @@ import math
 import numbers
 import types
 import typing
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -49,15 +49,16 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def load_config(cls: type[T], source: str | Path | None = None, **overrides: Any) -> T:
-    """Build ``cls`` from its defaults, then the YAML ``source`` (a path, or a file name under ``configs/``),
-    then ``overrides``. Raises ``ValueError`` naming any key that ``cls`` does not have, and whatever ``cls``
+def load_config(cls: type[T], source: str | Path | Sequence[str | Path] | None = None, **overrides: Any) -> T:
+    """Build ``cls`` from its defaults, then the YAML ``source`` (a path, or a file name under ``configs/``; or a
+    list of them, later ones overriding earlier ones), then ``overrides``. Raises ``ValueError`` naming any key that ``cls`` does not have, and whatever ``cls``
     raises for a bad value (:class:`ConfigError` for the configs that call :func:`check_fields`).
 
     ``load_config(cls, None, **dataclasses.asdict(config))`` rebuilds ``config``; so does dumping that dict to
     YAML and loading the file (nested configs come back from their mappings)."""
     values: dict[str, Any] = {}
-    if source is not None:
+    sources = [] if source is None else [source] if isinstance(source, (str, Path)) else list(source)
+    for source in sources:  # later files override earlier ones
         path = Path(source)
         if not path.is_file():
             path = CONFIG_DIR / path

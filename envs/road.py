@@ -97,39 +97,70 @@ class RoadGeometry:
 
     def heading_at(self, s: np.ndarray) -> np.ndarray:
         """Centreline heading [rad] at arc length ``s``."""
-        s = np.asarray(s, float)
-        phi = np.clip((s - self.straight_in) / self.radius, 0.0, abs(self.arc_angle))
-        return self._turn * phi
+        return heading_at(np.asarray(s, float), self.straight_in, self.radius, self.arc_angle)
 
     def curvature_at(self, s: np.ndarray) -> np.ndarray:
         """Signed centreline curvature [1/m] at ``s`` (> 0 turning right)."""
-        s = np.asarray(s, float)
-        on_arc = (s >= self.straight_in) & (s <= self.straight_in + self.arc_length)
-        return np.where(on_arc & (self.arc_length > 0), self._turn / self.radius, 0.0)
+        return curvature_at(np.asarray(s, float), self.straight_in, self.radius, self.arc_angle)
 
     def to_frenet(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Road coordinates ``(s, l)`` of world points ``xy (..., 2)``, each of shape ``(...)``."""
-        xy = np.asarray(xy, float)
-        x, y = xy[..., 0], xy[..., 1]
-        s, lat = x, y  # first straight, extended backwards
-        if self.arc_length > 0.0:
-            sigma = self._turn
-            dx, dy = x - self._centre[0], y - self._centre[1]
-            phi = np.arctan2(dx, -sigma * dy)
-            s_arc = self.straight_in + self.radius * phi
-            l_arc = sigma * (self.radius - np.hypot(dx, dy))
-            on_arc = phi >= 0.0
-            s, lat = np.where(on_arc, s_arc, s), np.where(on_arc, l_arc, lat)
-        h_end = self._turn * abs(self.arc_angle)
-        rel = xy - self._arc_end
-        s_out = self.straight_in + self.arc_length + rel[..., 0] * np.cos(h_end) + rel[..., 1] * np.sin(h_end)
-        l_out = -rel[..., 0] * np.sin(h_end) + rel[..., 1] * np.cos(h_end)
-        past = s_out >= self.straight_in + self.arc_length
-        return np.where(past, s_out, s), np.where(past, l_out, lat)
+        return to_frenet(np.asarray(xy, float), self.straight_in, self.radius, self.arc_angle)
 
     def edge_distance(self, lat: np.ndarray) -> np.ndarray:
         """Signed distance [m] from lateral offsets to the nearer road edge: > 0 on the road."""
         return self.half_width - np.abs(lat)
+
+
+# --- the road frame as functions of the geometry's numbers -----------------------------------------------------
+# One definition for the env (numpy, through RoadGeometry) and the planners (jax.numpy, with the geometry as
+# traced parameters, so a redrawn road does not recompile): the array module follows the inputs.
+def _xp(*arrays):
+    for a in arrays:
+        if type(a).__module__.startswith("jax"):
+            import jax.numpy as jnp
+
+            return jnp
+    return np
+
+
+def heading_at(s, straight_in, radius, arc_angle):
+    """Centreline heading [rad] at arc length ``s (...)`` of the road straight_in + arc + straight."""
+    xp = _xp(s, straight_in, radius, arc_angle)
+    turn = xp.where(arc_angle >= 0, 1.0, -1.0)
+    return turn * xp.clip((s - straight_in) / radius, 0.0, xp.abs(arc_angle))
+
+
+def curvature_at(s, straight_in, radius, arc_angle):
+    """Signed centreline curvature [1/m] at ``s (...)``, > 0 turning right, 0 on the straights."""
+    xp = _xp(s, straight_in, radius, arc_angle)
+    arc_length = radius * xp.abs(arc_angle)
+    on_arc = (s >= straight_in) & (s <= straight_in + arc_length) & (arc_length > 0)
+    return xp.where(on_arc, xp.where(arc_angle >= 0, 1.0, -1.0) / radius, 0.0)
+
+
+def to_frenet(xy, straight_in, radius, arc_angle):
+    """Road coordinates ``(s, l)``, each ``(...)``, of world points ``xy (..., 2)``.
+
+    Before the arc: the first straight (extended backwards); on the arc: angle about its centre; past the arc's end
+    (projected on the last straight's direction): the last straight. Straight road (``arc_angle = 0``): ``(x, y)``.
+    """
+    xp = _xp(xy, straight_in, radius, arc_angle)
+    x, y = xy[..., 0], xy[..., 1]
+    turn = xp.where(arc_angle >= 0, 1.0, -1.0)
+    angle = xp.abs(arc_angle)
+    arc_length = radius * angle
+    dx, dy = x - straight_in, y - turn * radius  # from the arc's centre
+    phi = xp.arctan2(dx, -turn * dy)
+    on_arc = (phi >= 0.0) & (arc_length > 0)
+    s = xp.where(on_arc, straight_in + radius * phi, x)
+    lat = xp.where(on_arc, turn * (radius - xp.hypot(dx, dy)), y)
+    h_end = turn * angle
+    rx, ry = dx - radius * xp.sin(angle), dy + turn * radius * xp.cos(angle)  # from the arc's end
+    s_out = straight_in + arc_length + rx * xp.cos(h_end) + ry * xp.sin(h_end)
+    l_out = -rx * xp.sin(h_end) + ry * xp.cos(h_end)
+    past = s_out >= straight_in + arc_length
+    return xp.where(past, s_out, s), xp.where(past, l_out, lat)
 
 
 def rect_gap(xy1, heading1, xy2, heading2, length: float, width: float) -> np.ndarray:
@@ -167,7 +198,8 @@ def _vertex_edge_distance(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def body_corners(xy: np.ndarray, heading: np.ndarray, length: float, width: float) -> np.ndarray:
     """World positions ``(..., 4, 2)`` of the body corners of vehicles at ``xy (..., 2)``, ``heading (...)``."""
-    c, s = np.cos(heading)[..., None], np.sin(heading)[..., None]
-    fwd = np.array([1, 1, -1, -1]) * length / 2
-    side = np.array([1, -1, 1, -1]) * width / 2
-    return np.stack([xy[..., None, 0] + fwd * c - side * s, xy[..., None, 1] + fwd * s + side * c], axis=-1)
+    xp = _xp(xy, heading, length)
+    c, s = xp.cos(heading)[..., None], xp.sin(heading)[..., None]
+    fwd = np.array([1, 1, -1, -1]) * 0.5 * length
+    side = np.array([1, -1, 1, -1]) * 0.5 * width
+    return xp.stack([xy[..., None, 0] + fwd * c - side * s, xy[..., None, 1] + fwd * s + side * c], axis=-1)

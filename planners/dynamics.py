@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+from configs import ConfigError
 from torch import nn
 
 # Mirrors of envs.scenarios / highway-env (tests check they agree); not imported, so that loading a model does
@@ -330,6 +332,24 @@ def load_model(path: str | Path | None = None) -> LearnedDynamics:
     if not all(np.all(np.isfinite(w)) for w in model._w + model._b):
         raise ValueError(f"dynamics checkpoint {path} holds non-finite weights")
     return model
+
+
+DYNAMICS_NAMES = ("mlp", "bicycle")
+
+
+def check_dynamics(name: str, key: str = "dynamics") -> None:
+    """Raise :class:`configs.ConfigError` unless ``name`` is ``"mlp"``, ``"bicycle"`` or the path of a readable
+    weights file written by ``bimp train-dynamics`` (the file is loaded once here, so a bad path fails when the
+    config is built, not at the first action)."""
+    if name in DYNAMICS_NAMES:
+        return
+    requirement = "'mlp', 'bicycle' or the path of a weights file written by `bimp train-dynamics`"
+    try:
+        load_model(name)
+    except FileNotFoundError:
+        raise ConfigError(key, requirement, name, f"no such file: {Path(name).resolve()}") from None
+    except ValueError as err:
+        raise ConfigError(key, requirement, name, str(err)) from None
 
 
 def model_from_name(name: str) -> BicycleModel | LearnedDynamics:

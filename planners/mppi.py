@@ -3,20 +3,20 @@
 MPPI (Williams et al. 2017) samples ``N`` control sequences around a nominal one, rolls them out and averages
 them with weights ``exp(-cost / lambda)``. Here it optimizes exactly what EnKTS infers, in the Gaussian case:
 
-    running cost  c_t = 0.5 * sum_i (h_i(xb_t) / sigma_i)^2,   h = planners.virtual.measure   (eq. 8, observed 0)
-    sigma = [sigma_ref (3), sigma_input (2), sigma_barrier (one per barrier)]  of the shared planner tuning
+    running cost  c_t = 0.5 * sum_i (h_i(xb_t) / sigma_i)^2,   h = planners.problem.measure   (eq. 8, observed 0)
+    sigma = [sigma_ref (3), sigma_input (2), sigma_barrier (one per barrier)]  of the shared problem tuning
 
 MPPI's state is the virtual system's block plus the first control: ``xb_t = [x_t (4), u_t (2), du_t (2), u_0 (2)]``
 (eq. 7): ``u`` and ``du`` so the cost can charge input and rate terms, ``u_0`` because the virtual system observes the
-applied control's barriers at every step. Its transition with MPPI's action ``u_t`` is ``x_t = f(x_{t-1}, u_{t-1})``
+applied control's barriers at every step. Its transition with MPPI's action ``u_t`` is ``x_{t+1} = f(x_t, u_t)``
 (``x_0`` = the current state), ``du_t = u_t - u_{t-1}``; the start block carries ``u_{-1}`` = the input applied last,
-so ``du_0`` is charged against it as EnKTS does. Pairing ``x_t`` with ``u_t`` needs the step index, hence
-``step_dependent_dynamics``.
+so ``du_0`` is charged against it as EnKTS does. Like every planner here it measures the states ``x_1 .. x_H``,
+each with the input that reached it.
 
 Choices: the dynamics wrap :meth:`planners.dynamics.LearnedDynamics.predict` (numpy, tensors converted without
 copies: float64 CPU tensors share memory with numpy): the same model object as EnKTS, and the faster path at
-N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`planners.virtual.measure`,
-numpy too. Noise: MPPI perturbs the controls ``u_t`` i.i.d. per step, not the increments; the default scale
+N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`planners.problem.measure`,
+numpy too (the one definition of the problem, evaluated with numpy arrays). Noise: MPPI perturbs the controls ``u_t`` i.i.d. per step, not the increments; the default scale
 ``noise_gain * sigma_du`` with gain 1 gives increments of spread ``sqrt(2) sigma_du`` (0.7 m/s^2 and 0.004 rad
 with the shipped tuning), inside the rate bounds, so most samples are not thrown away by the rate barrier,
 while the nominal sequence accumulates larger moves over the receding steps. Temperature 1: the weights
@@ -48,8 +48,8 @@ from pytorch_mppi import MPPI
 
 from configs import ConfigError, check_fields, load_config
 from envs.scene import Scene
-from planners.enkts import CONFIG_FILE, EnKTSConfig
-from planners.virtual import N_TRACK, measure, n_measurements, predict_obstacles, reference_profile
+from planners.problem import (PROBLEM_FILE, Problem, ProblemConfig, load_problem, make_problem, measure,
+                              predict_obstacles, reference_profile)
 
 Dynamics = Callable[[np.ndarray, np.ndarray], np.ndarray]
 NX = 10  # [x (4), u (2), du (2), u_0 (2)]
@@ -57,10 +57,11 @@ NX = 10  # [x (4), u (2), du (2), u_0 (2)]
 
 @dataclass(frozen=True)
 class MPPIConfig:
-    """MPPI settings; the cost (noise scales, barriers) comes from the shared :class:`EnKTSConfig`.
+    """MPPI settings; the cost (noise scales, barriers) and the horizon come from the shared problem
+    (:class:`planners.problem.ProblemConfig`).
 
-    n_particles: samples N >= 2 (``None``: the shared tuning's, as EnKTS); horizon: H >= 1 steps (``None``: the
-    shared tuning's); temperature: MPPI's lambda > 0, in units of the cost (a negative log-likelihood);
+    n_particles: samples N >= 2 (EnKTS's default, 50); horizon: H >= 1 steps (``None``: the shared problem's,
+    as every planner); temperature: MPPI's lambda > 0, in units of the cost (a negative log-likelihood);
     noise_gain: std of the i.i.d. control perturbation per step as a multiple of the tuning's ``sigma_du``, > 0;
     control_cost: weight >= 0 of MPPI's control cost ``lambda U' Sigma^-1 eps`` (``1 - alpha`` of Williams et al.
     2018; 1 = pytorch_mppi's default). That term is the log-prior of controls that are zero-mean a priori; the
@@ -71,7 +72,7 @@ class MPPIConfig:
     :func:`configs.check_fields`).
     """
 
-    n_particles: int | None = None
+    n_particles: int = 50
     horizon: int | None = None
     temperature: float = 1.0
     noise_gain: float = 1.0
@@ -80,8 +81,8 @@ class MPPIConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
-        if self.n_particles is not None and self.n_particles < 2:
-            raise ConfigError("n_particles", "an int >= 2 or None", self.n_particles)
+        if self.n_particles < 2:
+            raise ConfigError("n_particles", "an int >= 2", self.n_particles)
         if self.horizon is not None and self.horizon < 1:
             raise ConfigError("horizon", "an int >= 1 or None", self.horizon)
         if not self.temperature > 0:
@@ -115,9 +116,9 @@ class _SeededMPPI(MPPI):
 
 @dataclass(frozen=True)
 class _Context:
-    """What the running cost of one plan needs beside the block: see :func:`planners.virtual.measure`."""
+    """What the running cost of one plan needs beside the block: see :func:`planners.problem.measure`."""
 
-    scene: Scene
+    problem: Problem
     u_prev: np.ndarray
     ref_lane: float
     v_ref: np.ndarray
@@ -129,7 +130,7 @@ class MPPIPlanner:
     """MPPI as an :class:`agents.Policy`.
 
     scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
-    config: MPPI settings; tuning: the shared planner tuning (noise scales, barriers, default N and H); dynamics:
+    config: MPPI settings; tuning: the shared problem (noise scales, barriers, horizon); dynamics:
     any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the model ``tuning.dynamics`` names, as
     EnKTS: the shipped MLP, the bicycle model or a weights file).
 
@@ -137,10 +138,9 @@ class MPPIPlanner:
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: MPPIConfig = MPPIConfig(),
-                 tuning: EnKTSConfig = EnKTSConfig(), dynamics: Dynamics | None = None):
+                 tuning: ProblemConfig = ProblemConfig(), dynamics: Dynamics | None = None):
         self.config, self.tuning = config, tuning
-        self.n_particles = config.n_particles or tuning.n_particles
-        self.horizon = config.horizon or tuning.horizon
+        self.n_particles, self.horizon = config.n_particles, config.horizon or tuning.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         if dynamics is None:
             from planners.dynamics import model_from_name
@@ -175,9 +175,10 @@ class MPPIPlanner:
         mppi.u_min, mppi.u_max = torch.from_numpy(lo), torch.from_numpy(hi)
         if not self._warm:
             mppi.U = torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
-        v_ref, a_ref = reference_profile(scene, ref, self.horizon)
-        self._context = _Context(scene, u_prev, float(ref[2]), v_ref, a_ref,
-                                 predict_obstacles(scene, ovs, self.horizon))
+        problem = make_problem(scene, self.tuning)
+        v_ref, a_ref = reference_profile(problem, ref, self.horizon)
+        self._context = _Context(problem, u_prev, float(ref[2]), v_ref, a_ref,
+                                 predict_obstacles(problem, ovs, self.horizon))
         start = torch.from_numpy(np.concatenate([ego, u_prev, np.zeros(2), u_prev]))
         # MPPI's own shift refills with a fixed u_init; shift ourselves afterwards to hold the last control.
         u = mppi.command(start, shift_nominal_trajectory=False).numpy().copy()
@@ -191,34 +192,30 @@ class MPPIPlanner:
 
     # --- MPPI callbacks ----------------------------------------------------------------------------------
     def _step(self, block: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
-        """Virtual-system transition ``(N, 10) -> (N, 10)`` with action ``u (N, 2)`` at step ``t`` (eq. 7)."""
+        """Virtual-system transition ``(N, 10) -> (N, 10)`` with action ``u (N, 2)`` at step ``t`` (eq. 7): the
+        state reached with ``u``, the input, its increment, the first input."""
         b, u = block.numpy(), u.numpy()
-        x = b[:, :4] if t == 0 else self.dynamics(b[:, :4], b[:, 4:6])
+        x = self.dynamics(b[:, :4], u)
         first = u if t == 0 else b[:, 8:10]
         return torch.from_numpy(np.concatenate([x, u, u - b[:, 4:6], first], axis=1))
 
     def running_cost(self, block: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
-        """Negative log-likelihood ``(N,)`` of the zero virtual observation at step ``t`` for blocks ``(N, 10)``:
-        ``0.5 * sum_i (h_i / sigma_i)^2`` with ``h`` = :func:`planners.virtual.measure` (``u`` is in the block)."""
-        ctx, tun = self._context, self.tuning
+        """Negative log-likelihood ``(N,)`` of the zero virtual observation at step ``t`` for blocks ``(N, 10)``
+        holding ``x_{t+1}`` and the input ``u_t`` that reached it: ``0.5 * sum_i (h_i / sigma_i)^2`` with ``h`` =
+        :func:`planners.problem.measure` and ``sigma`` the problem's measurement noise."""
+        ctx = self._context
         b = block.numpy()
         s_o, l_o, v_o, a_o, present = ctx.obstacles
-        h = measure(ctx.scene, tun.barrier, b[:, :4], b[:, 4:6], b[:, 6:8], b[:, 8:10], ctx.u_prev, ctx.ref_lane,
-                    ctx.v_ref[t], ctx.a_ref[t], (s_o[t], l_o[t], v_o[t], a_o[t], present))
-        return torch.from_numpy(0.5 * np.sum((h / self.noise_scale(len(present))) ** 2, axis=1))
-
-    def noise_scale(self, n_obstacles: int) -> np.ndarray:
-        """Measurement noise scales ``(m,)``: ``[sigma_ref, sigma_input, sigma_barrier, ...]`` (as EnKTS)."""
-        tun = self.tuning
-        m = n_measurements(n_obstacles)
-        return np.array([*tun.sigma_ref, *tun.sigma_input] + [tun.sigma_barrier] * (m - N_TRACK))
+        h = measure(ctx.problem, b[:, :4], b[:, 4:6], b[:, 6:8], b[:, 8:10], ctx.u_prev, ctx.ref_lane,
+                    ctx.v_ref[t + 1], ctx.a_ref[t + 1], (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
+        return torch.from_numpy(0.5 * np.sum((h / ctx.problem.noise) ** 2, axis=1))
 
 
-def make_mppi(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> MPPIPlanner:
+def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> MPPIPlanner:
     """MPPI for ``env``: settings from ``config`` (YAML, optional) plus ``overrides`` (an unknown key raises naming
-    it); cost and default N, H from the shared ``tuning`` (``configs/planner.yaml``)."""
+    it); cost and horizon from the shared problem ``tuning`` (``configs/problem.yaml``)."""
     return MPPIPlanner(lambda: env.unwrapped.scene, load_config(MPPIConfig, config, **overrides),
-                       load_config(EnKTSConfig, tuning))
+                       load_problem(tuning))
 
 
 __all__ = ["MPPIConfig", "MPPIPlanner", "make_mppi"]

@@ -12,18 +12,18 @@ directly with a gradient-based solver, so the EnKTS planner can be compared agai
 
 - ``nmpc`` (``nu = inf``): rho_n(q) = q / 2, the quadratic tracking cost of eq. 21 as a negative log-likelihood;
   weights are the inverse squared noise scales ``sigma_ref``, ``sigma_input``, ``sigma_du`` of the shared planner
-  tuning (``configs/planner.yaml``), so all planners trade tracking against smoothness the same way.
+  problem (``configs/problem.yaml``), so all planners trade tracking against smoothness the same way.
 - ``nmpc-t`` (``nu`` = the tuning's ``nu``): rho_n(q) = (nu + n) / 2 log(1 + q / nu), the Student's-t log cost
   of section IV (it tends to q / 2 as nu -> inf).
 
-The residuals are those of :func:`planners.virtual.measure` (road frame: lateral offset to the reference lane,
+The residuals are those of :func:`planners.problem.measure` (road frame: lateral offset to the reference lane,
 heading relative to the road, speed error; acceleration minus the reference's rate, steering minus the
 curvature feed-forward). ``u_{-1}`` is the input applied last (from the observation); ``x_0`` is the current
 state, so its own residual is a constant and left out. The OV keep-out is a smooth superellipse through the
 semi-axes of the virtual system's keep-out box (time headway and braking room, see :func:`keep_out_semi_axes`).
 An ellipse (p = 2) cuts the box's corners by 29% of each semi-axis, and in the emergency brake NMPC used that
 to stop between the lanes 0.3 m from an OV; p = 4 (16%) stays closer to the box the other planners see and
-stopped 1.7 m behind. OV motion comes from :func:`planners.virtual.predict_obstacles`. The road's Frenet frame
+stopped 1.7 m behind. OV motion comes from :func:`planners.problem.predict_obstacles`. The road's Frenet frame
 is written as CasADi expressions of ``(x, y)`` mirroring :meth:`envs.road.RoadGeometry.to_frenet` (tests check
 they agree), with the road's shape as NLP parameters, so one compiled solver serves every redrawn road.
 
@@ -57,8 +57,8 @@ import numpy as np
 from configs import ConfigError, check_fields, load_config
 from envs.road import RoadGeometry
 from envs.scene import Scene
-from planners.enkts import CONFIG_FILE, EnKTSConfig
-from planners.virtual import BarrierShape, predict_obstacles, reference_profile
+from planners.problem import (PROBLEM_FILE, BarrierShape, ProblemConfig, load_problem, make_problem,
+                              predict_obstacles, reference_profile)
 
 _SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 _CAPPED = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded", "Maximum_WallTime_Exceeded")
@@ -67,7 +67,8 @@ _ABSENT = 1e3  # added to an absent OV's keep-out value: the constraint can neve
 
 @dataclass(frozen=True)
 class NMPCConfig:
-    """Solver settings; the cost weights and barrier margins come from the shared :class:`EnKTSConfig`.
+    """Solver settings; the cost weights, barrier margins and horizon come from the shared problem
+    (:class:`planners.problem.ProblemConfig`).
 
     horizon: H >= 1 steps (``None``: the shared tuning's); nu: degrees of freedom of the Student's-t log cost,
     > 0 (``inf``: the quadratic cost of eq. 21); max_iter: IPOPT iteration cap per warm-started solve (>= 0);
@@ -215,7 +216,7 @@ def curvature_at(s, p):
 def keep_out_semi_axes(scene: Scene, shape: BarrierShape, ds, v, v_o, a_o):
     """Semi-axes ``(semi_s, semi_l)`` [m] of the keep-out around an OV, as CasADi expressions.
 
-    The half-sizes of the keep-out box of :func:`planners.virtual.measure` (centre to centre): the footprint
+    The half-sizes of the keep-out box of :func:`planners.problem.measure` (centre to centre): the footprint
     length plus ``d_min``, the time headway of whichever vehicle follows and its braking room; laterally the
     footprint width plus the clearance. ``ds = s_EV - s_OV`` [m], ``v`` EV speed, ``v_o`` / ``a_o`` OV speed
     [m/s] and acceleration [m/s^2]. The switch at ``ds = 0`` leaves ``(ds / semi_s)^p`` continuous (it is 0 there
@@ -269,7 +270,7 @@ class NMPCPlanner:
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: NMPCConfig = NMPCConfig(),
-                 tuning: EnKTSConfig = EnKTSConfig(), dynamics: ca.Function | None = None):
+                 tuning: ProblemConfig = ProblemConfig(), dynamics: ca.Function | None = None):
         self.config, self.tuning = config, tuning
         self.horizon = config.horizon or tuning.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
@@ -372,8 +373,9 @@ class NMPCPlanner:
     def _params(self, scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
         """NLP parameters, in the order :meth:`_build` declares them."""
         H = self.horizon
-        s_o, l_o, v_o, a_o, present = predict_obstacles(scene, ovs, H)
-        v_ref, a_ref = reference_profile(scene, ref, H)
+        problem = make_problem(scene, self.tuning)
+        s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
+        v_ref, a_ref = reference_profile(problem, ref, H)
         return np.concatenate([ego, u_prev, [ref[2]], v_ref, a_ref, road_params(scene.road),
                                s_o.ravel(), l_o.ravel(), v_o.ravel(), a_o.ravel(), present.astype(float)])
 
@@ -409,7 +411,7 @@ class NMPCPlanner:
         v = states[3, :]
         du = U - ca.horzcat(u_prev, U[:, :-1])
 
-        # Cost (eq. 21, or its Student's-t form): residuals of planners.virtual.measure, weights 1 / sigma^2.
+        # Cost (eq. 21, or its Student's-t form): residuals of planners.problem.measure, weights 1 / sigma^2.
         sr, si, sw = tun.sigma_ref, tun.sigma_input, tun.sigma_du
         q_ref = ((lat - ref_lane) / sr[0]) ** 2 + (dpsi / sr[1]) ** 2 + ((v - v_ref) / sr[2]) ** 2
         feedforward = ca.atan(scene.vehicle_length * curvature_at(s[:, :H], road))
@@ -462,16 +464,16 @@ class NMPCPlanner:
                         lbx, ubx, np.concatenate(lbg), np.concatenate(ubg))
 
 
-def make_nmpc(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> NMPCPlanner:
+def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> NMPCPlanner:
     """NMPC with the quadratic cost of eq. 21 for ``env``: solver settings from ``config`` (YAML, optional) plus
-    ``overrides`` (an unknown key raises naming it); weights and margins from the shared ``tuning``."""
+    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem."""
     return NMPCPlanner(lambda: env.unwrapped.scene, load_config(NMPCConfig, config, **overrides),
-                       load_config(EnKTSConfig, tuning))
+                       load_problem(tuning))
 
 
-def make_nmpc_t(env, config: str | None = None, tuning: str | None = CONFIG_FILE, **overrides) -> NMPCPlanner:
-    """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared tuning (EnKTS's)."""
-    shared = load_config(EnKTSConfig, tuning)
+def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> NMPCPlanner:
+    """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared problem (EnKTS's)."""
+    shared = load_problem(tuning)
     return NMPCPlanner(lambda: env.unwrapped.scene,
                        load_config(NMPCConfig, config, **{"nu": shared.nu, **overrides}), shared)
 

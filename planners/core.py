@@ -1,0 +1,278 @@
+"""The pure planner core of EnKTS and EnKS (paper Algorithm 1), in JAX.
+
+    action, carry, plan = plan_step(problem, settings, carry, obs, key)
+
+One compiled function per :class:`Settings` (the static shapes and switches): ``jax.jit`` with ``lax.scan`` over the
+horizon, fixed shapes (inactive barrier rows are masked, not dropped; the control history has its full width from
+the start), no Python branches on data, no raises inside, explicit PRNG keys, the road's shape traced (a redrawn road
+is new data, not a new program). ``jax.vmap`` of it plans a batch of episodes at once; the same code runs on a GPU
+when JAX sees one. :class:`planners.enkts.EnKTSPlanner` is the thin stateful adapter around it.
+
+Per control step, smoothing over the horizon ``t = 0 .. H-1`` (particles ``j = 1 .. N``):
+
+    du_t^j = du_nominal_t + w^j,   w ~ St(0, diag(sigma_du^2), nu)               (eq. 7, prediction)
+    u_t^j  = u_{t-1}^j + du_t^j;   x_{t+1}^j = f(x_t^j, u_t^j)                   (eq. 1, the learned model)
+    Y^j    = h(x_{t+1}^j, u_t^j, du_t^j) + v^j,  v ~ St(0, R, nu)               (eq. 8, 14)
+    [x_{t+1}, du_t, u_0 .. u_{H-1}]^j <- student_t_update(..., Y, y, nu)         (eq. 16-19)
+
+The update reaches back over the stored controls (smoothing); past positions are not stored, they are not needed to
+predict the future. The applied action is the smoothed mean of ``u_0``; the next plan starts from this plan's mean
+controls shifted by one step. EnKS is the same code with ``nu = inf``.
+
+Precision: float32. Measured against float64 on the same keys (``tests/planners/test_core.py``), the applied
+action differs by far less than the ensemble's own spread, and float32 is what the MLP was trained and evaluated in.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from planners import model as vehicle
+from planners.problem import ACTIVE, N_TRACK, Problem, measure, predict_obstacles, reference_profile
+
+# Relative Tikhonov regularization of P_y: a barrier that reads 0 for every particle leaves only the (sampled)
+# noise in its row, and a near-singular P_y would turn into huge gains.
+RIDGE = 1e-6
+UNROLL = 1
+
+
+class Settings(NamedTuple):
+    """The static part of a planner's config: shapes and switches (one compiled program per value).
+
+    n_particles N, horizon H, iterations (smoothing passes; 1 = the paper's single pass), n_obstacles K,
+    adapt_spread, grow_nu; nu, max_spread, max_innovation, relaxation and sigma_du are numbers the program is
+    specialized on too (they are few and fixed per config)."""
+
+    n_particles: int
+    horizon: int
+    n_obstacles: int
+    nu: float
+    adapt_spread: bool
+    grow_nu: bool
+    max_spread: float
+    max_innovation: float
+    relaxation: float
+    iterations: int
+    sigma_du: tuple[float, float]
+
+
+class Carry(NamedTuple):
+    """What one plan hands the next: the mean controls ``(H, 2)`` and whether there are any yet."""
+
+    previous: jnp.ndarray
+    has_previous: jnp.ndarray
+
+
+class PlanOut(NamedTuple):
+    """The plan: mean ``controls (H, 2)``, ``states (H + 1, 4)`` rolled out from the current state with them,
+    the smoothed ``control_particles (N, H, 2)``, and ``ok``: False when the plan came out non-finite and the
+    action fell back to holding the last input."""
+
+    controls: jnp.ndarray
+    states: jnp.ndarray
+    control_particles: jnp.ndarray
+    ok: jnp.ndarray
+
+
+def initial_carry(horizon: int) -> Carry:
+    return Carry(jnp.zeros((horizon, 2), jnp.float32), jnp.zeros((), bool))
+
+
+# --- sampling and the update ------------------------------------------------------------------------------------
+def student_t(key: jax.Array, scale: jnp.ndarray, nu: float, shape: tuple[int, ...]) -> jnp.ndarray:
+    """Draws ``(*shape, d)`` from St(0, diag(scale^2), nu), ``scale (d,)``; Gaussian for ``nu = inf``.
+
+    A Gaussian over sqrt(chi2_nu / nu), one mixing variable per draw: the multivariate t of the paper, in which a
+    surprising draw is surprising in every component together (``jax.random.t`` component-wise is not, and is
+    slower). The planner draws a whole plan's noise at once: the chi-square draw is a rejection loop, one per call.
+    """
+    k_z, k_w = jax.random.split(key)
+    scale = jnp.asarray(scale)
+    # Drawn in float32 whatever the precision of the arithmetic: float32 and float64 plans then see the same noise.
+    z = jax.random.normal(k_z, (*shape, scale.shape[0]), jnp.float32).astype(scale.dtype) * scale
+    if math.isinf(nu):
+        return z
+    w = jax.random.chisquare(k_w, nu, (*shape, 1), jnp.float32).astype(scale.dtype)
+    return z * jnp.sqrt(nu / w)
+
+
+def spread_factor(nu, delta, m):
+    """Covariance factor that turns the perturbed-observation ensemble's spread into the Student's-t posterior.
+
+    The conditional of a joint St(mu, Sigma, nu) given m observed entries has scale ``(nu + delta)/(nu + m) S`` and
+    dof ``nu + m`` (eq. 17, 19). The perturbed-observation update leaves samples of *covariance* ``nu/(nu-2) S``;
+    a Student's-t of scale ``c S`` and dof ``nu'`` has covariance ``c S nu'/(nu'-2)``. Equating gives this factor.
+    It exceeds 1 when the innovation is surprising: heavy surprise widens the search.
+    """
+    return (nu + delta) * (nu - 2.0) / (nu * (nu + m - 2.0))
+
+
+def student_t_update(X, Y, y, nu, active, adapt_spread: bool = True, max_spread: float = math.inf):
+    """One Student's-t ensemble Kalman update (paper eq. 16-19, read as in ``docs/design.md``).
+
+    X: ensemble ``(N, D)``; Y: predicted measurement samples ``(N, m)``, noise included (eq. 14); y: the observation
+    ``(m,)``; nu: degrees of freedom (> 2; ``inf`` = Gaussian); active: bool ``(m,)``, the rows that take part
+    (an inactive row is masked out exactly as if dropped: zero anomalies, unit variance, no innovation).
+
+    - gain ``K = P_xy P_y^-1`` from ensemble (co)variances (eq. 18; the (nu-2)/nu factors cancel);
+    - perturbed-observation update ``X^j + K (y - Y^j)`` (eq. 16; the printed eq. subtracts the predicted mean,
+      which ignores the observation: a typo);
+    - ``delta``: Mahalanobis distance of the mean innovation under the scale ``P_y (nu-2)/nu`` (eq. 17);
+    - if ``adapt_spread``: anomalies rescaled by ``sqrt(spread_factor)``, capped at ``max_spread``;
+    - returns ``(X_post (N, D), nu + m_active)`` (eq. 19).
+    """
+    n, m = Y.shape
+    mask = active.astype(Y.dtype)
+    A = X - X.mean(axis=0)
+    y_mean = Y.mean(axis=0)
+    B = (Y - y_mean) * mask
+    P_xy = A.T @ B / (n - 1)
+    P_y = B.T @ B / (n - 1)
+    m_active = mask.sum()
+    ridge = RIDGE * jnp.trace(P_y) / jnp.maximum(m_active, 1.0) + 1e-12
+    P_y = P_y + jnp.diag(jnp.where(active, ridge, 1.0))
+    innov = (y - y_mean) * mask
+    # One solve gives both the gain and the whitened mean innovation (P_y is SPD after the ridge).
+    sol = jnp.linalg.solve(P_y, jnp.concatenate([P_xy.T, innov[:, None]], axis=1))
+    X_post = X + ((y - Y) * mask) @ sol[:, :-1]
+    nu_post = nu + m_active
+    gaussian = isinstance(nu, (int, float)) and math.isinf(nu)  # traced nu: the caller decides (Settings)
+    if adapt_spread and not gaussian:
+        delta = innov @ sol[:, -1] * nu / (nu - 2.0)
+        factor = jnp.minimum(spread_factor(nu, delta, m_active), max_spread)
+        mean = X_post.mean(axis=0)
+        X_post = mean + jnp.sqrt(factor) * (X_post - mean)
+    return X_post, nu_post
+
+
+def _mean_std(A):
+    mean = A.mean(axis=0)
+    return mean, jnp.sqrt(((A - mean) ** 2).mean(axis=0))
+
+
+def _target(Y, max_innovation):
+    """The virtual observation ``(m,)``: zeros, moved to within ``max_innovation`` standard deviations of the
+    predicted mean ``Y (N, m)``.
+
+    A barrier deep in violation that the ensemble can barely move (a gap no braking closes in one step) would
+    otherwise be an innovation of tens of sigmas, and the linear update would extrapolate the regression far outside
+    the ensemble: controls of -12 m/s^2 from a spread of 0.5. Asking per step only for what the ensemble can reach
+    bounds every shift, and the surprise still widens the spread (delta).
+    """
+    mean, std = _mean_std(Y)
+    reach = max_innovation * std
+    return jnp.clip(0.0, mean - reach, mean + reach)
+
+
+def _relax(Z, prior_std, relaxation):
+    """Relaxation to the prior spread (Whitaker & Hamill 2012): each column's posterior spread moves back by
+    ``relaxation`` towards its prior spread.
+
+    With N = 50 and about ten measurement rows, each update also removes ~m/N of every column's variance through
+    spurious sample correlations; over 20 steps the first control (the one applied) would keep a few percent of its
+    spread, and a danger that only shows late in the horizon could no longer move it.
+    """
+    mean, post_std = _mean_std(Z)
+    scale = jnp.where(post_std > 0, 1.0 + relaxation * (prior_std / jnp.maximum(post_std, 1e-12) - 1.0), 1.0)
+    return mean + (Z - mean) * jnp.maximum(scale, 1.0)
+
+
+# --- one smoothing pass -----------------------------------------------------------------------------------------
+def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacles, ref_lane, v_ref, a_ref):
+    """One smoothing pass over the horizon; returns the smoothed control particles ``(N, H, 2)``."""
+    n, horizon = cfg.n_particles, cfg.horizon
+    dtype = problem.noise.dtype
+    sigma_du = jnp.asarray(cfg.sigma_du, dtype)
+    du_nominal = jnp.diff(jnp.concatenate([u_prev[None], nominal]), axis=0)  # (H, 2)
+    s_o, l_o, v_o, a_o, present = obstacles
+    n_rows = problem.noise.shape[0]
+    always = jnp.arange(n_rows) < N_TRACK
+    # [x (4), du (2), u_0 .. u_{H-1}]: future controls are constant columns until their step writes them, and a
+    # column without spread is left alone by the update (zero covariance, zero gain).
+    Z0 = jnp.zeros((n, 6 + 2 * horizon), dtype)
+
+    def step(state, inputs):
+        x, u_last, Z, nu = state
+        t, w_du, v_y, du_nom, obs_t, vr, ar = inputs
+        du = du_nom + w_du
+        u = u_last + du
+        x_next = vehicle.step(problem.model, x, u)
+        Z = Z.at[:, :4].set(x_next).at[:, 4:6].set(du)
+        Z = jax.lax.dynamic_update_slice(Z, u, (0, 6 + 2 * t))
+        h = measure(problem, x_next, u, du, Z[:, 6:8], u_prev, ref_lane, vr, ar, (*obs_t, present))
+        Y = h + v_y
+        # A barrier that reads ~0 for every particle is flat there and carries no information, yet with N = 50 its
+        # noise regresses spuriously on the plan and collapses the ensemble within a few steps: only the tracking
+        # rows and the barriers some particle touches take part.
+        active = always | (h.max(axis=0) > ACTIVE)
+        prior_std = _mean_std(Z)[1]
+        Z, nu_post = student_t_update(Z, Y, _target(Y, cfg.max_innovation), nu, active,
+                                      cfg.adapt_spread, cfg.max_spread)
+        if cfg.relaxation > 0:
+            Z = _relax(Z, prior_std, cfg.relaxation)
+        if cfg.grow_nu:
+            nu = nu_post
+        return (Z[:, :4], jax.lax.dynamic_slice(Z, (0, 6 + 2 * t), (n, 2)), Z, nu), None
+
+    # The state measured at step t is x_{t+1}: its references and obstacles are those of time t + 1.
+    k_du, k_y = jax.random.split(key)
+    inputs = (jnp.arange(horizon), student_t(k_du, sigma_du, cfg.nu, (horizon, n)),
+              student_t(k_y, problem.noise, cfg.nu, (horizon, n)), du_nominal,
+              (s_o[1:], l_o[1:], v_o[1:], a_o[1:]), v_ref[1:], a_ref[1:])
+    start = (jnp.broadcast_to(ego, (n, 4)), jnp.broadcast_to(u_prev, (n, 2)), Z0, jnp.asarray(cfg.nu, dtype))
+    (_, _, Z, _), _ = jax.lax.scan(step, start, inputs, unroll=UNROLL)
+    return Z[:, 6:].reshape(n, horizon, 2)
+
+
+def _plan(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, key: jax.Array):
+    """One receding-horizon step: ``(action (2,) in [-1, 1], carry, PlanOut)`` for the observation ``obs`` (flat,
+    the env's layout: ego (4), previous input (2), ``K`` OV rows of 6, reference (3)). Pure: the same arguments give
+    the same result."""
+    obs = obs.astype(problem.noise.dtype)  # float32 unless the problem is built in float64
+    k6 = 6 + cfg.n_obstacles * 6
+    ego, u_prev, ovs, ref = obs[:4], obs[4:6], obs[6:k6].reshape(cfg.n_obstacles, 6), obs[k6:]
+    previous = carry.previous.astype(obs.dtype)
+    shifted = jnp.concatenate([previous[1:], previous[-1:]])
+    nominal = jnp.where(carry.has_previous, shifted, jnp.broadcast_to(u_prev, (cfg.horizon, 2)))
+    obstacles = predict_obstacles(problem, ovs, cfg.horizon)
+    v_ref, a_ref = reference_profile(problem, ref, cfg.horizon)
+    keys = jax.random.split(key, cfg.iterations)
+    for i in range(cfg.iterations):  # static: the iterated variant is a longer program, not a data branch
+        U = _smooth(problem, cfg, keys[i], ego, u_prev, nominal, obstacles, ref[2], v_ref, a_ref)
+        nominal = U.mean(axis=0)
+    ok = jnp.all(jnp.isfinite(nominal)) & jnp.all(jnp.isfinite(U))
+    hold = jnp.broadcast_to(u_prev, (cfg.horizon, 2))
+    lim = problem.limits
+    controls = jnp.clip(jnp.where(ok, nominal, hold), lim.actuator_lo, lim.actuator_hi)
+    U = jnp.where(ok, U, hold[None])
+
+    def roll(x, u):
+        nxt = vehicle.step(problem.model, x[None], u[None])[0]
+        return nxt, nxt
+
+    _, states = jax.lax.scan(roll, ego, controls)
+    action = jnp.clip(2.0 * (controls[0] - lim.actuator_lo) / (lim.actuator_hi - lim.actuator_lo) - 1.0, -1.0, 1.0)
+    plan = PlanOut(controls, jnp.concatenate([ego[None], states]), U, ok)
+    return action, Carry(controls, jnp.ones((), bool)), plan
+
+
+plan_step = jax.jit(_plan, static_argnums=1)
+
+# One compiled program for a batch of episodes: the problem's road (and nothing else) differs per row.
+_BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None)
+
+
+@partial(jax.jit, static_argnums=1)
+def plan_batch(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, keys: jax.Array):
+    """:func:`plan_step` for ``B`` episodes at once: ``problem.road`` leaves ``(B,)``, ``carry`` and ``obs`` with a
+    leading ``B``, ``keys (B,)``. Row ``i`` equals ``plan_step`` on row ``i``'s arguments."""
+    return jax.vmap(_plan, in_axes=(_BATCH_AXES, None, 0, 0, 0))(problem, cfg, carry, obs, keys)
+
+
+__all__ = ["Carry", "PlanOut", "Settings", "initial_carry", "plan_batch", "plan_step", "spread_factor",
+           "student_t", "student_t_update"]

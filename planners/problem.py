@@ -1,0 +1,331 @@
+"""The planning problem, defined once: the virtual system of the paper (eq. 2-8) as immutable pytrees and pure
+functions.
+
+EnKTS/EnKS (:mod:`planners.core`, JAX), MPPI (numpy) and the env's safety values share these definitions; NMPC's
+CasADi expressions are pinned to them by tests. Every function takes numpy or JAX arrays and answers in kind (the
+array module follows the inputs), so the numbers a plan is measured against are the numbers the env reports.
+
+Per horizon step ``t`` a particle carries ``xb = [x (4), u (2), du (2)]``: state ``x = [x m, y m, heading rad,
+speed m/s]``, input ``u = [a m/s^2, delta rad]``, its increment ``du``. The virtual measurement of the state
+``x_{t+1} = f(x_t, u_t)`` reached by the step's input, ``y = [r (3), s (2), z (K + 9)]``, is observed as all zeros
+(eq. 8):
+
+- reference state ``r``, in road coordinates: lateral offset to the reference lane [m], heading relative to the
+  road [rad], speed minus the reference speed [m/s] (tracking a world position would pull the EV to a point; the
+  longitudinal position is left free);
+- reference input ``s``: acceleration minus the reference speed's rate [m/s^2], steering minus the road
+  curvature's feedforward angle [rad];
+- barriers ``z = psi(phi)``, one per constraint family (a vector, not a sum, so the ensemble regression can tell
+  which constraint a particle breaks): each OV's keep-out (eq. 2), the road edges (eq. 3), the acceleration and
+  steering bounds (eq. 4), their rates (eq. 5), and the same four for the first control ``u_0`` (the applied one,
+  which the smoothing keeps revising long after its own step). ``psi`` is a softplus hinge of ``phi / width``:
+  finite, smooth, about 0 when satisfied, so a constraint reads like a measurement of 0 with noise
+  ``sigma_barrier``, the barriers' tightness.
+
+The keep-out inflates the footprint by a time headway and the braking room: ahead of an OV the EV needs
+``length + d_min + headway * v + room`` of road, so the danger enters the horizon while braking still suffices.
+Every planner measures the states ``x_1 .. x_H``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from configs import ConfigError, check_fields
+from envs.road import _xp, body_corners, curvature_at, heading_at, to_frenet
+from envs.scene import Scene
+
+N_TRACK = 5  # r (3) + s (2)
+N_BOUND_BARRIERS = 9  # road edge, accel, steer, accel rate, steer rate, and the four of the first control
+BARRIERS = ("ov (one per OV)", "road_edge", "accel", "steer", "accel_rate", "steer_rate",
+            "first accel", "first steer", "first accel_rate", "first steer_rate")
+ACTIVE = 1e-3  # a barrier below this for every particle carries no information (see planners.core)
+
+
+# --- configuration of the problem (the shared tuning of every planner) --------------------------------------
+@dataclass(frozen=True)
+class BarrierShape:
+    """Margins and widths of the barriers.
+
+    headway [s]: time gap added to ``d_min`` behind (or ahead of) an OV; brake_decel [m/s^2]: deceleration
+    the braking room behind an OV is reckoned with; lateral_clearance [m]: least side gap between footprints;
+    edge_margin [m]: least corner distance to the edge the planner aims for; bound_margin: fraction by which the
+    planner tightens the input and rate bounds (the barriers are soft: the ensemble mean settles a little past
+    where they start to read); widths: the constraint violation that makes a barrier read 1, per family, in its
+    own units [share of the keep-out box, m, m/s^2, rad, m/s^2, rad]; sharpness: softplus sharpness in those
+    normalized units. Checked by :func:`configs.check_fields`, then headway, lateral_clearance >= 0, brake_decel,
+    widths, sharpness > 0, bound_margin in [0, 1): a bad value raises :class:`configs.ConfigError` naming it.
+    """
+
+    headway: float = 0.6
+    brake_decel: float = 6.0
+    lateral_clearance: float = 1.0
+    edge_margin: float = 0.3
+    widths: tuple[float, float, float, float, float, float] = (0.1, 0.5, 1.0, 0.01, 0.5, 0.002)
+    sharpness: float = 8.0
+    bound_margin: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        for key in ("headway", "lateral_clearance"):
+            if getattr(self, key) < 0:
+                raise ConfigError(key, ">= 0", getattr(self, key))
+        for key in ("brake_decel", "sharpness"):
+            if not getattr(self, key) > 0:
+                raise ConfigError(key, "> 0", getattr(self, key))
+        if min(self.widths) <= 0:
+            raise ConfigError("widths", "a list of 6 numbers > 0", self.widths)
+        if not 0 <= self.bound_margin < 1:
+            raise ConfigError("bound_margin", "in [0, 1)", self.bound_margin)
+
+
+PROBLEM_FILE = "problem.yaml"
+
+
+@dataclass(frozen=True)
+class ProblemConfig:
+    """The planning problem's tuning, shared by every planner (``configs/problem.yaml``): the virtual system of
+    eq. 7-8.
+
+    horizon: H >= 1 steps, the same for every planner; nu: degrees of freedom > 2 of the Student's-t process and
+    measurement noise (``inf``: Gaussian, as for EnKS); sigma_du: process noise scale of the control increments
+    ``[da m/s^2, ddelta rad]`` per step; sigma_ref: measurement noise of the reference state ``[lateral m, heading rad, speed m/s]``; sigma_input: of
+    the reference input ``[a m/s^2, delta rad]``; sigma_barrier: of each barrier value (the barriers' tightness);
+    barrier: margins and widths (:class:`BarrierShape`); dynamics: ``"mlp"`` (the shipped model), ``"bicycle"``
+    (the exact model) or the path of a weights file written by ``bimp train-dynamics`` (checked when the config is
+    built). A bad value raises :class:`configs.ConfigError` naming the key and the value.
+    """
+
+    horizon: int = 20
+    nu: float = 4.0
+    sigma_du: tuple[float, float] = (0.5, 0.002)
+    sigma_ref: tuple[float, float, float] = (1.0, 0.05, 2.0)
+    sigma_input: tuple[float, float] = (3.0, 0.02)
+    sigma_barrier: float = 0.1
+    barrier: BarrierShape = field(default_factory=BarrierShape)
+    dynamics: str = "mlp"
+
+    def __post_init__(self) -> None:
+        check_fields(self, allow_inf=("nu",))
+        self._check_problem()
+
+    def _check_problem(self) -> None:
+        if self.horizon < 1:
+            raise ConfigError("horizon", "an int >= 1", self.horizon)
+        if not self.nu > 2:
+            raise ConfigError("nu", "> 2 (inf: Gaussian)", self.nu)
+        for key in ("sigma_du", "sigma_ref", "sigma_input", "sigma_barrier"):
+            value = getattr(self, key)
+            if min(np.atleast_1d(value)) <= 0:
+                raise ConfigError(key, "> 0" if key == "sigma_barrier" else "a list of numbers > 0", value)
+        from planners.dynamics import check_dynamics
+
+        check_dynamics(self.dynamics)
+
+    def problem_fields(self) -> dict:
+        """The :class:`ProblemConfig` part of this config (of a subclass too)."""
+        return {f: getattr(self, f) for f in ProblemConfig.__dataclass_fields__}
+
+
+# --- the problem as pytrees -----------------------------------------------------------------------------------
+class Road(NamedTuple):
+    """Road geometry as traced numbers (:class:`envs.road.RoadGeometry`): a redrawn road is new data, not a new
+    program."""
+
+    straight_in: float
+    radius: float
+    arc_angle: float
+    half_width: float
+
+
+class Limits(NamedTuple):
+    """Planning bounds (eq. 2-5), vehicle size and actuator ranges. ``accel (2,)``; ``actuator_lo/hi (2,)``."""
+
+    accel: np.ndarray
+    steer: float
+    accel_rate: float
+    steer_rate: float
+    d_min: float
+    length: float
+    width: float
+    dt: float
+    actuator_lo: np.ndarray
+    actuator_hi: np.ndarray
+
+
+class Barrier(NamedTuple):
+    """:class:`BarrierShape` as numbers; ``widths (6,)``."""
+
+    headway: float
+    brake_decel: float
+    lateral_clearance: float
+    edge_margin: float
+    widths: np.ndarray
+    sharpness: float
+    bound_margin: float
+
+
+class Problem(NamedTuple):
+    """One episode's planning problem: ``noise (m,)`` is the measurement noise scale of each row of ``y``;
+    ``model`` the dynamics' parameters (:mod:`planners.model`)."""
+
+    road: Road
+    limits: Limits
+    barrier: Barrier
+    noise: np.ndarray
+    model: tuple
+
+
+def n_measurements(n_obstacles: int) -> int:
+    """Size m of the virtual measurement: tracking (5), one barrier per OV, nine more."""
+    return N_TRACK + n_obstacles + N_BOUND_BARRIERS
+
+
+def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
+    """The noise scale of each row of ``y`` ``(m,)``: reference state, reference input, the barriers."""
+    return np.array([*config.sigma_ref, *config.sigma_input]
+                    + [config.sigma_barrier] * (n_obstacles + N_BOUND_BARRIERS))
+
+
+def load_problem(source=PROBLEM_FILE, **overrides) -> ProblemConfig:
+    """The shared problem tuning: ``configs/problem.yaml`` (or ``source``) plus ``overrides``."""
+    from configs import load_config
+
+    return load_config(ProblemConfig, source, **overrides)
+
+
+def make_problem(scene: Scene, config: ProblemConfig, model: tuple = ()) -> Problem:
+    """The problem of ``scene`` under ``config`` (numpy leaves; ``jax.device_put`` or any jnp call takes them)."""
+    road, b, shape = scene.road, scene.bounds, config.barrier
+    lo, hi = scene.actuator_range
+    f = float
+    return Problem(
+        road=Road(f(road.straight_in), f(road.radius), f(road.arc_angle), f(road.half_width)),
+        limits=Limits(np.array(b.accel, float), f(b.steer), f(b.accel_rate), f(b.steer_rate), f(b.d_min),
+                      f(scene.vehicle_length), f(scene.vehicle_width), f(scene.dt), lo, hi),
+        barrier=Barrier(f(shape.headway), f(shape.brake_decel), f(shape.lateral_clearance), f(shape.edge_margin),
+                        np.array(shape.widths, float), f(shape.sharpness), f(shape.bound_margin)),
+        noise=measurement_noise(config, scene.n_obstacles),
+        model=model,
+    )
+
+
+# --- functions of the problem ---------------------------------------------------------------------------------
+def frenet(road: Road, xy):
+    """Road coordinates ``(s, l)`` of points ``xy (..., 2)``."""
+    return to_frenet(xy, road.straight_in, road.radius, road.arc_angle)
+
+
+def edge_distance(road: Road, limits: Limits, x):
+    """Least signed distance [m] of the body corners to the road edge (eq. 3), ``(...)`` for states ``x (..., 4)``:
+    > 0 on the road. Exact for the rectangle, as the env measures it."""
+    corners = body_corners(x[..., :2], x[..., 2], limits.length, limits.width)
+    _, lat = frenet(road, corners)
+    xp = _xp(lat)
+    return (road.half_width - xp.abs(lat)).min(axis=-1)
+
+
+def edge_distance_local(road: Road, limits: Limits, lat, dpsi):
+    """:func:`edge_distance` from the centre's road coordinates: the body corners' lateral offsets in the road
+    frame at the centre, ``|lat| + L/2 |sin dpsi| + W/2 cos dpsi``, taken as straight over the car's length.
+    What the planner measures: a quarter of the transcendental work of the exact corners, and within a millimetre
+    of them on the scenarios' curves (radius >= 180 m; a test pins it)."""
+    xp = _xp(lat, dpsi)
+    extent = xp.abs(lat) + 0.5 * limits.length * xp.abs(xp.sin(dpsi)) + 0.5 * limits.width * xp.cos(dpsi)
+    return road.half_width - extent
+
+
+def input_constraints(limits: Limits, u, keep=1.0):
+    """Input bounds (eq. 4) as values <= 0 when satisfied, ``(N, 2)`` for ``u (N, 2)``: ``|a - centre| - half-range``
+    (= the larger of ``a_min - a`` and ``a - a_max``) and ``|delta| - delta_max``, the bounds scaled by ``keep``
+    about their centre. The env reports the same numbers (``info["constraints"]``)."""
+    xp = _xp(u, limits.accel)
+    lo, hi = limits.accel[0], limits.accel[1]
+    centre = xp.stack([keep * (lo + hi) / 2, xp.zeros_like(lo)])
+    half = xp.stack([keep * (hi - lo) / 2, keep * xp.ones_like(lo) * limits.steer])
+    return xp.abs(u - centre) - half
+
+
+def rate_constraints(limits: Limits, du, keep=1.0):
+    """Rate bounds (eq. 5) as values <= 0 when satisfied, ``(N, 2)`` for increments ``du (N, 2)`` per step."""
+    xp = _xp(du, limits.accel_rate)
+    return xp.abs(du) - keep * xp.stack([limits.accel_rate, limits.steer_rate])
+
+
+def predict_obstacles(problem: Problem, ovs, horizon: int):
+    """Constant-acceleration prediction of the OVs along the road, speed never below 0.
+
+    ovs: observation rows ``(K, 6)`` ``[present, x, y, heading, speed, accel]``. Returns ``s, l, v, a`` of shapes
+    ``(horizon + 1, K)`` (index 0 = now) and ``present`` (bool ``(K,)``).
+    """
+    xp = _xp(ovs, problem.limits.dt, problem.road.radius)
+    s0, l0 = frenet(problem.road, ovs[:, 1:3])
+    v0, a = ovs[:, 4], ovs[:, 5]
+    t = xp.arange(horizon + 1)[:, None] * problem.limits.dt
+    t_stop = xp.where(a < 0, v0 / xp.maximum(-a, 1e-9), xp.inf)
+    tc = xp.minimum(t, t_stop)
+    s = s0 + v0 * tc + 0.5 * a * tc**2
+    v = xp.maximum(v0 + a * t, 0.0)
+    return s, xp.broadcast_to(l0, s.shape), v, xp.where(t < t_stop, a, 0.0), ovs[:, 0] > 0
+
+
+def reference_profile(problem: Problem, ref, horizon: int):
+    """Reference speed and its rate ``(horizon + 1,)`` each, extrapolating ``ref = [v_ref, a_ref, l_ref]``
+    linearly, never below 0."""
+    xp = _xp(ref, problem.limits.dt)
+    t = xp.arange(horizon + 1) * problem.limits.dt
+    v = xp.maximum(ref[0] + ref[1] * t, 0.0)
+    return v, xp.where(v > 0.0, ref[1], 0.0)
+
+
+def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obstacles):
+    """``h(xb)`` of eq. 8 without noise, ``(N, m)``, for the states ``x (N, 4)`` reached with inputs ``u (N, 2)``
+    (increments ``du (N, 2)``); ``u0 (N, 2)`` the first control, ``u_prev (2,)`` the input applied last;
+    ``ref_lane``, ``v_ref``, ``a_ref`` the reference at the state's time; ``obstacles``: ``(s, l, v, a)`` each
+    ``(K,)`` at that time and ``present (K,)`` (one row of :func:`predict_obstacles`). Observed value: zeros.
+    """
+    xp = _xp(x, u, du, u0, problem.limits.accel, problem.road.radius)
+    road, lim, bar = problem.road, problem.limits, problem.barrier
+    s, lat = frenet(road, x[:, :2])
+    dpsi = x[:, 2] - heading_at(s, road.straight_in, road.radius, road.arc_angle)
+    v = x[:, 3]
+    feedforward = xp.arctan(lim.length * curvature_at(s, road.straight_in, road.radius, road.arc_angle))
+    tracking = xp.stack([lat - ref_lane, dpsi, v - v_ref, u[:, 0] - a_ref, u[:, 1] - feedforward], axis=1)
+
+    s_o, l_o, v_o, a_o, present = obstacles
+    w = bar.widths
+    # Keep-out box around each OV (centre to centre): half-sizes of a footprint plus the clearance, longitudinally
+    # the time headway of whichever vehicle follows plus its braking room. The barrier is the smaller *relative*
+    # penetration, so a vehicle deep in the same lane is pushed to brake, and only a plan that has mostly left the
+    # OV's lane gets credit for the lateral escape (within the lane, swerving buys nothing and heads for the edge).
+    ds = s[:, None] - s_o
+    behind = ds < 0
+    v_follow = xp.where(behind, v[:, None], v_o)
+    v_lead = xp.where(behind, v_o, v[:, None])
+    # Braking room: to match a leader that holds speed, closing^2 / 2b; behind an OV predicted to brake to a stop,
+    # the difference of the stopping distances (the danger the 2 s horizon alone would see too late).
+    room = xp.maximum(v_follow - v_lead, 0.0) ** 2 / (2 * bar.brake_decel)
+    a_lead = xp.where(behind, a_o, 0.0)
+    stop = v_follow**2 / (2 * bar.brake_decel) - v_lead**2 / (2 * xp.maximum(-a_lead, 1e-6))
+    room = xp.maximum(room, xp.where(a_lead < -0.5, stop, 0.0))
+    semi_s = lim.length + lim.d_min + bar.headway * v_follow + room
+    semi_l = lim.width + bar.lateral_clearance
+    phi_ov = xp.minimum(1.0 - xp.abs(ds) / semi_s, 1.0 - xp.abs(lat[:, None] - l_o) / semi_l)
+    phi_ov = xp.where(present, phi_ov / w[0], -1e3)
+    w_input, w_rate = w[2:4], w[4:6]
+    keep = 1.0 - bar.bound_margin  # the barriers are soft: aim a little inside the bounds
+    edge = (bar.edge_margin - edge_distance_local(road, lim, lat, dpsi)) / w[1]
+    phi = xp.concatenate([
+        phi_ov, edge[:, None],
+        input_constraints(lim, u, keep) / w_input, rate_constraints(lim, du, keep) / w_rate,
+        input_constraints(lim, u0, keep) / w_input, rate_constraints(lim, u0 - u_prev, keep) / w_rate,
+    ], axis=1)
+    return xp.concatenate([tracking, xp.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness], axis=1)
+
+
+__all__ = ["ACTIVE", "BARRIERS", "PROBLEM_FILE", "load_problem", "Barrier", "BarrierShape", "Limits", "N_TRACK", "Problem", "ProblemConfig", "Road",
+           "edge_distance", "edge_distance_local", "frenet", "input_constraints", "rate_constraints", "make_problem", "measure", "measurement_noise", "n_measurements",
+           "predict_obstacles", "reference_profile"]

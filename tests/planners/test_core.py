@@ -1,0 +1,199 @@
+"""planners.core: the update against closed forms, masking, sampling, and the compiled plan's contracts (batch ==
+single, a redrawn road reuses the program, non-finite plans never reach the action)."""
+
+import math
+
+import gymnasium as gym
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the envs)
+from planners import core
+from planners.enkts import EnKTSConfig, EnKTSPlanner, make_enkts
+from planners.model import model_params
+from planners.problem import make_problem
+
+ALL = jnp.ones(2, bool)
+
+
+def update(X, Y, y, nu, active=None, **kw):
+    active = jnp.ones(Y.shape[1], bool) if active is None else jnp.asarray(active)
+    X_post, nu_post = core.student_t_update(jnp.asarray(X, jnp.float32), jnp.asarray(Y, jnp.float32),
+                                            jnp.asarray(y, jnp.float32), nu, active, **kw)
+    return np.asarray(X_post, float), float(nu_post)
+
+
+def test_gaussian_update_matches_closed_form_kalman_on_a_linear_toy():
+    rng = np.random.default_rng(0)
+    mu, P = np.array([1.0, -2.0, 0.5]), np.array([[2.0, 0.3, 0.0], [0.3, 1.0, 0.2], [0.0, 0.2, 0.5]])
+    H, R = np.array([[1.0, 0.0, 1.0], [0.0, 2.0, 0.0]]), np.diag([0.4, 0.3])
+    y = np.array([2.5, -3.0])
+    n = 40_000
+    X = rng.multivariate_normal(mu, P, size=n)
+    Y = X @ H.T + rng.multivariate_normal(np.zeros(2), R, size=n)
+    X_post, nu_post = update(X, Y, y, math.inf)
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    np.testing.assert_allclose(X_post.mean(0), mu + K @ (y - H @ mu), atol=0.03)
+    np.testing.assert_allclose(np.cov(X_post.T), (np.eye(3) - K @ H) @ P, atol=0.03)
+    assert math.isinf(nu_post)
+
+
+@pytest.mark.parametrize("adapt", [True, False])
+def test_student_t_update_matches_the_closed_form_conditional(adapt):
+    nu, n = 5.0, 400_000
+    mu = np.array([0.0, 1.0, -1.0, 0.5])  # [x (2), y (2)]
+    Sigma = np.array([[1.0, 0.2, 0.5, 0.1], [0.2, 1.5, 0.3, 0.4], [0.5, 0.3, 1.2, 0.2], [0.1, 0.4, 0.2, 0.8]])
+    draws = np.asarray(core.student_t(jax.random.key(1), jnp.ones(4), nu, (n,)), float)
+    Z = mu + draws @ np.linalg.cholesky(Sigma).T
+    X, Y = Z[:, :2], Z[:, 2:]
+    y = np.array([2.0, -2.0])  # far in the tail: delta >> m, so the spread factor matters
+    X_post, nu_post = update(X, Y, y, nu, adapt_spread=adapt)
+
+    Sxx, Sxy, Syy = Sigma[:2, :2], Sigma[:2, 2:], Sigma[2:, 2:]
+    innov = y - mu[2:]
+    delta = innov @ np.linalg.solve(Syy, innov)
+    cond_mean = mu[:2] + Sxy @ np.linalg.solve(Syy, innov)
+    cond_scale = (nu + delta) / (nu + 2) * (Sxx - Sxy @ np.linalg.solve(Syy, Sxy.T))
+    assert nu_post == nu + 2
+    np.testing.assert_allclose(X_post.mean(0), cond_mean, atol=0.02)
+    scale_of_ensemble = np.cov(X_post.T) * (nu_post - 2) / nu_post
+    if adapt:
+        np.testing.assert_allclose(scale_of_ensemble, cond_scale, rtol=0.06, atol=0.02)
+    else:  # without the rescaling the spread ignores the surprise: visibly too narrow here
+        assert np.trace(scale_of_ensemble) < 0.6 * np.trace(cond_scale)
+
+
+def test_huge_nu_gives_the_gaussian_result():
+    rng = np.random.default_rng(2)
+    X = rng.standard_normal((500, 3))
+    Y = X[:, :2] * 2 + 0.3 * rng.standard_normal((500, 2))
+    y = np.array([1.0, 3.0])
+    gauss, _ = update(X, Y, y, math.inf)
+    t_big, _ = update(X, Y, y, 1e12)
+    np.testing.assert_allclose(t_big, gauss, rtol=1e-4, atol=1e-4)
+    assert core.spread_factor(1e12, 100.0, 3) == pytest.approx(1.0)
+
+
+def test_masking_a_row_that_reads_zero_equals_dropping_it():
+    rng = np.random.default_rng(5)
+    X = rng.standard_normal((50, 6))
+    Y = np.column_stack([X[:, 0] + 0.3 * rng.standard_normal(50), 0.01 * rng.standard_normal(50),  # a flat row
+                         X[:, 1] - X[:, 2] + 0.2 * rng.standard_normal(50)])
+    y = np.array([1.0, 0.0, -0.5])
+    for nu in (math.inf, 4.0):
+        masked, nu_masked = update(X, Y, y, nu, active=[True, False, True])
+        dropped, nu_dropped = update(X, Y[:, [0, 2]], y[[0, 2]], nu)
+        np.testing.assert_allclose(masked, dropped, rtol=1e-5, atol=1e-5)
+        assert nu_masked == nu_dropped
+        assert not np.allclose(update(X, Y, y, nu)[0], dropped, atol=1e-3)  # the row would matter
+
+
+def test_singular_measurement_covariance_stays_finite():
+    rng = np.random.default_rng(3)
+    X = rng.standard_normal((50, 4))
+    Y = np.zeros((50, 3))  # e.g. a barrier that is 0 for every particle, and no noise
+    Y[:, 0] = X[:, 0]
+    for nu in (math.inf, 3.0):
+        X_post, _ = update(X, Y, np.array([10.0, 0.0, 0.0]), nu, max_spread=25.0)
+        assert np.all(np.isfinite(X_post)) and np.abs(X_post).max() < 1e3
+
+
+def test_student_t_draws_are_multivariate_heavy_tailed_and_keyed():
+    key = jax.random.key(4)
+    a = np.asarray(core.student_t(key, jnp.array([1.0, 2.0]), 3.0, (200_000,)))
+    b = np.asarray(core.student_t(key, jnp.array([1.0, 2.0]), 3.0, (200_000,)))
+    g = np.asarray(core.student_t(key, jnp.array([1.0, 2.0]), math.inf, (200_000,)))
+    np.testing.assert_array_equal(a, b)
+    assert np.mean(np.abs(a[:, 0]) > 5) > 0.005 > np.mean(np.abs(g[:, 0]) > 5)
+    np.testing.assert_allclose(g.std(0), [1.0, 2.0], rtol=0.02)
+    # one mixing variable per draw: the two components' magnitudes are dependent (independent t's would not be)
+    big = np.abs(a[:, 0]) > 4
+    assert np.mean(np.abs(a[big, 1]) > 8) > 5 * np.mean(np.abs(a[:, 1]) > 8)
+
+
+# --- the compiled plan ------------------------------------------------------------------------------------------
+def episode(scenario="bimp/EmergencyBrake-v0", seed=0):
+    env = gym.make(scenario)
+    obs, _ = env.reset(seed=seed)
+    return env, obs
+
+
+def small(**kw):
+    return EnKTSConfig(n_particles=16, horizon=6, **kw)
+
+
+def test_batched_plan_equals_single_plans_row_by_row():
+    envs_, obs = zip(*(episode("bimp/Overtaking-v0", seed) for seed in (1, 2, 3)))
+    scenes = [e.unwrapped.scene for e in envs_]
+    assert len({s.road.radius for s in scenes}) == 3  # three different roads in one batch
+    batch = EnKTSPlanner(lambda: scenes, small())
+    batch.reset(seed=[11, 12, 13])
+    singles = [EnKTSPlanner(scene, small()) for scene in scenes]
+    for planner, seed in zip(singles, (11, 12, 13)):
+        planner.reset(seed)
+    obs = np.stack(obs)
+    for _ in range(3):  # the warm start too
+        actions = batch.act(obs)
+        assert actions.shape == (3, 2) and actions.dtype == np.float32
+        expected = np.stack([p.act(o) for p, o in zip(singles, obs)])
+        np.testing.assert_allclose(actions, expected, atol=2e-5)
+        obs = obs + np.array([1.0, 0, 0, 0] + [0] * (obs.shape[1] - 4), np.float32)
+    with pytest.raises(ValueError, match="batch of 3"):
+        batch.act(obs[0])
+
+
+def test_a_redrawn_road_reuses_the_program_and_acts_as_a_fresh_compile():
+    cfg = small()
+    env, obs = episode("bimp/Overtaking-v0", seed=1)
+    planner = EnKTSPlanner(lambda: env.unwrapped.scene, cfg)
+    planner.act(obs)
+    compiled = core.plan_step._cache_size()
+    obs, _ = env.reset(seed=5)  # a new road
+    planner.reset(3)
+    action = planner.act(obs)
+    assert core.plan_step._cache_size() == compiled
+    fresh = jax.jit(core._plan, static_argnums=1)
+    problem = make_problem(env.unwrapped.scene, cfg, jax.device_put(model_params(cfg.dynamics)))
+    expected, _, _ = fresh(problem, cfg.settings(2), core.initial_carry(cfg.horizon), jnp.asarray(obs, jnp.float32),
+                           jax.random.fold_in(jax.random.key(3), 0))
+    np.testing.assert_allclose(action, np.asarray(expected), atol=1e-6)
+
+
+def test_same_key_same_actions_other_key_other_actions():
+    env, obs = episode()
+    runs = []
+    for seed in (7, 7, 8):
+        planner = make_enkts(env, n_particles=16)
+        planner.reset(seed)
+        runs.append(np.stack([planner.act(obs) for _ in range(3)]))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert not np.array_equal(runs[0], runs[2])
+
+
+def test_a_non_finite_plan_never_reaches_the_action():
+    env, obs = episode()
+    planner = EnKTSPlanner(env.unwrapped.scene, small())
+    planner._model = planner._model._replace(w1=planner._model.w1.at[0, 0].set(jnp.nan))  # a broken model
+    action = planner.act(obs)
+    scene = env.unwrapped.scene
+    assert np.all(np.isfinite(action)) and planner.fallbacks == 1
+    np.testing.assert_allclose(scene.to_physical(action), scene.split_obs(obs)[1], atol=1e-5)  # holds the input
+    assert np.all(np.isfinite(planner.plan.controls))
+
+
+def test_float32_plan_agrees_with_float64():
+    """The precision choice: the float64 program (x64 on) moves the applied action by far less than the spread."""
+    env, obs = episode("bimp/Overtaking-v0", seed=2)
+    cfg = small()
+    problem = make_problem(env.unwrapped.scene, cfg, model_params(cfg.dynamics))
+    args = (cfg.settings(2), core.initial_carry(cfg.horizon), obs, jax.random.key(0))
+    a32, _, plan32 = core.plan_step(jax.tree.map(lambda a: np.asarray(a, np.float32), problem), *args)
+    with jax.enable_x64(True):
+        p64 = jax.tree.map(lambda a: np.asarray(a, np.float64), problem)
+        a64, _, _ = jax.jit(core._plan, static_argnums=1)(p64, *args)
+    spread = np.asarray(plan32.control_particles[:, 0]).std(0)
+    u32 = env.unwrapped.scene.to_physical(np.asarray(a32))
+    u64 = env.unwrapped.scene.to_physical(np.asarray(a64))
+    assert np.all(np.abs(u32 - u64) < 0.1 * spread + 1e-6)

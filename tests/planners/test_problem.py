@@ -1,0 +1,103 @@
+"""planners.problem: the one definition of the planning problem, in numpy and JAX alike, and the env's agreement
+with it."""
+
+import gymnasium as gym
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the envs)
+from planners.problem import (ProblemConfig, input_constraints, load_problem, make_problem, measure,
+                              n_measurements, predict_obstacles, rate_constraints, reference_profile)
+
+
+@pytest.fixture
+def scene():
+    env = gym.make("bimp/EmergencyBrake-v0")
+    env.reset(seed=0)
+    return env.unwrapped.scene
+
+
+@pytest.fixture
+def problem(scene):
+    return make_problem(scene, ProblemConfig())
+
+
+def test_obstacles_brake_to_a_stop_and_stay_there(problem):
+    ovs = np.array([[1.0, 50.0, 2.0, 0.0, 10.0, -5.0], [1.0, 80.0, -2.0, 0.0, 20.0, 0.0]])
+    s, lat, v, a, present = predict_obstacles(problem, ovs, horizon=30)
+    assert s.shape == v.shape == a.shape == lat.shape == (31, 2) and present.all()
+    np.testing.assert_allclose(v[:, 0], np.maximum(10.0 - 5.0 * 0.1 * np.arange(31), 0.0))
+    np.testing.assert_allclose(s[-1, 0], 50.0 + 10.0**2 / (2 * 5.0))  # stopped after 2 s, 10 m on
+    assert np.all(a[20:, 0] == 0.0) and np.all(a[:20, 0] == -5.0)
+    np.testing.assert_allclose(s[:, 1], 80.0 + 20.0 * 0.1 * np.arange(31))
+    np.testing.assert_allclose(lat, [[2.0, -2.0]] * 31)
+
+
+def test_reference_profile_never_negative(problem):
+    v, a = reference_profile(problem, np.array([2.0, -5.0, 2.0]), horizon=10)
+    np.testing.assert_allclose(v, np.maximum(2.0 - 0.5 * np.arange(11), 0.0))
+    assert np.all(a[v == 0] == 0.0) and a[0] == -5.0
+
+
+def test_measurement_reads_zero_on_the_reference_and_flags_each_constraint(problem):
+    far = (np.array([500.0, 500.0]), np.array([2.0, -2.0]), np.array([20.0, 20.0]), np.zeros(2),
+           np.ones(2, bool))
+    x = np.array([[10.0, 2.0, 0.0, 20.0]])
+    zero_u = np.zeros((1, 2))
+    h = measure(problem, x, zero_u, zero_u, zero_u, np.zeros(2), 2.0, 20.0, 0.0, far)
+    assert h.shape == (1, n_measurements(2))
+    np.testing.assert_allclose(h[0, :5], 0.0, atol=1e-12)
+    assert np.all(h[0, 5:] < 1e-3)
+
+    near = (np.array([14.0, 500.0]), np.array([2.0, -2.0]), np.array([20.0, 20.0]), np.zeros(2), np.ones(2, bool))
+    h_near = measure(problem, x, zero_u, zero_u, zero_u, np.zeros(2), 2.0, 20.0, 0.0, near)
+    assert h_near[0, 5] > 1.0 and h_near[0, 6] < 1e-3  # OV1 right ahead in the lane; OV2 far
+
+    off_edge = np.array([[10.0, 3.9, 0.0, 20.0]])
+    bad_u = np.array([[-9.0, 0.2]])
+    h_bad = measure(problem, off_edge, bad_u, bad_u, bad_u, np.zeros(2), 2.0, 20.0, 0.0, far)
+    assert np.all(h_bad[0, 7:] > 1.0)  # edge, both bounds, both rates, and the four first-control barriers
+
+
+def test_numpy_and_jax_give_the_same_measurement(problem):
+    rng = np.random.default_rng(0)
+    x = np.column_stack([rng.uniform(0, 60, 20), rng.uniform(-4, 4, 20), rng.uniform(-0.1, 0.1, 20),
+                         rng.uniform(0, 30, 20)])
+    u, du, u0 = (rng.normal(0, s, (20, 2)) * [1, 0.01] for s in (3.0, 1.0, 3.0))
+    ovs = np.array([[1.0, 50.0, 2.0, 0.0, 10.0, -5.0], [1.0, 30.0, -2.0, 0.0, 20.0, 0.0]])
+    obst = predict_obstacles(problem, ovs, 5)
+    args = (u, du, u0, np.array([0.5, 0.001]), 2.0, 20.0, -1.0)
+    h_np = measure(problem, x, *args, tuple(a[3] for a in obst[:4]) + (obst[4],))
+    p32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), problem)
+    obst_j = predict_obstacles(p32, jnp.asarray(ovs, jnp.float32), 5)
+    h_jax = jax.jit(lambda p, x: measure(p, x, *args, tuple(a[3] for a in obst_j[:4]) + (obst_j[4],)))(p32, x)
+    np.testing.assert_allclose(np.asarray(h_jax), h_np, rtol=2e-3, atol=2e-4)
+
+
+def test_env_constraint_values_and_the_planner_measurement_agree_on_the_same_state():
+    """The env's info (eq. 2-5 as values <= 0) and the problem's constraint functions on the same state and input."""
+    env = gym.make("bimp/Overtaking-v0")
+    obs, _ = env.reset(seed=4)
+    scene = env.unwrapped.scene
+    problem = make_problem(scene, ProblemConfig())
+    rng = np.random.default_rng(1)
+    for _ in range(25):
+        action = rng.uniform(-1, 1, 2).astype(np.float32) * [0.9, 0.25]
+        prev = scene.split_obs(obs)[1]
+        obs, _, terminated, truncated, info = env.step(action)
+        u = np.asarray(info["input"])[None]
+        c = info["constraints"]
+        inp = input_constraints(problem.limits, u)[0]
+        rate = rate_constraints(problem.limits, u - prev[None])[0]
+        np.testing.assert_allclose(inp, [max(c["accel_min"], c["accel_max"]), c["steer"]], atol=1e-9)
+        np.testing.assert_allclose(rate, [c["accel_rate"], c["steer_rate"]], atol=1e-6)
+        if terminated or truncated:
+            break
+
+
+def test_the_shared_tuning_loads_and_is_what_every_planner_reads():
+    shared = load_problem()
+    assert shared.horizon == 20 and shared.nu == 4.0 and shared.sigma_ref == (2.0, 0.05, 1.0)
+    assert n_measurements(2) == 16
