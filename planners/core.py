@@ -69,12 +69,10 @@ class Carry(NamedTuple):
 
 
 class PlanOut(NamedTuple):
-    """The plan: mean ``controls (H, 2)``, ``states (H + 1, 4)`` rolled out from the current state with them,
-    the smoothed ``control_particles (N, H, 2)``, and ``ok``: False when the plan came out non-finite and the
-    action fell back to holding the last input."""
+    """The plan: mean ``controls (H, 2)``, the smoothed ``control_particles (N, H, 2)``, and ``ok``: False when the
+    plan came out non-finite and the action fell back to holding the last input (states: :func:`roll_out`)."""
 
     controls: jnp.ndarray
-    states: jnp.ndarray
     control_particles: jnp.ndarray
     ok: jnp.ndarray
 
@@ -251,14 +249,19 @@ def _plan(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, key: 
     controls = jnp.clip(jnp.where(ok, nominal, hold), lim.actuator_lo, lim.actuator_hi)
     U = jnp.where(ok, U, hold[None])
 
-    def roll(x, u):
-        nxt = vehicle.step(problem.model, x[None], u[None])[0]
+    action = jnp.clip(2.0 * (controls[0] - lim.actuator_lo) / (lim.actuator_hi - lim.actuator_lo) - 1.0, -1.0, 1.0)
+    return action, Carry(controls, jnp.ones((), bool)), PlanOut(controls, U, ok)
+
+
+@jax.jit
+def roll_out(model, x0: jnp.ndarray, controls: jnp.ndarray) -> jnp.ndarray:
+    """States ``(H + 1, 4)`` from ``x0 (4,)`` under ``controls (H, 2)`` (the plan's states, for figures: computed
+    when asked for, not in every plan)."""
+    def step(x, u):
+        nxt = vehicle.step(model, x[None], u[None])[0]
         return nxt, nxt
 
-    _, states = jax.lax.scan(roll, ego, controls)
-    action = jnp.clip(2.0 * (controls[0] - lim.actuator_lo) / (lim.actuator_hi - lim.actuator_lo) - 1.0, -1.0, 1.0)
-    plan = PlanOut(controls, jnp.concatenate([ego[None], states]), U, ok)
-    return action, Carry(controls, jnp.ones((), bool)), plan
+    return jnp.concatenate([x0[None], jax.lax.scan(step, x0, controls)[1]])
 
 
 plan_step = jax.jit(_plan, static_argnums=1)
@@ -274,5 +277,5 @@ def plan_batch(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, 
     return jax.vmap(_plan, in_axes=(_BATCH_AXES, None, 0, 0, 0))(problem, cfg, carry, obs, keys)
 
 
-__all__ = ["Carry", "PlanOut", "Settings", "initial_carry", "plan_batch", "plan_step", "spread_factor",
+__all__ = ["Carry", "PlanOut", "Settings", "initial_carry", "plan_batch", "plan_step", "roll_out", "spread_factor",
            "student_t", "student_t_update"]

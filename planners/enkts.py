@@ -121,7 +121,7 @@ class EnKTSPlanner:
             self._carry = jax.tree.map(lambda a: jnp.broadcast_to(a, (self.batch, *a.shape)),
                                        core.initial_carry(self.config.horizon))
         self._step = 0
-        self._last: core.PlanOut | None = None
+        self._last: tuple | None = None  # (current states, PlanOut)
 
     # --- Policy ---------------------------------------------------------------------------------------------
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -148,7 +148,7 @@ class EnKTSPlanner:
             keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(self._keys, self._step)
             action, self._carry, plan = core.plan_batch(problem, cfg, self._carry, obs, keys)
         self._step += 1
-        self._last = plan
+        self._last = (jnp.asarray(obs[0, :4] if self.batch is None else obs[:, :4]), plan)
         self.fallbacks += int(np.size(plan.ok) - np.count_nonzero(np.asarray(plan.ok)))
         return np.asarray(action, dtype=np.float32)
 
@@ -157,8 +157,11 @@ class EnKTSPlanner:
         """The latest plan (``None`` before the first ``act``)."""
         if self._last is None:
             return None
-        return Plan(states=np.asarray(self._last.states, float), controls=np.asarray(self._last.controls, float),
-                    control_particles=np.asarray(self._last.control_particles, float))
+        x0, plan = self._last
+        roll = core.roll_out if self.batch is None else jax.vmap(core.roll_out, in_axes=(None, 0, 0))
+        states = roll(self._model, x0, plan.controls.astype(x0.dtype))
+        return Plan(states=np.asarray(states, float), controls=np.asarray(plan.controls, float),
+                    control_particles=np.asarray(plan.control_particles, float))
 
     def _problem_of(self, scenes: list[Scene]) -> Problem:
         """The problem of the current scene(s), rebuilt only when a scene changes (the env redraws it at reset)."""

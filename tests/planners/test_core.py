@@ -140,6 +140,9 @@ def test_batched_plan_equals_single_plans_row_by_row():
         expected = np.stack([p.act(o) for p, o in zip(singles, obs)])
         np.testing.assert_allclose(actions, expected, atol=2e-5)
         obs = obs + np.array([1.0, 0, 0, 0] + [0] * (obs.shape[1] - 4), np.float32)
+    plan = batch.plan
+    assert plan.states.shape == (3, 7, 4) and plan.control_particles.shape == (3, 16, 6, 2)
+    np.testing.assert_allclose(plan.states[1], singles[1].plan.states, atol=1e-3)
     with pytest.raises(ValueError, match="batch of 3"):
         batch.act(obs[0])
 
