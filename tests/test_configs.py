@@ -20,9 +20,9 @@ from planners.dynamics_train import DataConfig, TrainConfig
 from planners.enkts import EnKTSConfig
 from planners.mppi import MPPIConfig
 from planners.nmpc import NMPCConfig
-from planners.virtual import BarrierShape
+from planners.problem import BarrierShape, ProblemConfig
 
-CONFIGS = (EnKTSConfig, BarrierShape, MPPIConfig, NMPCConfig, DataConfig, TrainConfig)
+CONFIGS = (EnKTSConfig, ProblemConfig, BarrierShape, MPPIConfig, NMPCConfig, DataConfig, TrainConfig)
 
 
 def raises_naming(key: str, value: str):

@@ -13,9 +13,8 @@ import envs
 from envs.road import RoadGeometry
 from envs.scene import Bounds, Scene
 from planners.dynamics import BicycleModel, load_model, save_model
-from planners.enkts import EnKTSConfig
 from planners.mppi import MPPIConfig, MPPIPlanner, make_mppi
-from planners.virtual import measure, predict_obstacles, reference_profile
+from planners.problem import ProblemConfig, load_problem, make_problem, measure, predict_obstacles, reference_profile
 
 
 def straight_scene() -> Scene:
@@ -27,7 +26,7 @@ def obs_of(scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
     return np.concatenate([ego, u_prev, np.asarray(ovs, float).ravel(), ref])
 
 
-def planner_with_context(scene: Scene, obs: np.ndarray, tuning: EnKTSConfig = EnKTSConfig()) -> MPPIPlanner:
+def planner_with_context(scene: Scene, obs: np.ndarray, tuning: ProblemConfig = ProblemConfig()) -> MPPIPlanner:
     """A planner that has planned once on ``obs``, so its running cost knows the references and OVs."""
     planner = MPPIPlanner(scene, MPPIConfig(n_particles=8, horizon=3), tuning, dynamics=load_model())
     planner.act(obs)
@@ -38,7 +37,7 @@ def test_running_cost_by_hand():
     """Right lane, no OVs, inside every bound: only the speed and acceleration residuals count. Then the
     steering past its bound: its input residual, two steering barriers (the step's and the first control's) and the
     first control's steering-rate barrier against the last input."""
-    scene, tun = straight_scene(), EnKTSConfig()
+    scene, tun = straight_scene(), ProblemConfig()
     lane = float(scene.road.lane_offset(1))
     obs = obs_of(scene, [50.0, lane, 0.0, 20.0], [0.8, 0.0], np.zeros((2, 6)), [25.0, 0.0, lane])
     planner = planner_with_context(scene, obs, tun)
@@ -69,10 +68,12 @@ def test_running_cost_is_the_nll_of_measure_on_random_blocks():
     u, du, u0 = rng.normal(0, 1, (n, 2)) * [3.0, 0.05], rng.normal(0, 1, (n, 2)) * [1.0, 0.005], \
         rng.normal(0, 1, (n, 2)) * [3.0, 0.05]
     block = torch.from_numpy(np.column_stack([x, u, du, u0]))
-    s_o, l_o, v_o, a_o, present = predict_obstacles(scene, ovs, 3)
-    v_ref, a_ref = reference_profile(scene, ref, 3)
-    h = measure(scene, planner.tuning.barrier, x, u, du, u0, u_prev, ref[2], v_ref[t], a_ref[t],
-                (s_o[t], l_o[t], v_o[t], a_o[t], present))
+    problem = make_problem(scene, planner.tuning)
+    s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, 3)
+    v_ref, a_ref = reference_profile(problem, ref, 3)
+    # the block after step t holds x_{t+1}: it is measured against the references and OVs of time t + 1
+    h = measure(problem, x, u, du, u0, u_prev, ref[2], v_ref[t + 1], a_ref[t + 1],
+                (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
     sigma = np.array([*planner.tuning.sigma_ref, *planner.tuning.sigma_input] + [planner.tuning.sigma_barrier] * 11)
     np.testing.assert_allclose(planner.running_cost(block, block[:, 4:6], t).numpy(),
                                0.5 * np.sum((h / sigma) ** 2, axis=1), rtol=1e-12)
@@ -83,11 +84,12 @@ def test_transition_is_the_virtual_system():
     planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), dynamics=model)
     start = torch.tensor([[10.0, 2.0, 0.01, 20.0, -1.0, 0.01, 0.0, 0.0, -1.0, 0.01]], dtype=torch.float64)
     u0 = torch.tensor([[-1.5, 0.012]], dtype=torch.float64)
-    b0 = planner._step(start, u0, 0)  # x_0 stays the current state
-    np.testing.assert_allclose(b0.numpy(), [[10.0, 2.0, 0.01, 20.0, -1.5, 0.012, -0.5, 0.002, -1.5, 0.012]])
+    b0 = planner._step(start, u0, 0).numpy()  # x_1 = f(x_0, u_0): the state the step's input reaches
+    np.testing.assert_allclose(b0[:, :4], model.predict(start.numpy()[:, :4], u0.numpy()))
+    np.testing.assert_allclose(b0[:, 4:], [[-1.5, 0.012, -0.5, 0.002, -1.5, 0.012]], atol=1e-15)
     u1 = torch.tensor([[-2.0, 0.01]], dtype=torch.float64)
-    b1 = planner._step(b0, u1, 1).numpy()  # x_1 = f(x_0, u_0); u_0 kept in the last slot
-    np.testing.assert_allclose(b1[:, :4], model.predict(b0.numpy()[:, :4], u0.numpy()))
+    b1 = planner._step(torch.from_numpy(b0), u1, 1).numpy()  # x_2 = f(x_1, u_1); u_0 kept in the last slot
+    np.testing.assert_allclose(b1[:, :4], model.predict(b0[:, :4], u1.numpy()))
     np.testing.assert_allclose(b1[:, 4:], [[-2.0, 0.01, -0.5, -0.002, -1.5, 0.012]], atol=1e-15)
 
 
@@ -95,7 +97,9 @@ def test_transition_is_the_virtual_system():
 def test_actions_are_finite_in_the_space_and_seeded(scenario):
     env = gym.make(envs.env_id(scenario))
     planner = make_mppi(env)
-    assert planner.n_particles == EnKTSConfig().n_particles and planner.horizon == EnKTSConfig().horizon
+    from planners.enkts import EnKTSConfig
+
+    assert planner.n_particles == EnKTSConfig().n_particles and planner.horizon == load_problem().horizon
     runs = []
     global_state = torch.get_rng_state()
     for seed in (0, 0, 1):
@@ -142,7 +146,7 @@ def test_default_dynamics_follow_the_tuning_key(tmp_path):
     copy = save_model(load_model(), tmp_path / "copy.pt")
     x = np.column_stack([np.zeros(5), np.zeros(5), np.linspace(-1, 1, 5), np.linspace(0, 35, 5)])
     u = np.column_stack([np.linspace(-8, 3, 5), np.linspace(-0.2, 0.2, 5)])
-    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), EnKTSConfig(dynamics=str(copy)))
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), ProblemConfig(dynamics=str(copy)))
     np.testing.assert_array_equal(planner.dynamics(x, u), load_model()(x, u))
-    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), EnKTSConfig(dynamics="bicycle"))
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), ProblemConfig(dynamics="bicycle"))
     assert isinstance(planner.dynamics, BicycleModel)

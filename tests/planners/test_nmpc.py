@@ -15,12 +15,12 @@ import envs
 from envs.road import RoadGeometry
 from envs.scene import Bounds, Scene
 from planners.dynamics import BicycleModel, load_model, save_model
-from planners.enkts import EnKTSConfig
 from planners.nmpc import (
     NMPCConfig, NMPCPlanner, bicycle_function, curvature_at, frenet, heading_at, keep_out_semi_axes, make_nmpc,
     make_nmpc_t, mlp_function, road_params, robust_cost,
 )
-from planners.virtual import N_TRACK, BarrierShape, measure
+from planners.problem import (N_TRACK, BarrierShape, ProblemConfig, edge_distance, edge_distance_local, frenet as
+                              problem_frenet, load_problem, make_problem, measure)
 
 DT = 0.1
 
@@ -79,9 +79,9 @@ def test_default_dynamics_follow_the_tuning_key(model, tmp_path):
     u = np.column_stack([rng.uniform(-8, 3, 20), rng.uniform(-0.2, 0.2, 20)])
     shipped = np.asarray(mlp_function(model).map(20)(x.T, u.T)).T
     for name, expected in ((str(copy), shipped), ("mlp", shipped)):
-        planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), EnKTSConfig(dynamics=name))
+        planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), ProblemConfig(dynamics=name))
         np.testing.assert_array_equal(np.asarray(planner.f.map(20)(x.T, u.T)).T, expected)
-    planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), EnKTSConfig(dynamics="bicycle"))
+    planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), ProblemConfig(dynamics="bicycle"))
     np.testing.assert_allclose(np.asarray(planner.f.map(20)(x.T, u.T)).T, BicycleModel()(x, u), atol=1e-12)
 
 
@@ -104,12 +104,37 @@ def test_casadi_frenet_heading_and_curvature_match_the_road(arc_deg):
     np.testing.assert_allclose(got[3][inside], road.curvature_at(s_np)[inside], atol=1e-12)
 
 
+def test_road_edge_rows_are_the_problem_edge_distance():
+    """NMPC's four smooth corner rows give the planners' edge distance, which is within 2 cm of the exact corners on
+    the scenarios' sharpest curve (the road bends by about (L/2)^2 / 2R = 1.7 cm over half a car at R = 180 m); the
+    env's edge distance is the problem's exact one."""
+    env = gym.make(envs.env_id("overtaking"), config={"radius": 180.0})
+    env.reset(seed=3)
+    scene = env.unwrapped.scene
+    problem = make_problem(scene, ProblemConfig())
+    rng = np.random.default_rng(4)
+    s = rng.uniform(0, scene.road.length, 300)
+    lat = rng.uniform(-4, 4, 300)
+    xy = scene.road.position(s, lat)
+    x = np.column_stack([xy, scene.road.heading_at(s) + rng.uniform(-0.1, 0.1, 300), rng.uniform(0, 30, 300)])
+    s_f, l_f = problem_frenet(problem.road, x[:, :2])
+    dpsi = x[:, 2] - scene.road.heading_at(s_f)
+    half_l, half_w = scene.vehicle_length / 2, scene.vehicle_width / 2
+    corners = np.max([sl * l_f + sh * half_l * np.sin(dpsi) + half_w * np.cos(dpsi)
+                      for sl in (1.0, -1.0) for sh in (1.0, -1.0)], axis=0)  # nmpc.py's four rows
+    local = edge_distance_local(problem.road, problem.limits, l_f, dpsi)
+    np.testing.assert_allclose(scene.road.half_width - corners, local, atol=1e-12)
+    np.testing.assert_allclose(local, edge_distance(problem.road, problem.limits, x), atol=0.02)
+    np.testing.assert_array_equal(scene.edge_distance(x), edge_distance(problem.road, problem.limits, x))
+
+
 def test_keep_out_semi_axes_are_those_of_the_virtual_barrier():
     """Where ``measure``'s OV barrier reads a given penetration, the NMPC's semi-axes say the same: invert the
     softplus hinge to get phi = 1 - |ds| / semi_s (dl = 0) or 1 - |dl| / semi_l (ds = 0)."""
     env = gym.make(envs.env_id("overtaking"))
     env.reset(seed=3)
     scene, shape = env.unwrapped.scene, BarrierShape()
+    problem = make_problem(scene, ProblemConfig(barrier=shape))
     rng = np.random.default_rng(2)
     n = 64
     v, v_o = rng.uniform(0, 30, n), rng.uniform(0, 30, n)
@@ -127,12 +152,12 @@ def test_keep_out_semi_axes_are_those_of_the_virtual_barrier():
         for i in range(n):  # one OV (the second slot absent), its own speed and acceleration per row
             ov = (np.array([s_o, 0.0]), np.array([lane, 0.0]), np.array([v_o[i], 0.0]), np.array([a_o[i], 0.0]),
                   np.array([True, False]))
-            h = measure(scene, shape, x[i:i + 1], zeros, zeros, zeros, np.zeros(2), lane, 20.0, 0.0, ov)
+            h = measure(problem, x[i:i + 1], zeros, zeros, zeros, np.zeros(2), lane, 20.0, 0.0, ov)
             phi[i] = shape.widths[0] * np.log(np.expm1(shape.sharpness * h[0, N_TRACK])) / shape.sharpness
         np.testing.assert_allclose(phi, 0.1, atol=1e-6)  # 1 - 0.9: both agree on where the keep-out ends
 
 
-def solve_toy(tuning: EnKTSConfig, obs: np.ndarray, nu: float = math.inf, **config) -> tuple[NMPCPlanner, np.ndarray]:
+def solve_toy(tuning: ProblemConfig, obs: np.ndarray, nu: float = math.inf, **config) -> tuple[NMPCPlanner, np.ndarray]:
     scene = toy_scene()
     planner = NMPCPlanner(scene, NMPCConfig(horizon=1, nu=nu, tol=1e-10, **config), tuning, toy_dynamics())
     action = planner.act(obs)
@@ -140,7 +165,7 @@ def solve_toy(tuning: EnKTSConfig, obs: np.ndarray, nu: float = math.inf, **conf
 
 
 def test_quadratic_toy_matches_the_closed_form_optimum():
-    tuning = EnKTSConfig()
+    tuning = ProblemConfig()
     v0, v_ref, u_prev = 20.0, 25.0, np.array([0.5, 0.01])
     planner, u = solve_toy(tuning, toy_obs(toy_scene(), v0, u_prev, v_ref))
     (_, _, sv), (sa, sd), (swa, swd) = tuning.sigma_ref, tuning.sigma_input, tuning.sigma_du
@@ -158,7 +183,7 @@ def test_quadratic_toy_matches_the_closed_form_optimum():
 def test_quadratic_toy_stops_on_the_rate_or_input_bound(a_prev, expected):
     """A loose rate prior and a tight speed target want a large acceleration: the optimum of a convex scalar
     problem is then the bound it hits (the rate bound from 0, the input bound from 2.5), tightened by 1e-3."""
-    tuning = EnKTSConfig(sigma_du=(50.0, 0.002), sigma_ref=(1.0, 0.05, 0.1))
+    tuning = ProblemConfig(sigma_du=(50.0, 0.002), sigma_ref=(1.0, 0.05, 0.1))
     planner, u = solve_toy(tuning, toy_obs(toy_scene(), 10.0, np.array([a_prev, 0.0]), 30.0))
     b = toy_scene().bounds
     assert planner.failures == 0
@@ -169,7 +194,7 @@ def test_quadratic_toy_stops_on_the_rate_or_input_bound(a_prev, expected):
 
 
 def test_student_t_toy_matches_a_grid_search():
-    tuning = EnKTSConfig()
+    tuning = ProblemConfig()
     nu, v0, v_ref, u_prev = tuning.nu, 20.0, 24.0, np.array([0.3, 0.004])
     _, u = solve_toy(tuning, toy_obs(toy_scene(), v0, u_prev, v_ref), nu=nu)
     (_, _, sv), (sa, sd), (swa, swd) = tuning.sigma_ref, tuning.sigma_input, tuning.sigma_du
@@ -191,7 +216,7 @@ def test_student_t_toy_matches_a_grid_search():
 
 def test_infeasible_problem_falls_back_and_counts():
     scene = toy_scene()
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=50, cold_max_iter=50), EnKTSConfig(), toy_dynamics())
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=50, cold_max_iter=50), ProblemConfig(), toy_dynamics())
     u_prev = np.array([-1.0, 0.002])
     lane = float(scene.road.lane_offset(1))
     blocked = [[1.0, 1.0, lane, 0.0, 20.0, 0.0], [0.0] * 6]  # an OV 1 m ahead: every plan is inside its keep-out
@@ -210,7 +235,7 @@ def test_infeasible_problem_falls_back_and_counts():
 
 def test_iteration_cap_uses_a_feasible_iterate():
     scene = toy_scene()
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, cold_max_iter=0), EnKTSConfig(), toy_dynamics())
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, cold_max_iter=0), ProblemConfig(), toy_dynamics())
     action = planner.act(toy_obs(scene, 20.0, np.array([0.5, 0.0]), 25.0))
     assert planner.statuses["Maximum_Iterations_Exceeded"] == 1 and planner.capped == 1 and planner.failures == 0
     np.testing.assert_allclose(scene.to_physical(action), [0.5, 0.0], atol=1e-3)  # the initial guess holds u_prev
@@ -230,7 +255,7 @@ def test_actions_are_finite_and_in_the_action_space(scenario, factory):
     # (failures are not asserted: a cold first solve may hit the CPU-time cap on a loaded machine)
     assert sum(planner.statuses.values()) == 3
     if factory is make_nmpc_t:
-        assert planner.config.nu == EnKTSConfig().nu
+        assert planner.config.nu == load_problem().nu
 
 
 def test_config_validation_and_unknown_overrides():
