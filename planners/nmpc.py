@@ -3,7 +3,7 @@
 Section IV of the paper shows that BIMP approximately solves an NMPC problem; this module solves that problem
 directly with a gradient-based solver, so the EnKTS planner can be compared against it:
 
-    min_{U, X}  sum_{t=1..H} rho_3(|r(x_t)|^2_{Sigma_ref^-1}) + sum_{t=0..H-1} [rho_2(|s(x_t, u_t)|^2_{Sigma_in^-1})
+    min_{U, X}  sum_{t=1..H} rho_3(|r(x_t)|^2_{Sigma_ref^-1}) + sum_{t=0..H-1} [rho_2(|s(x_{t+1}, u_t)|^2_{Sigma_in^-1})
                                                                             + rho_2(|u_t - u_{t-1}|^2_{Sigma_w^-1})]
     s.t.  x_{t+1} = f(x_t, u_t)                    (the shipped MLP, written as CasADi expressions)
           a_min <= a_t <= a_max, |delta_t| <= delta_max, |u_t - u_{t-1}| <= rate    (eq. 4-5, hard)
@@ -18,9 +18,11 @@ directly with a gradient-based solver, so the EnKTS planner can be compared agai
 
 The residuals are those of :func:`planners.problem.measure` (road frame: lateral offset to the reference lane,
 heading relative to the road, speed error; acceleration minus the reference's rate, steering minus the
-curvature feed-forward). ``u_{-1}`` is the input applied last (from the observation); ``x_0`` is the current
-state, so its own residual is a constant and left out. The OV keep-out is a smooth superellipse through the
-semi-axes of the virtual system's keep-out box (time headway and braking room, see :func:`keep_out_semi_axes`).
+curvature feed-forward), each input ``u_t`` paired with the state ``x_{t+1}`` it reaches and the references of
+time ``t + 1``, as every planner measures ``x_1 .. x_H``. ``u_{-1}`` is the input applied last (from the
+observation); ``x_0`` is the current state, so its own residual is a constant and left out. The OV keep-out is a
+smooth superellipse through the semi-axes of the virtual system's keep-out box (time headway and braking room, see
+:func:`keep_out_semi_axes`).
 An ellipse (p = 2) cuts the box's corners by 29% of each semi-axis, and in the emergency brake NMPC used that
 to stop between the lanes 0.3 m from an OV; p = 4 (16%) stays closer to the box the other planners see and
 stopped 1.7 m behind. OV motion comes from :func:`planners.problem.predict_obstacles`. The road's Frenet frame
@@ -414,8 +416,10 @@ class NMPCPlanner:
         # Cost (eq. 21, or its Student's-t form): residuals of planners.problem.measure, weights 1 / sigma^2.
         sr, si, sw = tun.sigma_ref, tun.sigma_input, tun.sigma_du
         q_ref = ((lat - ref_lane) / sr[0]) ** 2 + (dpsi / sr[1]) ** 2 + ((v - v_ref) / sr[2]) ** 2
-        feedforward = ca.atan(scene.vehicle_length * curvature_at(s[:, :H], road))
-        q_in = ((U[0, :] - a_ref[:, :H]) / si[0]) ** 2 + ((U[1, :] - feedforward) / si[1]) ** 2
+        # u_t is measured with the state x_{t+1} it reaches, at that state's time (as measure's rows): the
+        # feed-forward of the curvature at x_{t+1}, the reference speed's rate at t + 1.
+        feedforward = ca.atan(scene.vehicle_length * curvature_at(s[:, 1:], road))
+        q_in = ((U[0, :] - a_ref[:, 1:]) / si[0]) ** 2 + ((U[1, :] - feedforward) / si[1]) ** 2
         q_du = (du[0, :] / sw[0]) ** 2 + (du[1, :] / sw[1]) ** 2
         J = ca.sum2(robust_cost(q_ref[:, 1:], 3, cfg.nu) + robust_cost(q_in, 2, cfg.nu)
                     + robust_cost(q_du, 2, cfg.nu))

@@ -1,4 +1,5 @@
-"""planners.nmpc: the CasADi pieces against their numpy originals (MLP, Frenet frame, keep-out semi-axes), known
+"""planners.nmpc: the CasADi pieces against their numpy originals (MLP, Frenet frame, keep-out semi-axes), the
+compiled NLP's road-edge rows and cost against planners.problem (edge distance, measure's tracking rows), known
 optima of toy instances (quadratic and Student's-t cost, interior and active bounds), failure fallbacks, the
 Policy contract on both scenarios, config validation."""
 
@@ -20,7 +21,8 @@ from planners.nmpc import (
     make_nmpc_t, mlp_function, road_params, robust_cost,
 )
 from planners.problem import (N_TRACK, BarrierShape, ProblemConfig, edge_distance, edge_distance_local, frenet as
-                              problem_frenet, load_problem, make_problem, measure)
+                              problem_frenet, load_problem, make_problem, measure, predict_obstacles,
+                              reference_profile)
 
 DT = 0.1
 
@@ -104,28 +106,89 @@ def test_casadi_frenet_heading_and_curvature_match_the_road(arc_deg):
     np.testing.assert_allclose(got[3][inside], road.curvature_at(s_np)[inside], atol=1e-12)
 
 
-def test_road_edge_rows_are_the_problem_edge_distance():
-    """NMPC's four smooth corner rows give the planners' edge distance, which is within 2 cm of the exact corners on
-    the scenarios' sharpest curve (the road bends by about (L/2)^2 / 2R = 1.7 cm over half a car at R = 180 m); the
-    env's edge distance is the problem's exact one."""
+def curved_nlp(horizon: int, seed: int, ref=None):
+    """An NMPC planner on overtaking with the scenarios' sharpest curve (R = 180 m), its compiled NLP and the NLP
+    parameters of the first observation (``ref`` replaces the observed reference)."""
     env = gym.make(envs.env_id("overtaking"), config={"radius": 180.0})
-    env.reset(seed=3)
+    obs, _ = env.reset(seed=seed)
     scene = env.unwrapped.scene
-    problem = make_problem(scene, ProblemConfig())
+    assert scene.road.radius == 180.0 and scene.road.arc_angle != 0
+    planner = NMPCPlanner(scene, NMPCConfig(horizon=horizon), ProblemConfig(dynamics="bicycle"))
+    ego, u_prev, ovs, obs_ref = scene.split_obs(obs)
+    params = planner._params(scene, ego, u_prev, ovs, obs_ref if ref is None else np.asarray(ref, float))
+    return scene, planner, planner._problem(scene), params, (ego, u_prev, ovs)
+
+
+def random_states_near_the_road(scene: Scene, rng, n: int) -> np.ndarray:
+    """``(n, 4)`` states over the whole road (straights and arc), centres up to 1 m past the edges, headings
+    within 0.1 rad of the road's."""
+    s = rng.uniform(0, scene.road.length, n)
+    lat = rng.uniform(-scene.road.half_width - 1, scene.road.half_width + 1, n)
+    return np.column_stack([scene.road.position(s, lat), scene.road.heading_at(s) + rng.uniform(-0.1, 0.1, n),
+                            rng.uniform(0, 30, n)])
+
+
+def test_road_edge_rows_are_the_problem_edge_distance():
+    """NMPC's four smooth corner rows, evaluated in its compiled NLP (CasADi Frenet frame included), give
+    ``planners.problem.edge_distance_local`` (the planners' edge distance) and are bounded at the barrier's edge
+    margin. That local distance is within 2 cm of the exact corners (``edge_distance``) on the scenarios' sharpest
+    curve: it takes the road as straight over the car, and the road bends by (L/2)^2 / 2R = 1.7 cm over half a
+    5 m car at R = 180 m (so a 1 mm bound does not hold; the margin is 0.3 m). The env's edge distance is the
+    problem's exact one."""
+    H, n_batches = 10, 30
+    scene, planner, nlp, params, _ = curved_nlp(H, seed=3)
+    problem = make_problem(scene, planner.tuning)
+    g = nlp.solver.get_function("nlp_g")
+    rows = slice(6 * H, 10 * H)  # after the shooting (4 H) and rate (2 H) rows: four corner blocks of H
+    np.testing.assert_allclose(nlp.ubg[rows], scene.road.half_width - planner.tuning.barrier.edge_margin)
+    assert np.all(nlp.lbg[rows] == -np.inf)
     rng = np.random.default_rng(4)
-    s = rng.uniform(0, scene.road.length, 300)
-    lat = rng.uniform(-4, 4, 300)
-    xy = scene.road.position(s, lat)
-    x = np.column_stack([xy, scene.road.heading_at(s) + rng.uniform(-0.1, 0.1, 300), rng.uniform(0, 30, 300)])
+    x = random_states_near_the_road(scene, rng, H * n_batches)
+    for X in x.reshape(n_batches, H, 4):
+        w = np.concatenate([X.ravel(), np.zeros(2 * H)])  # the inputs do not enter these rows
+        corners = np.asarray(g(w, params)).ravel()[rows].reshape(4, H)
+        s_f, l_f = problem_frenet(problem.road, X[:, :2])
+        dpsi = X[:, 2] - scene.road.heading_at(s_f)
+        local = edge_distance_local(problem.road, problem.limits, l_f, dpsi)
+        np.testing.assert_allclose(scene.road.half_width - corners.max(axis=0), local, rtol=0, atol=1e-9)
     s_f, l_f = problem_frenet(problem.road, x[:, :2])
-    dpsi = x[:, 2] - scene.road.heading_at(s_f)
-    half_l, half_w = scene.vehicle_length / 2, scene.vehicle_width / 2
-    corners = np.max([sl * l_f + sh * half_l * np.sin(dpsi) + half_w * np.cos(dpsi)
-                      for sl in (1.0, -1.0) for sh in (1.0, -1.0)], axis=0)  # nmpc.py's four rows
-    local = edge_distance_local(problem.road, problem.limits, l_f, dpsi)
-    np.testing.assert_allclose(scene.road.half_width - corners, local, atol=1e-12)
-    np.testing.assert_allclose(local, edge_distance(problem.road, problem.limits, x), atol=0.02)
-    np.testing.assert_array_equal(scene.edge_distance(x), edge_distance(problem.road, problem.limits, x))
+    local = edge_distance_local(problem.road, problem.limits, l_f, x[:, 2] - scene.road.heading_at(s_f))
+    exact = edge_distance(problem.road, problem.limits, x)
+    assert np.any(np.abs(local - exact) > 0.01)  # the curve's bend is there, and bounded:
+    np.testing.assert_allclose(local, exact, rtol=0, atol=0.02)
+    on_straights = (s_f < scene.road.straight_in - 3) | (s_f > scene.road.straight_in + scene.road.arc_length + 3)
+    assert on_straights.sum() > 50
+    np.testing.assert_allclose(local[on_straights], exact[on_straights], rtol=0, atol=1e-9)  # exact where straight
+    np.testing.assert_array_equal(scene.edge_distance(x), exact)
+
+
+def test_cost_is_the_nll_of_the_problem_tracking_rows():
+    """With ``nu = inf`` NMPC's cost is the NLL of ``measure``'s tracking rows (reference state and input) of the
+    states ``x_1 .. x_H``, each with the input ``u_t`` that reached it and the references of its own time
+    ``t + 1`` (the curvature feed-forward at ``x_{t+1}``, the reference speed's rate at ``t + 1``), plus the
+    increments' prior ``|u_t - u_{t-1}|^2_{Sigma_w^-1} / 2``. A reference speed braking to 0 inside the horizon
+    makes its rate change with t; random states over the curve make the feed-forward change."""
+    H = 6
+    ref_lane = 2.0
+    scene, planner, nlp, params, (_, u_prev, ovs) = curved_nlp(H, seed=5, ref=[0.5, -2.0, ref_lane])
+    problem = make_problem(scene, planner.tuning)
+    tun = planner.tuning
+    v_ref, a_ref = reference_profile(problem, np.array([0.5, -2.0, ref_lane]), H)
+    assert len(set(a_ref.tolist())) == 2  # the rate switches to 0 where the reference stops
+    s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
+    f = nlp.solver.get_function("nlp_f")
+    rng = np.random.default_rng(6)
+    for _ in range(10):
+        X = random_states_near_the_road(scene, rng, H)
+        U = np.column_stack([rng.uniform(-6, 3, H), rng.uniform(-0.05, 0.05, H)])
+        du = U - np.vstack([u_prev, U[:-1]])
+        expected = 0.5 * np.sum((du / tun.sigma_du) ** 2)
+        for t in range(H):
+            h = measure(problem, X[t:t + 1], U[t:t + 1], du[t:t + 1], U[:1], u_prev, ref_lane, v_ref[t + 1],
+                        a_ref[t + 1], (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
+            expected += 0.5 * np.sum((h[0, :N_TRACK] / problem.noise[:N_TRACK]) ** 2)
+        got = float(f(np.concatenate([X.ravel(), U.ravel()]), params))
+        assert got == pytest.approx(expected, rel=1e-10)
 
 
 def test_keep_out_semi_axes_are_those_of_the_virtual_barrier():
