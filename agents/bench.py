@@ -73,6 +73,9 @@ def time_policy(name: str, env, sequence: list, repeats: int, **overrides) -> di
 
     from agents.registry import make_policy
 
+    import jax
+
+    jax.clear_caches()  # the first call of a JAX planner then includes its compile, whatever ran before
     policy = make_policy(name, env, **overrides)
     policy.reset(0)
     start = time.perf_counter()
@@ -200,11 +203,12 @@ def report(result: dict) -> str:
                  f"fallbacks {nmpc['solver_failures']}")
     h_rows = result["enkts_vs_horizon"]
     base = next(r for r in h_rows if r["horizon"] == result["horizon"])["median_ms"]
-    first, last = h_rows[0], h_rows[-1]
-    exponent = math.log(last["median_ms"] / first["median_ms"]) / math.log(last["horizon"] / first["horizon"])
+    slopes = [math.log(b["median_ms"] / a["median_ms"]) / math.log(b["horizon"] / a["horizon"])
+              for a, b in zip(h_rows, h_rows[1:])]
     lines.append("EnKTS at N = 50 vs H: " + ", ".join(
         f"H={r['horizon']}: {fmt(r).strip()} ({r['median_ms'] / base:.2f}x)" for r in h_rows)
-        + f"; time ~ H^{exponent:.2f}")
+        + "; time ~ H^k with k = " + ", ".join(
+            f"{k:.2f} (H {a['horizon']}->{b['horizon']})" for k, a, b in zip(slopes, h_rows, h_rows[1:])))
     lines.append("  (per horizon step O(N) model and measurement work, and an update over the full-width control history"
                  " (N x (6 + 2H)): linear in H, quadratic once the update dominates)")
     lines.append(f"float type: {result.get('float', 'float64')}; floor: 20 MLP forward passes on N rows, numpy float32")

@@ -33,7 +33,7 @@ def test_report_lists_every_planner_and_ratio():
     assert "EnKTS/MPPI" in text and "0.50x" in text and "EnKTS/floor" in text and "2.0x" in text
     assert "float32" in text
     assert "NMPC/EnKTS(N=50) = 200x" in text and "Solve_Succeeded" in text
-    assert "H=10" in text and "H=40" in text and "(2.00x)" in text and "H^1.00" in text
+    assert "H=10" in text and "H=40" in text and "(2.00x)" in text and "k = 1.00 (H 10->20), 1.00 (H 20->40)" in text
     assert text.count("\n") >= 6
 
 
