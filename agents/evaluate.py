@@ -487,6 +487,10 @@ def markdown_table(summary: dict) -> str:
     notes = (f"\nIntervals: 95%, Wilson for {', '.join(BINARY)} (per episode), bootstrap of the mean for the "
              "rest. `errors`: episodes that raised (not results; retried by the next run). `failed`: episodes "
              "without success. Seeds in parentheses.\n")
+    mixed = [f"{e['policy']}/{e['scenario']}" for e in summary.values() if len(e.get("code_versions", ())) > 1]
+    if mixed:
+        notes += (f"\n**Mixed code versions** in {', '.join(mixed)}: these rows hold records made by different "
+                  "commits (a resumed run after a code change); rerun into a fresh folder to compare one version.\n")
     return "\n".join(lines) + "\n" + notes
 
 

@@ -79,6 +79,8 @@ def summarize(records: list[dict]) -> dict[str, dict]:
         entry: dict = {
             "policy": label, "policy_name": rs[0]["policy"], "scenario": scenario,
             "config_hash": sorted({str(r.get("config_hash")) for r in rs}),
+            # resume matches on the config, not the code: say when a row mixes records of several code versions
+            "code_versions": sorted({f"{r.get('git_commit')}{'+dirty' if r.get('git_dirty') else ''}" for r in rs}),
             "episodes": len(ok), "errors": len(rs) - len(ok),
             "error_seeds": [r["seed"] for r in rs if r["status"] != "ok"],
             "failed_seeds": {

@@ -77,3 +77,14 @@ def test_summary_intervals_and_errors_that_are_not_results():
     d = e["min_distance_m"]
     assert d["mean"] == pytest.approx((4 * 20.0 - 0.2) / 5) and d["ci_low"] <= d["mean"] <= d["ci_high"]
     assert e["min_ttc_s"]["mean"] is None
+    assert e["code_versions"] == ["None"]  # records without a commit
+
+
+def test_rows_that_mix_code_versions_are_flagged():
+    from agents.evaluate import markdown_table
+
+    ok = {"scenario": "s", "policy": "p", "status": "ok", "metrics": episode_metrics(trace(), dt=0.1, truncated=True)}
+    same = summarize([{**ok, "seed": 0, "git_commit": "a"}, {**ok, "seed": 1, "git_commit": "a"}])
+    assert "Mixed code versions" not in markdown_table(same)
+    mixed = summarize([{**ok, "seed": 0, "git_commit": "a"}, {**ok, "seed": 1, "git_commit": "b", "git_dirty": True}])
+    assert mixed["p/s"]["code_versions"] == ["a", "b+dirty"] and "Mixed code versions" in markdown_table(mixed)
