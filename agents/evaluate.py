@@ -162,70 +162,47 @@ def _base_record(job: Job) -> dict:
 def run_episode(job: Job) -> dict:
     """Run one episode and return its record (see ``docs/evaluation.md``). Never raises for an error inside
     the episode: it comes back as ``status: "error"`` with the traceback."""
-    import gymnasium as gym
-
-    import envs
-    from agents.registry import make_policy
-
-    arm, record = job.arm, _base_record(job)
-    start = time.perf_counter()
-    try:
-        env = gym.make(envs.env_id(arm.scenario), render_mode="rgb_array" if job.video_dir else None)
-        if job.video_dir:
-            env = with_video(env, job.video_dir, f"{arm.label}_{arm.scenario}_seed{job.seed}")
-        policy = make_policy(arm.policy, env, **dict(arm.overrides))
-        built = config_hash(arm.policy, resolved_config(policy))
-        if built != arm.config_hash:
-            raise RuntimeError(f"the policy resolved to config {built} in this process, {arm.config_hash} when "
-                               "the run was checked: the config depends on something outside it")
-        episode = rollout(env, policy, job.seed)
-        scene = env.unwrapped.scene
-        record.update(env_seed=episode.env_seed, policy_seed=episode.policy_seed,
-                      scenario_params=episode.params, status="ok", steps=episode.steps,
-                      truncated=episode.truncated,
-                      metrics=episode_metrics(episode.trace, scene.dt, truncated=episode.truncated))
-        if job.trace:
-            record.update(trace=episode.trace, road=dataclasses.asdict(scene.road),
-                          bounds=dataclasses.asdict(scene.bounds))
-        env.close()
-    except Exception as err:  # recorded, never fatal: one broken episode must not end a long run
-        record.update(status="error", error=f"{type(err).__name__}: {err}", traceback=traceback.format_exc())
-    record["wall_s"] = round(time.perf_counter() - start, 3)
-    return record
+    return run_group((job,))[0]
 
 
 def run_group(group: tuple[Job, ...]) -> list[dict]:
-    """Records of a group of episodes: one episode as :func:`run_episode`; several (the same arm, no video) as one
-    batched planner over one env per episode (:func:`agents.rollout.rollout_batch`)."""
-    if len(group) == 1:
-        return [run_episode(group[0])]
+    """Records of a group of episodes of one arm: one episode through :func:`agents.rollout.rollout` (with its
+    video if asked for), several through one batched planner over one env each
+    (:func:`agents.rollout.rollout_batch`). Never raises for an error inside an episode: the group's records come
+    back as ``status: "error"`` with the traceback, and the next run retries each episode."""
     import gymnasium as gym
 
     import envs
     from agents.registry import make_policy
 
-    arm = group[0].arm
+    arm, batched = group[0].arm, len(group) > 1
     records = [_base_record(job) for job in group]
     start = time.perf_counter()
     try:
-        envs_ = [gym.make(envs.env_id(arm.scenario)) for _ in group]
-        policy = make_policy(arm.policy, envs_, **dict(arm.overrides))
+        envs_ = [gym.make(envs.env_id(arm.scenario), render_mode="rgb_array" if job.video_dir else None)
+                 for job in group]
+        if group[0].video_dir:  # only ever a group of one
+            envs_[0] = with_video(envs_[0], group[0].video_dir, f"{arm.label}_{arm.scenario}_seed{group[0].seed}")
+        policy = make_policy(arm.policy, envs_ if batched else envs_[0], **dict(arm.overrides))
         built = config_hash(arm.policy, resolved_config(policy))
         if built != arm.config_hash:
             raise RuntimeError(f"the policy resolved to config {built} in this process, {arm.config_hash} when "
                                "the run was checked: the config depends on something outside it")
-        episodes = rollout_batch(envs_, policy, [job.seed for job in group])
+        seeds = [job.seed for job in group]
+        episodes = rollout_batch(envs_, policy, seeds) if batched else [rollout(envs_[0], policy, seeds[0])]
         for record, job, episode, env in zip(records, group, episodes, envs_):
             scene = env.unwrapped.scene
-            record.update(env_seed=episode.env_seed, policy_seed=episode.policy_seed, batch=len(group),
+            record.update(env_seed=episode.env_seed, policy_seed=episode.policy_seed,
                           scenario_params=episode.params, status="ok", steps=episode.steps,
                           truncated=episode.truncated,
                           metrics=episode_metrics(episode.trace, scene.dt, truncated=episode.truncated))
+            if batched:
+                record["batch"] = len(group)
             if job.trace:
                 record.update(trace=episode.trace, road=dataclasses.asdict(scene.road),
                               bounds=dataclasses.asdict(scene.bounds))
             env.close()
-    except Exception as err:  # the whole group is recorded as failed; the next run retries each episode
+    except Exception as err:  # recorded, never fatal: one broken episode must not end a long run
         for record in records:
             record.update(status="error", error=f"{type(err).__name__}: {err}", traceback=traceback.format_exc())
     wall = round(time.perf_counter() - start, 3)
