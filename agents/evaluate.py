@@ -124,16 +124,25 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
             env = gym.make(envs.env_id(scenario))
         except ValueError as err:
             raise EvaluationError(str(err)) from None
+        # The scenario's definition (its parameter ranges) is part of what produced an episode: a changed range
+        # must not resume onto the old episodes.
+        definition = scenario_definition(env)
         for policy in policies:
             given = overrides.get(policy, {})
             try:
-                config = resolved_config(make_policy(policy, env, **given))
+                config = {**resolved_config(make_policy(policy, env, **given)), "scenario": definition}
             except (ValueError, TypeError, FileNotFoundError, ImportError, AttributeError) as err:
                 raise EvaluationError(f"policy {policy!r} on {scenario} with overrides {given}: {err}") from None
             arms.append(Arm(scenario, labels.get(policy, policy), policy, tuple(sorted(given.items())),
                             json.dumps(config, sort_keys=True), config_hash(policy, config)))
         env.close()
     return arms
+
+
+def scenario_definition(env) -> dict:
+    """The scenario's parameters as configured (numbers or ``[lo, hi]`` ranges), JSON-ready."""
+    base = env.unwrapped
+    return json.loads(json.dumps({k: base.config[k] for k in sorted(base.PARAMS)}, default=float))
 
 
 def check_conflicts(arms: list[Arm], records: list[dict]) -> None:
@@ -184,7 +193,7 @@ def run_group(group: tuple[Job, ...]) -> list[dict]:
         if group[0].video_dir:  # only ever a group of one
             envs_[0] = with_video(envs_[0], group[0].video_dir, f"{arm.label}_{arm.scenario}_seed{group[0].seed}")
         policy = make_policy(arm.policy, envs_ if batched else envs_[0], **dict(arm.overrides))
-        built = config_hash(arm.policy, resolved_config(policy))
+        built = config_hash(arm.policy, {**resolved_config(policy), "scenario": scenario_definition(envs_[0])})
         if built != arm.config_hash:
             raise RuntimeError(f"the policy resolved to config {built} in this process, {arm.config_hash} when "
                                "the run was checked: the config depends on something outside it")

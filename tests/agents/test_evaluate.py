@@ -52,6 +52,7 @@ def test_records_carry_provenance(tmp_path):
     evaluate(out=tmp_path, **{**ARGS, "episodes": 1})
     (r,) = read_records(tmp_path)
     assert r["config"]["config"] == {"k_lat": 0.004, "k_head": 0.15, "k_speed": 0.8}
+    assert r["config"]["scenario"]["brake_decel"] == [5.0, 7.0]  # the scenario's ranges are part of the config
     assert len(r["config_hash"]) == 16 and r["label"] == "lane-keep" and r["policy"] == "lane-keep"
     assert set(r["scenario_params"]) >= {"ev_speed", "ov1_gap", "brake_decel"}
     assert r["env_seed"] != r["policy_seed"] and "SeedSequence" in r["seeding"]
@@ -193,3 +194,16 @@ def test_batched_episodes_follow_the_single_ones(tmp_path):
         np.testing.assert_allclose(r["trace"]["input"][:8], single[seed]["trace"]["input"][:8], atol=1e-3)
     with pytest.raises(EvaluationError, match="lane-keep"):
         evaluate(out=tmp_path / "x", batch=2, **ARGS)
+
+
+def test_a_changed_scenario_range_is_another_config(tmp_path, monkeypatch):
+    import dataclasses
+
+    from envs.scenarios import EmergencyBrakeEnv
+
+    evaluate(out=tmp_path, **{**ARGS, "episodes": 1})
+    params = dict(EmergencyBrakeEnv.PARAMS)
+    params["brake_decel"] = dataclasses.replace(params["brake_decel"], default=(5.0, 6.0))
+    monkeypatch.setattr(EmergencyBrakeEnv, "PARAMS", params)
+    with pytest.raises(EvaluationError, match=r"scenario\.brake_decel: \[5\.0, 7\.0\] -> \[5\.0, 6\.0\]"):
+        evaluate(out=tmp_path, **{**ARGS, "episodes": 1})
