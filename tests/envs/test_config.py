@@ -151,6 +151,6 @@ def test_drawn_parameters_are_recorded_per_episode():
     assert set(drawn) == set(EmergencyBrakeEnv.PARAMS)
     assert drawn["ev_speed"] == 24.0 and drawn["ref_zero_step"] == 80 and isinstance(drawn["ref_zero_step"], int)
     assert len(drawn["ov_speed"]) == 2 and drawn["ov_speed"][0] != drawn["ov_speed"][1]  # one per OV
-    assert 40.0 <= drawn["ov1_gap"] <= 55.0 and env.unwrapped.obstacles[0].speed == drawn["ov_speed"][0]
+    assert 50.0 <= drawn["ov1_gap"] <= 60.0 and env.unwrapped.obstacles[0].speed == drawn["ov_speed"][0]
     env.reset(seed=1)
     assert env.unwrapped.drawn_params["ov1_gap"] != drawn["ov1_gap"]
