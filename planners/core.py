@@ -161,6 +161,13 @@ def _mean_std(A):
     return mean, jnp.sqrt(((A - mean) ** 2).mean(axis=0))
 
 
+def _active(h):
+    """Rows ``(m,)`` of the measurement ``h (N, m)`` that take part in the update: the tracking rows, and the barriers
+    some particle touches. A barrier that reads ~0 for every particle is flat there and carries no information, yet
+    with N = 50 its noise regresses spuriously on the plan and collapses the ensemble within a few steps."""
+    return (jnp.arange(h.shape[1]) < N_TRACK) | (h.max(axis=0) > ACTIVE)
+
+
 def _target(Y, max_innovation):
     """The virtual observation ``(m,)``: zeros, moved to within ``max_innovation`` standard deviations of the
     predicted mean ``Y (N, m)``.
@@ -196,8 +203,6 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
     sigma_du = jnp.asarray(cfg.sigma_du, dtype)
     du_nominal = jnp.diff(jnp.concatenate([u_prev[None], nominal]), axis=0)  # (H, 2)
     s_o, l_o, v_o, a_o, present = obstacles
-    n_rows = problem.noise.shape[0]
-    always = jnp.arange(n_rows) < N_TRACK
     # [x (4), du (2), u_0 .. u_{H-1}]: future controls are constant columns until their step writes them, and a
     # column without spread is left alone by the update (zero covariance, zero gain).
     Z0 = jnp.zeros((n, 6 + 2 * horizon), dtype)
@@ -212,10 +217,7 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
         Z = jax.lax.dynamic_update_slice(Z, u, (0, 6 + 2 * t))
         h = measure(problem, x_next, u, du, Z[:, 6:8], u_prev, ref_lane, vr, ar, (*obs_t, present))
         Y = h + v_y
-        # A barrier that reads ~0 for every particle is flat there and carries no information, yet with N = 50 its
-        # noise regresses spuriously on the plan and collapses the ensemble within a few steps: only the tracking
-        # rows and the barriers some particle touches take part.
-        active = always | (h.max(axis=0) > ACTIVE)
+        active = _active(h)
         prior_std = _mean_std(Z)[1]
         Z, nu_post = student_t_update(Z, Y, _target(Y, cfg.max_innovation), nu, active,
                                       cfg.adapt_spread, cfg.max_spread)

@@ -211,3 +211,42 @@ def test_float32_plan_agrees_with_float64():
     u32 = env.unwrapped.scene.to_physical(np.asarray(a32))
     u64 = env.unwrapped.scene.to_physical(np.asarray(a64))
     assert np.all(np.abs(u32 - u64) < 0.1 * spread + 1e-6)
+
+
+# --- each measure beyond the paper's equations, on a constructed ensemble -------------------------------------
+def test_innovation_clipping_asks_only_for_what_the_ensemble_can_reach():
+    rng = np.random.default_rng(6)
+    Y = np.column_stack([10.0 + rng.standard_normal(1000), 0.5 + rng.standard_normal(1000)])
+    Y = (Y - Y.mean(0)) / Y.std(0) * [1.0, 1.0] + [10.0, 0.5]  # exact mean and spread
+    target = np.asarray(core._target(jnp.asarray(Y), 2.0))
+    np.testing.assert_allclose(target, [8.0, 0.0], atol=1e-5)  # 2 std short of 10; 0 is within reach of 0.5
+
+
+def test_relaxation_gives_back_a_share_of_the_lost_spread_and_never_shrinks():
+    rng = np.random.default_rng(7)
+    Z = rng.standard_normal((500, 3)) * [0.2, 1.0, 0.5] + [1.0, -2.0, 0.0]
+    prior = np.array([1.0, 1.0, 0.25])  # the first column lost spread, the second kept it, the third gained
+    out = np.asarray(core._relax(jnp.asarray(Z), jnp.asarray(prior), 0.5))
+    np.testing.assert_allclose(out.mean(0), Z.mean(0), atol=1e-5)  # float32
+    np.testing.assert_allclose(out.std(0), [0.2 + 0.5 * (1.0 - 0.2), 1.0, 0.5], rtol=0.05)
+
+
+def test_barrier_gating_keeps_tracking_rows_and_touched_barriers():
+    h = np.zeros((50, 8))
+    h[:, :5] = 0.0  # tracking rows read 0 here but always take part
+    h[3, 5] = 0.01  # one particle touches barrier 5
+    h[:, 6] = 1e-4  # barrier 6 flat below the threshold for every particle
+    h[:, 7] = 2.0   # barrier 7 violated by all
+    np.testing.assert_array_equal(np.asarray(core._active(jnp.asarray(h))), [1, 1, 1, 1, 1, 1, 0, 1])
+
+
+def test_the_spread_cap_bounds_the_widening():
+    rng = np.random.default_rng(8)
+    X = rng.standard_normal((2000, 2))
+    Y = X[:, :1] + 0.5 * rng.standard_normal((2000, 1))
+    y = np.array([30.0])  # a huge surprise: the Student's-t factor would widen the ensemble many times
+    wide, _ = update(X, Y, y, 4.0, adapt_spread=True)
+    capped, _ = update(X, Y, y, 4.0, adapt_spread=True, max_spread=1.5)
+    plain, _ = update(X, Y, y, 4.0, adapt_spread=False)
+    assert wide.std(0)[1] > 3 * plain.std(0)[1]
+    np.testing.assert_allclose(capped.std(0), np.sqrt(1.5) * plain.std(0), rtol=1e-6)

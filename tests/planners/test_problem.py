@@ -101,3 +101,16 @@ def test_the_shared_tuning_loads_and_is_what_every_planner_reads():
     shared = load_problem()
     assert shared.horizon == 20 and shared.nu == 4.0 and shared.sigma_ref == (2.0, 0.05, 1.0)
     assert n_measurements(2) == 16
+
+
+def test_first_control_barriers_watch_the_applied_input_at_every_step(problem):
+    """Late in the horizon the step's own input is fine, but the first control (the applied one) breaks its
+    bounds: only the four first-control barriers read it."""
+    far = (np.array([500.0, 500.0]), np.array([2.0, -2.0]), np.array([20.0, 20.0]), np.zeros(2), np.ones(2, bool))
+    x = np.array([[10.0, 2.0, 0.0, 20.0]])
+    fine, zero = np.zeros((1, 2)), np.zeros(2)
+    u0 = np.array([[-9.0, 0.2]])  # beyond a_min and the steering bound, and far from the last input (rates)
+    h = measure(problem, x, fine, fine, u0, zero, 2.0, 20.0, 0.0, far)
+    k = 5 + 2  # tracking rows, then one barrier per OV
+    assert np.all(h[0, k:k + 5] < 1e-3)  # edge, the step's input and rate barriers
+    assert np.all(h[0, k + 5:] > 1.0)  # the first control's input and rate barriers
