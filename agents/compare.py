@@ -25,9 +25,11 @@ def _results(folder: Path, label: str) -> dict[tuple[str, int], dict]:
     """``{(scenario, seed): metrics}`` of the successful episodes of ``label`` in ``folder``."""
     rows = [r for r in latest_records(read_records(folder))
             if r.get("label", r["policy"]) == label and r["status"] == "ok"]
-    hashes = {r.get("config_hash") for r in rows}
-    if len(hashes) > 1:
-        raise ValueError(f"{folder} holds {label!r} under {len(hashes)} configs; give each its own --label")
+    for scenario in {r["scenario"] for r in rows}:  # one config per scenario (the scenario's ranges are in it)
+        hashes = {r.get("config_hash") for r in rows if r["scenario"] == scenario}
+        if len(hashes) > 1:
+            raise ValueError(f"{folder} holds {label!r} on {scenario} under {len(hashes)} configs; give each its "
+                             "own --label")
     return {(r["scenario"], r["seed"]): r["metrics"] for r in rows}
 
 

@@ -207,3 +207,16 @@ def test_a_changed_scenario_range_is_another_config(tmp_path, monkeypatch):
     monkeypatch.setattr(EmergencyBrakeEnv, "PARAMS", params)
     with pytest.raises(EvaluationError, match=r"scenario\.brake_decel: \[5\.0, 7\.0\] -> \[5\.0, 6\.0\]"):
         evaluate(out=tmp_path, **{**ARGS, "episodes": 1})
+
+
+def test_compare_pairs_two_arms_across_both_scenarios(tmp_path, capsys):
+    from agents import compare
+
+    args = {**ARGS, "scenarios": ["emergency-brake", "overtaking"], "policies": ["lane-keep", "zero"],
+            "episodes": 2, "traces": 0}
+    evaluate(out=tmp_path, **args)
+    assert compare.main([str(tmp_path), "--policies", "lane-keep", "zero", "--json", str(tmp_path / "c.json")]) == 0
+    text = capsys.readouterr().out
+    assert "## emergency-brake: lane-keep (A) vs zero (B), 2 paired seeds" in text and "## overtaking" in text
+    result = json.loads((tmp_path / "c.json").read_text())
+    assert result["emergency-brake"]["seeds"] == [5, 6] and "p_value" in result["overtaking"]["success_rate"]
