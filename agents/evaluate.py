@@ -142,7 +142,8 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
 def scenario_definition(env) -> dict:
     """The scenario's parameters as configured (numbers or ``[lo, hi]`` ranges), JSON-ready."""
     base = env.unwrapped
-    return json.loads(json.dumps({k: base.config[k] for k in sorted(base.PARAMS)}, default=float))
+    keys = sorted([*base.PARAMS, *getattr(base, "OPTIONS", {})])
+    return json.loads(json.dumps({k: base.config[k] for k in keys}, default=float))
 
 
 def check_conflicts(arms: list[Arm], records: list[dict]) -> None:

@@ -19,10 +19,10 @@ from agents.stats import mean_summary, rate_summary
 METRICS = (
     "success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate",
     "min_distance_m", "min_ttc_s", "rms_lateral_error_m", "rms_speed_error_mps", "max_abs_jerk",
-    "plan_time_ms_p50", "plan_time_ms_p95", "progress_m",
+    "plan_time_ms_p50", "plan_time_ms_p95", "progress_m", "overtake_rate",
 )
 # One 0/1 outcome per episode: summarized as a proportion with a Wilson interval.
-BINARY = ("success_rate", "collision_rate", "offroad_rate")
+BINARY = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate")
 # Constraint values this small count as satisfied: float32 round-off of an action sitting on its bound.
 TOLERANCE = 1e-6
 
@@ -56,6 +56,9 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
         "plan_time_ms_p50": float(np.percentile(plan, 50)),
         "plan_time_ms_p95": float(np.percentile(plan, 95)),
         "progress_m": float(trace["s"][-1] - trace["s"][0]) if "s" in trace else None,
+        # the EV ends ahead of OV1, the vehicle it started behind in its lane (overtaking only: else None)
+        "overtake_rate": (float(trace["ahead_of_ov1"][-1]) if trace.get("ahead_of_ov1")
+                          and trace["ahead_of_ov1"][-1] is not None else None),
     }
 
 

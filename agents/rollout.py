@@ -22,7 +22,7 @@ SEEDING = "np.random.SeedSequence(seed).spawn(2) -> (env, policy); each: generat
 
 # Per-step trace keys read from ``info`` (the env measures; the loop never re-derives).
 INFO_KEYS = ("input", "ov_distance", "edge_distance", "ttc", "lateral_error", "speed_error", "collision",
-             "offroad", "constraints", "s")
+             "offroad", "constraints", "s", "reference", "ahead_of_ov1")
 
 
 def episode_seeds(seed: int) -> tuple[int, int]:
@@ -69,7 +69,7 @@ def _record(episode: Episode, scene, obs, reward, terminated, truncated, info, p
     trace["reward"].append(float(reward))
     trace["plan_ms"].append(plan_ms)
     for name in INFO_KEYS:
-        trace[name].append(info[name])
+        trace[name].append(info.get(name))
     episode.steps += 1
     episode.terminated, episode.truncated = bool(terminated), bool(truncated)
 

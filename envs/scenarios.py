@@ -315,6 +315,8 @@ class BimpEnv(AbstractEnv):
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
     PARAMS: dict[str, Param] = {}
+    OPTIONS: dict[str, tuple[str, ...]] = {}  # non-numeric scenario keys: the first choice is the default
+    OVERTAKE_METRIC = False  # info["ahead_of_ov1"]: whether the EV is ahead of OV1 (the overtaking scenario)
     ORDERS: tuple[Order, ...] = ()
 
     def __init_subclass__(cls, **kwargs):
@@ -331,6 +333,7 @@ class BimpEnv(AbstractEnv):
         config.update(
             simulation_frequency=10, policy_frequency=10, screen_width=800, screen_height=240,
             centering_position=[0.35, 0.5], scaling=4.0, **{k: p.default for k, p in cls.PARAMS.items()},
+            **{k: choices[0] for k, choices in cls.OPTIONS.items()},
         )
         return config
 
@@ -339,13 +342,16 @@ class BimpEnv(AbstractEnv):
         """``base`` updated with ``overrides``, every scenario parameter validated and normalized, the orders
         checked; raises ValueError (naming the key and the value) before anything is changed or simulated."""
         overrides = dict(overrides or {})
-        unknown = sorted(set(overrides) - set(self.PARAMS) - _HIGHWAY_KEYS)
+        unknown = sorted(set(overrides) - set(self.PARAMS) - set(self.OPTIONS) - _HIGHWAY_KEYS)
         if unknown:
             raise ValueError(f"unknown config key(s) {unknown} for {type(self).__name__}; "
-                             f"scenario keys are {sorted(self.PARAMS)}")
+                             f"scenario keys are {sorted([*self.PARAMS, *self.OPTIONS])}")
         config = {**base, **overrides}
         for key, param in self.PARAMS.items():
             config[key] = _checked_param(key, config[key], param)
+        for key, choices in self.OPTIONS.items():
+            if config[key] not in choices:
+                raise ValueError(f"{key} must be one of {list(choices)}, got {config[key]!r}")
         _check_frequencies(config)
         for order in self.ORDERS:
             order.check(config)
@@ -516,6 +522,7 @@ class BimpEnv(AbstractEnv):
             "lateral_error": float(l_e - ref[2]), "speed_error": float(ev.speed - ref[0]),
             "longitudinal_speed": float(ev.speed * np.cos(heading_err)), "s": float(s_e),
             "input": u.tolist(), "constraints": constraints,
+            "ahead_of_ov1": bool(s_e > s_o[0]) if self.OVERTAKE_METRIC else None,
         }
 
     def _info(self, obs, action=None) -> dict:
@@ -557,10 +564,18 @@ class BimpEnv(AbstractEnv):
 
 class OvertakingEnv(BimpEnv):
     """Paper V-A: curved two-lane highway; the EV (right lane, ~25 m/s) closes on two slower OVs that hold
-    speed and lane: OV1 ahead in the EV's lane, OV2 further ahead in the left lane. The reference is the
-    right lane's centre at the EV's initial (desired) speed, so passing needs the constraints to push the
-    plan off the reference. ``gap``s are measured between vehicle centres along the road [m]; speeds in m/s;
-    ``arc_angle_deg`` > 0 turns right. Episode: 15 s (150 steps)."""
+    speed and lane: OV1 ahead in the EV's lane, OV2 further ahead in the left lane.
+
+    The reference comes from the paper's "higher-level decision-making module" (section II), a behaviour layer
+    in the env (``reference: behaviour``, the default): gap acceptance in the spirit of MOBIL sets the reference
+    lane and speed at every step from the traffic. It passes a slower OV ahead when the other lane is free over a
+    safe window (a headway ahead plus what the EV closes during a pass, a headway behind), returns to the right
+    lane once the passed OV is behind by a safe gap, and when no lane is safe keeps its lane and follows the
+    slower OV at its speed; it only ever names a lane of the road. ``reference: keep-lane`` is the discovery
+    variant: the right lane at the EV's initial speed, so passing needs the constraints to push the plan off the
+    reference. ``info["ahead_of_ov1"]``: the EV is ahead of OV1 (``overtake_rate`` of an episode is its last
+    value). ``gap``s are measured between vehicle centres along the road [m]; speeds in m/s; ``arc_angle_deg``
+    > 0 turns right. Episode: 15 s (150 steps)."""
 
     PARAMS = {
         "ev_speed": Param((23.0, 27.0), "EV initial and reference speed, m/s", 0.0, MAX_SPEED),
@@ -575,6 +590,17 @@ class OvertakingEnv(BimpEnv):
     }
     ORDERS = (Order("ov1_gap", "ov2_gap", "OV2 starts further ahead than OV1, clear of it even in one lane",
                     by=MIN_CENTRE_GAP),)
+    OPTIONS = {"reference": ("behaviour", "keep-lane")}
+    OVERTAKE_METRIC = True
+
+    # The behaviour layer's gap acceptance (MOBIL-like, in time gaps at the EV's speed). Pass: the OV ahead in the
+    # EV's lane is slower than the cruise speed and within CONSIDER_S; the other lane must be free ahead for a
+    # headway plus what the EV closes on its OV during a pass, and behind for a headway at the closing speed.
+    # Return: the passed OV is RETURN_S behind (and the lane ahead free). No safe lane: keep the lane and follow.
+    CONSIDER_S = 4.0  # s of travel: a slower OV closer than this is worth passing
+    HEADWAY_S = 1.5  # s: the gap every lane change must leave, at the follower's speed
+    PASS_S = 6.0  # s: how long a pass takes, over which the EV closes on the OV ahead in the other lane
+    RETURN_S = 0.5  # s: how far (at the EV's speed) the passed OV must be behind before the EV returns
 
     def _scene_road(self) -> RoadGeometry:
         return RoadGeometry(straight_in=100.0, radius=self._draw("radius"),
@@ -584,7 +610,67 @@ class OvertakingEnv(BimpEnv):
         ev_speed = self._draw("ev_speed")
         self._add_obstacle(1, self._draw("ov1_gap"), self._draw("ov1_speed"))
         self._add_obstacle(0, self._draw("ov2_gap"), self._draw("ov2_speed"))
+        self.target_lane, self.reference_speed = 1, ev_speed
         return ev_speed, 1
+
+    def _reset(self) -> None:
+        super()._reset()
+        self._behave()
+
+    def _simulate(self, action=None) -> None:
+        super()._simulate(action)
+        self._behave()  # the reference the next observation publishes
+
+    def reference(self) -> np.ndarray:
+        """The behaviour layer's lane and speed (``reference: behaviour``), or the EV's own lane at the cruise
+        speed (``keep-lane``, the discovery variant: passing is left to the planner)."""
+        if self.config["reference"] == "keep-lane":
+            return super().reference()
+        return np.array([self.reference_speed, 0.0, self.scene.road.lane_offset(self.target_lane)])
+
+    def _traffic(self) -> tuple[float, float, list[tuple[float, float, int]]]:
+        """The EV's arc length and speed, and each OV's ``(s, speed, lane)`` (lane: the nearest centre)."""
+        road = self.scene.road
+        s_e, _ = road.to_frenet(self.vehicle.position)
+        rows = []
+        for ov in self.obstacles:
+            s_o, l_o = road.to_frenet(ov.position)
+            lane = int(np.argmin(np.abs(l_o - road.lane_offset(np.arange(road.lanes)))))
+            rows.append((float(s_o), float(ov.speed), lane))
+        return float(s_e), float(self.vehicle.speed), rows
+
+    def _behave(self) -> None:
+        """Gap acceptance in the spirit of MOBIL: sets ``target_lane`` (always a lane of the road) and
+        ``reference_speed`` from the traffic."""
+        s_e, v_e, ovs = self._traffic()
+        length, cruise = self.scene.vehicle_length + self.scene.bounds.d_min, self.cruise_speed
+
+        def ahead(lane):
+            rows = [(s - s_e, v) for s, v, k in ovs if k == lane and s > s_e]
+            return min(rows, default=(np.inf, np.inf))
+
+        def behind(lane):
+            rows = [(s_e - s, v) for s, v, k in ovs if k == lane and s <= s_e]
+            return min(rows, default=(np.inf, 0.0))
+
+        def free(lane):
+            gap_a, v_a = ahead(lane)
+            gap_b, v_b = behind(lane)
+            closing = max(v_e - v_a, 0.0) * self.PASS_S if np.isfinite(v_a) else 0.0
+            return (gap_a - length >= self.HEADWAY_S * v_e + closing
+                    and gap_b - length >= self.HEADWAY_S * max(v_b - v_e, 0.0) + self.RETURN_S * v_e)
+
+        current, other = self.target_lane, 1 - self.target_lane
+        gap, v_lead = ahead(current)
+        slower_ahead = v_lead < cruise - 0.5 and gap < self.CONSIDER_S * max(v_e, 1.0)
+        if current == 0 and free(1):  # keep right: return once the passed OV is behind and the lane is clear
+            self.target_lane = 1
+        elif slower_ahead and free(other):
+            self.target_lane = other
+        gap, v_lead = ahead(self.target_lane)
+        # No safe lane: follow the slower OV ahead at its speed.
+        follow = v_lead < cruise and gap < self.CONSIDER_S * max(v_e, 1.0)
+        self.reference_speed = float(v_lead) if follow else cruise
 
 
 class EmergencyBrakeEnv(BimpEnv):

@@ -88,3 +88,10 @@ def test_rows_that_mix_code_versions_are_flagged():
     assert "Mixed code versions" not in markdown_table(same)
     mixed = summarize([{**ok, "seed": 0, "git_commit": "a"}, {**ok, "seed": 1, "git_commit": "b", "git_dirty": True}])
     assert mixed["p/s"]["code_versions"] == ["a", "b+dirty"] and "Mixed code versions" in markdown_table(mixed)
+
+
+def test_overtake_rate_is_the_last_step_ahead_of_ov1_and_none_elsewhere():
+    passed = episode_metrics(trace(ahead_of_ov1=[False] * 6 + [True] * 4), dt=0.1, truncated=True)
+    followed = episode_metrics(trace(ahead_of_ov1=[False] * 10), dt=0.1, truncated=True)
+    braking = episode_metrics(trace(ahead_of_ov1=[None] * 10), dt=0.1, truncated=True)
+    assert (passed["overtake_rate"], followed["overtake_rate"], braking["overtake_rate"]) == (1.0, 0.0, None)

@@ -18,7 +18,8 @@ def overtaking():
 
 
 def test_features_are_ego_relative_and_scaled(overtaking):
-    obs, _ = overtaking.reset(seed=0)
+    # keep-lane: the reference at reset is the EV's own lane (the behaviour layer may already name the other)
+    obs, _ = overtaking.reset(seed=0, options={"config": {"reference": "keep-lane"}})
     scene = overtaking.unwrapped.scene
     f = features(obs, scene)
     assert f.shape == (n_features(scene),) and f.dtype == np.float32
