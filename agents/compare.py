@@ -44,9 +44,14 @@ def compare(a: dict, b: dict) -> dict[str, dict]:
         entry: dict = {"pairs": len(seeds), "seeds": seeds}
         for name in METRICS:
             if name in BINARY:
-                xa, xb = [bool(m[name]) for m in ma], [bool(m[name]) for m in mb]
+                both = [(s, bool(m[name]), bool(n[name])) for s, m, n in zip(seeds, ma, mb)
+                        if m.get(name) is not None and n.get(name) is not None]  # overtake: overtaking only
+                if not both:
+                    entry[name] = None
+                    continue
+                xa, xb = [p for _, p, _ in both], [q for _, _, q in both]
                 entry[name] = {"a": sum(xa) / len(xa), "b": sum(xb) / len(xb), **mcnemar_exact(xa, xb),
-                               "disagree": [s for s, p, q in zip(seeds, xa, xb) if p != q]}
+                               "disagree": [s for s, p, q in both if p != q]}
             else:
                 both = [(m[name], n[name]) for m, n in zip(ma, mb) if m[name] is not None and n[name] is not None]
                 entry[name] = paired_bootstrap([p for p, _ in both], [q for _, q in both])
@@ -62,6 +67,8 @@ def report(result: dict, label_a: str, label_b: str) -> str:
         lines.append("|---|---|---|---|---|---|---|")
         for name in BINARY:
             m = e[name]
+            if m is None:
+                continue
             shown = ", ".join(map(str, m["disagree"][:12])) + (", ..." if len(m["disagree"]) > 12 else "")
             lines.append(f"| {name} | {m['a']:.3f} | {m['b']:.3f} | {m['only_a']} | {m['only_b']} | "
                          f"{m['p_value']:.3g} | {shown or '-'} |")
@@ -70,8 +77,8 @@ def report(result: dict, label_a: str, label_b: str) -> str:
         for name in METRICS:
             if name in BINARY:
                 continue
-            m = e[name]
-            if m["mean_diff"] is None:
+            m = e.get(name)
+            if m is None or m["mean_diff"] is None:
                 lines.append(f"| {name} | - | - | 0 |")
             else:
                 lines.append(f"| {name} | {m['mean_diff']:+.3f} | [{m['ci_low']:+.3f}, {m['ci_high']:+.3f}] | "

@@ -65,6 +65,11 @@ def plot_trajectories(scenario: str, runs: dict[str, dict], out: Path) -> Path:
             color = OV_COLORS[k % len(OV_COLORS)]
             ax.plot(ov[:, k, 0], ov[:, k, 1], ":", color=color, label=f"OV{k + 1}")
             ax.plot(*ov[-1, k], "s", color=color)
+        if t.get("reference") and t.get("s"):  # the reference lane the behaviour layer named, along the EV's path
+            lane = np.array([ref[2] for ref in t["reference"]], dtype=float)
+            ref_xy = road.position(np.array(t["s"], dtype=float), lane)
+            ax.plot(ref_xy[:, 0], ref_xy[:, 1], "--", color=policy_color(policy), lw=0.8, alpha=0.6,
+                    label="reference lane")
         ax.plot(x, y, color=policy_color(policy), lw=2, label=f"EV ({policy})")
         ax.plot(x[-1], y[-1], "s", color=policy_color(policy))
         outcome = "collision" if rec["metrics"]["collision_rate"] else (

@@ -220,3 +220,5 @@ def test_compare_pairs_two_arms_across_both_scenarios(tmp_path, capsys):
     assert "## emergency-brake: lane-keep (A) vs zero (B), 2 paired seeds" in text and "## overtaking" in text
     result = json.loads((tmp_path / "c.json").read_text())
     assert result["emergency-brake"]["seeds"] == [5, 6] and "p_value" in result["overtaking"]["success_rate"]
+    assert result["emergency-brake"]["overtake_rate"] is None  # no OV1 to pass in the emergency brake
+    assert "p_value" in result["overtaking"]["overtake_rate"]
