@@ -164,3 +164,19 @@ def test_jax_forward_equals_the_torch_forward():
     exact = BicycleModel()(x, u)
     bicycle = np.asarray(step(model_params("bicycle"), jnp.asarray(x, jnp.float32), jnp.asarray(u, jnp.float32)))
     np.testing.assert_allclose(bicycle, exact, rtol=1e-5, atol=2e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["overtaking", "emergency-brake"])
+def test_enkts_is_safe_on_twenty_tuning_seeds(scenario):
+    """The shipped tuning on 20 tuning seeds (the safety and results seeds are never used in tests)."""
+    from agents.rollout import rollout
+
+    env = gym.make(envs.env_id(scenario))
+    planner = make_enkts(env)
+    unsafe = []
+    for seed in range(100, 120):
+        trace = rollout(env, planner, seed).trace
+        if any(trace["collision"]) or any(trace["offroad"]):
+            unsafe.append(seed)
+    assert unsafe == []
