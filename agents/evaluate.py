@@ -124,13 +124,10 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
             env = gym.make(envs.env_id(scenario))
         except ValueError as err:
             raise EvaluationError(str(err)) from None
-        # The scenario's definition (its parameter ranges) is part of what produced an episode: a changed range
-        # must not resume onto the old episodes.
-        definition = scenario_definition(env)
         for policy in policies:
             given = overrides.get(policy, {})
             try:
-                config = {**resolved_config(make_policy(policy, env, **given)), "scenario": definition}
+                config = arm_config(make_policy(policy, env, **given), env)
             except (ValueError, TypeError, FileNotFoundError, ImportError, AttributeError) as err:
                 raise EvaluationError(f"policy {policy!r} on {scenario} with overrides {given}: {err}") from None
             arms.append(Arm(scenario, labels.get(policy, policy), policy, tuple(sorted(given.items())),
@@ -139,11 +136,13 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
     return arms
 
 
-def scenario_definition(env) -> dict:
-    """The scenario's parameters as configured (numbers or ``[lo, hi]`` ranges), JSON-ready."""
+def arm_config(policy, env) -> dict:
+    """What produces an arm's episodes: the policy's resolved config and the scenario's definition (its parameters'
+    values, ranges and options; a changed range must not resume onto the old episodes)."""
     base = env.unwrapped
     keys = sorted([*base.PARAMS, *getattr(base, "OPTIONS", {})])
-    return json.loads(json.dumps({k: base.config[k] for k in keys}, default=float))
+    definition = json.loads(json.dumps({k: base.config[k] for k in keys}, default=float))
+    return {**resolved_config(policy), "scenario": definition}
 
 
 def check_conflicts(arms: list[Arm], records: list[dict]) -> None:
@@ -194,7 +193,7 @@ def run_group(group: tuple[Job, ...]) -> list[dict]:
         if group[0].video_dir:  # only ever a group of one
             envs_[0] = with_video(envs_[0], group[0].video_dir, f"{arm.label}_{arm.scenario}_seed{group[0].seed}")
         policy = make_policy(arm.policy, envs_ if batched else envs_[0], **dict(arm.overrides))
-        built = config_hash(arm.policy, {**resolved_config(policy), "scenario": scenario_definition(envs_[0])})
+        built = config_hash(arm.policy, arm_config(policy, envs_[0]))
         if built != arm.config_hash:
             raise RuntimeError(f"the policy resolved to config {built} in this process, {arm.config_hash} when "
                                "the run was checked: the config depends on something outside it")
@@ -221,10 +220,10 @@ def run_group(group: tuple[Job, ...]) -> list[dict]:
     return records
 
 
-def _crash_record(job: Job, attempts: int) -> dict:
+def _crash_record(job: Job) -> dict:
     return {**_base_record(job), "status": "error", "traceback": None,
-            "error": f"WorkerDied: the worker process running this episode died ({attempts} attempts, the last "
-                     "one alone); a crash in native code or the out-of-memory killer are the usual causes"}
+            "error": "WorkerDied: the worker process running this episode died twice, the second time running it "
+                     "alone; a crash in native code or the out-of-memory killer are the usual causes"}
 
 
 def _finite(value):
@@ -304,7 +303,7 @@ def _run_pool(todo: list[tuple[Job, ...]], workers: int, write) -> None:
     os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
     make = lambda: ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),  # noqa: E731
                                        initializer=_init_worker)
-    queue, suspects, attempts = deque(todo), deque(), {}
+    queue, suspects = deque(todo), deque()
     in_flight: dict = {}
     pool, broken = make(), False
     try:
@@ -330,12 +329,11 @@ def _run_pool(todo: list[tuple[Job, ...]], workers: int, write) -> None:
                 try:
                     for record in future.result():
                         write(record)
-                except BrokenProcessPool:
+                except BrokenProcessPool:  # a group's first crash is always in company: alone is its second
                     broken = True
-                    attempts[group] = attempts.get(group, 0) + 1
                     if alone:
                         for job in group:
-                            write(_crash_record(job, attempts[group]))
+                            write(_crash_record(job))
                     else:
                         suspects.append(group)
     finally:
