@@ -107,10 +107,6 @@ class RoadGeometry:
         """Road coordinates ``(s, l)`` of world points ``xy (..., 2)``, each of shape ``(...)``."""
         return to_frenet(np.asarray(xy, float), self.straight_in, self.radius, self.arc_angle)
 
-    def edge_distance(self, lat: np.ndarray) -> np.ndarray:
-        """Signed distance [m] from lateral offsets to the nearer road edge: > 0 on the road."""
-        return self.half_width - np.abs(lat)
-
 
 # --- the road frame as functions of the geometry's numbers -----------------------------------------------------
 # One definition for the env (numpy, through RoadGeometry) and the planners (jax.numpy, with the geometry as
@@ -161,6 +157,14 @@ def to_frenet(xy, straight_in, radius, arc_angle):
     l_out = -rx * xp.sin(h_end) + ry * xp.cos(h_end)
     past = s_out >= straight_in + arc_length
     return xp.where(past, s_out, s), xp.where(past, l_out, lat)
+
+
+def corner_edge_distance(x, length, width, straight_in, radius, arc_angle, half_width):
+    """Least signed distance [m] of the four body corners to the road edge, ``(...)`` for states ``x (..., >=3)``
+    ``[x, y, heading, ..]`` of ``length`` x ``width`` vehicles: > 0 on the road. Exact for the rectangle; numpy or
+    JAX (the env's ``info`` and the planning problem both read it)."""
+    _, lat = to_frenet(body_corners(x[..., :2], x[..., 2], length, width), straight_in, radius, arc_angle)
+    return (half_width - _xp(lat).abs(lat)).min(axis=-1)
 
 
 def rect_gap(xy1, heading1, xy2, heading2, length: float, width: float) -> np.ndarray:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.road import RoadGeometry, body_corners, rect_gap
+from envs.road import RoadGeometry, corner_edge_distance, rect_gap
 
 EGO_FIELDS = ("x", "y", "heading", "speed")
 OV_FIELDS = ("present", "x", "y", "heading", "speed", "acceleration")
@@ -107,9 +107,9 @@ class Scene:
     # --- geometry --------------------------------------------------------------------------------------
     def edge_distance(self, states: np.ndarray) -> np.ndarray:
         """Least signed distance [m] of the body corners to the road edge, ``(...)`` for ``states (..., 4)``."""
-        corners = body_corners(states[..., :2], states[..., 2], self.vehicle_length, self.vehicle_width)
-        _, lat = self.road.to_frenet(corners)
-        return self.road.edge_distance(lat).min(axis=-1)
+        r = self.road
+        return corner_edge_distance(np.asarray(states, float), self.vehicle_length, self.vehicle_width,
+                                    r.straight_in, r.radius, r.arc_angle, r.half_width)
 
     def ov_gaps(self, ego: np.ndarray, ovs: np.ndarray) -> np.ndarray:
         """Footprint gaps [m] ``(K,)`` between the ego state ``[x, y, heading, ..] (>=3,)`` and OV rows ``(K, >=4)``

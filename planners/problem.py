@@ -35,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from configs import ConfigError, check_fields
-from envs.road import _xp, body_corners, curvature_at, heading_at, to_frenet
+from envs.road import _xp, corner_edge_distance, curvature_at, heading_at, to_frenet
 from envs.scene import Scene
 
 N_TRACK = 5  # r (3) + s (2)
@@ -124,10 +124,6 @@ class ProblemConfig:
         from planners.dynamics import check_dynamics
 
         check_dynamics(self.dynamics)
-
-    def problem_fields(self) -> dict:
-        """The :class:`ProblemConfig` part of this config (of a subclass too)."""
-        return {f: getattr(self, f) for f in ProblemConfig.__dataclass_fields__}
 
 
 # --- the problem as pytrees -----------------------------------------------------------------------------------
@@ -221,11 +217,9 @@ def frenet(road: Road, xy):
 
 def edge_distance(road: Road, limits: Limits, x):
     """Least signed distance [m] of the body corners to the road edge (eq. 3), ``(...)`` for states ``x (..., 4)``:
-    > 0 on the road. Exact for the rectangle, as the env measures it."""
-    corners = body_corners(x[..., :2], x[..., 2], limits.length, limits.width)
-    _, lat = frenet(road, corners)
-    xp = _xp(lat)
-    return (road.half_width - xp.abs(lat)).min(axis=-1)
+    > 0 on the road. Exact for the rectangle: the env measures the same function."""
+    return corner_edge_distance(x, limits.length, limits.width, road.straight_in, road.radius, road.arc_angle,
+                                road.half_width)
 
 
 def edge_distance_local(road: Road, limits: Limits, lat, dpsi):
