@@ -102,7 +102,7 @@ class EnKTSPlanner:
         self.config = config
         self._scene = scene if callable(scene) else (lambda: scene)
         self._model = jax.device_put(model_params(config.dynamics))
-        self._problem_key: tuple | None = None
+        self._problem_scenes: list[Scene] = []
         self._problem: Problem | None = None
         self.fallbacks = 0  # plans that came out non-finite and were replaced by holding the last input
         self.reset(config.seed)
@@ -148,7 +148,7 @@ class EnKTSPlanner:
             keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(self._keys, self._step)
             action, self._carry, plan = core.plan_batch(problem, cfg, self._carry, obs, keys)
         self._step += 1
-        self._last = (jnp.asarray(obs[0, :4] if self.batch is None else obs[:, :4]), plan)
+        self._last = (obs[0, :4] if self.batch is None else obs[:, :4], plan)  # states rolled out when asked
         self.fallbacks += int(np.size(plan.ok) - np.count_nonzero(np.asarray(plan.ok)))
         return np.asarray(action, dtype=np.float32)
 
@@ -164,16 +164,16 @@ class EnKTSPlanner:
                     control_particles=np.asarray(plan.control_particles, float))
 
     def _problem_of(self, scenes: list[Scene]) -> Problem:
-        """The problem of the current scene(s), rebuilt only when a scene changes (the env redraws it at reset)."""
-        key = tuple(id(s) for s in scenes)
-        if key != self._problem_key:
+        """The problem of the current scene(s), rebuilt only when a scene changes (the env redraws it at reset).
+        Compared by value, not ``id``: a freed scene's id can be reused by the next one."""
+        if scenes != self._problem_scenes:
             problems = [make_problem(s, self.config, self._model) for s in scenes]
             problem = problems[0]
             if self.batch is not None:  # the roads differ per episode; everything else is shared
                 problem = problem._replace(road=Road(*(np.array(v, np.float32) for v in zip(*(p.road for p in problems)))))
             self._problem = jax.device_put(jax.tree.map(
                 lambda a: np.asarray(a, np.float32) if isinstance(a, (float, np.ndarray)) else a, problem))
-            self._problem_key = key
+            self._problem_scenes = scenes
         return self._problem
 
 
