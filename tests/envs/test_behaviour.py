@@ -29,11 +29,11 @@ def test_a_free_left_lane_is_taken_to_pass_the_slower_ov_and_the_ev_returns_afte
 
 
 def test_no_safe_lane_keeps_the_lane_and_follows_the_slower_ov():
-    env = gym.make(OT, config={"ev_speed": 25.0, "ov1_gap": 30.0, "ov1_speed": 15.0, "ov2_gap": 40.0,
+    env = gym.make(OT, config={"ev_speed": 25.0, "ov1_gap": 30.0, "ov1_speed": 14.0, "ov2_gap": 40.0,
                                "ov2_speed": 15.0})  # a slow OV2 just ahead in the left lane
     obs, _ = env.reset(seed=0)
     v_ref, _, lane = env.unwrapped.scene.split_obs(obs)[3]
-    assert lane == RIGHT and v_ref == pytest.approx(15.0)
+    assert lane == RIGHT and v_ref == pytest.approx(14.0)
 
 
 def test_keep_lane_is_the_discovery_variant():

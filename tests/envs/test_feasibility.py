@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers the envs)
+from envs.scenarios import OvertakingEnv
 from envs.scene import Bounds
 
 DRAWS = 1000
@@ -40,6 +41,22 @@ def brake_at_the_bounds(ev, gap, v_ov, onset, decel, dt=0.1, length=5.0, steps=2
         seen |= braking
         least = np.minimum(least, s_o - s_e - length)
     return least
+
+
+def pass_margin(ev, gap1, v1, gap2, v2, held=3.0, headway=0.6, dt=0.1, duration=15.0, length=5.0):
+    """How far [m] ahead of OV1 (centre to centre) the EV ends an overtaking episode in the worst case of a pass
+    ``(...)``: held behind OV1 at its speed, ``headway`` s plus a car and ``d_min`` behind it, until ``held`` s,
+    then in the left lane accelerating at ``a_max`` toward the behaviour layer's speed (the cruise speed, OV2's
+    once OV2 is within ``CONSIDER_S`` of travel). The OVs hold speed and lane. Arrays broadcast."""
+    ev, gap1, v1, gap2, v2 = np.broadcast_arrays(*(np.asarray(a, float) for a in (ev, gap1, v1, gap2, v2)))
+    s_1, s_2, v = gap1 + v1 * held, gap2 + v2 * held, v1.copy()
+    s_e = s_1 - (length + B.d_min + headway * v1)
+    for _ in range(round((duration - held) / dt)):
+        close = s_2 - s_e < OvertakingEnv.CONSIDER_S * np.maximum(v, 1.0)
+        a = np.clip((np.where(close, np.minimum(v2, ev), ev) - v) / dt, *B.accel)
+        s_e, v = s_e + v * dt, v + a * dt
+        s_1, s_2 = s_1 + v1 * dt, s_2 + v2 * dt
+    return s_e - s_1
 
 
 def drawn(env_id: str, n: int = DRAWS) -> list[dict]:
@@ -121,3 +138,18 @@ def test_overtaking_following_ov1_is_always_safe():
     worst = min(float(brake_at_the_bounds(*(c[k] for k in keys), onset=never, decel=0.0, react=False))
                 for c in corners("bimp/Overtaking-v0", keys))
     assert worst >= B.d_min
+
+
+def test_overtaking_a_pass_exists_on_every_draw_and_corner():
+    """Even held behind OV1 for 3 s, the EV can end the episode ahead of OV1 (by more than a car) on 1000 draws
+    and every corner: OV2, ahead in the passing lane, outpaces OV1 by the ranges' order."""
+    keys = ("ev_speed", "ov1_gap", "ov1_speed", "ov2_gap", "ov2_speed")
+    params = drawn("bimp/Overtaking-v0")
+    margins = pass_margin(*(np.array([p[k] for p in params]) for k in keys))
+    assert margins.min() > 5.0, f"no pass on {params[int(margins.argmin())]}"
+    assert min(float(pass_margin(*(c[k] for k in keys))) for c in corners("bimp/Overtaking-v0", keys)) > 5.0
+
+
+def test_the_old_overtaking_ranges_had_no_pass():
+    """Why OV2 must outpace OV1: with OV2 slower (the old ranges allowed 17 vs 18 m/s) the held EV ends behind."""
+    assert pass_margin(27.0, 35.0, 18.0, 100.0, 17.0) < 0
