@@ -99,7 +99,7 @@ def test_env_constraint_values_and_the_planner_measurement_agree_on_the_same_sta
 
 def test_the_shared_tuning_loads_and_is_what_every_planner_reads():
     shared = load_problem()
-    assert shared.horizon == 20 and shared.nu == 4.0 and shared.sigma_ref == (2.0, 0.05, 1.0)
+    assert shared.horizon == 20 and shared.nu == 4.0 and shared.sigma_ref == (1.0, 0.05, 1.0)
     assert n_measurements(2) == 16
 
 
