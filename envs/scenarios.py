@@ -77,6 +77,8 @@ ROAD_HALF_WIDTH = LANES * LANE_WIDTH / 2.0
 MIN_CENTRE_GAP = Vehicle.LENGTH + Bounds().d_min
 MAX_SPEED = Vehicle.MAX_SPEED  # highway-env's Vehicle.clip_actions pulls any faster vehicle back to this speed
 
+REFERENCE_COLOUR = (255, 140, 0)  # orange: no road marking or vehicle of highway-env's is drawn in it
+
 # Keys highway-env's AbstractEnv reads; accepted as overrides, mostly for rendering.
 _HIGHWAY_KEYS = frozenset(AbstractEnv.default_config()) | {"observation", "action"}
 
@@ -445,6 +447,24 @@ class BimpEnv(AbstractEnv):
     def reference(self) -> np.ndarray:
         """``[v_ref m/s, dv_ref/dt m/s^2, lane offset m]`` at the current time (see subclasses)."""
         return np.array([self.cruise_speed, 0.0, self.scene.road.lane_offset(self.ego_lane)])
+
+    def render(self):
+        """highway-env's frame; in ``rgb_array`` mode (videos) with the reference lane drawn under the vehicles,
+        ahead of the EV over the paper's 2 s horizon at the reference speed: what the behaviour layer asks for."""
+        frame = super().render()
+        if self.render_mode != "rgb_array" or self.viewer is None:
+            return frame
+        import pygame  # highway-env's renderer, loaded by the render above
+        from highway_env.road.graphics import RoadGraphics
+
+        surface, road = self.viewer.sim_surface, self.scene.road
+        v_ref, _, lane = self.reference()
+        s_e, _ = road.to_frenet(self.vehicle.position)
+        s = s_e + np.linspace(0.0, 2.0 * max(v_ref, 5.0), 24)
+        pygame.draw.lines(surface, REFERENCE_COLOUR, False, [surface.vec2pix(p) for p in road.position(s, lane)], 3)
+        RoadGraphics.display_traffic(self.road, surface, simulation_frequency=self.config["simulation_frequency"],
+                                     offscreen=self.viewer.offscreen)
+        return self.viewer.get_image()
 
     def step(self, action):
         action = np.asarray(action, dtype=float).reshape(-1)

@@ -5,6 +5,7 @@ from gymnasium.utils.env_checker import check_env
 
 import envs
 from agents.baselines import LaneKeeping
+from envs.scenarios import REFERENCE_COLOUR
 
 IDS = list(envs.ENV_IDS.values())
 
@@ -148,6 +149,20 @@ def test_rgb_array_render(env_id):
     env.step(env.action_space.sample())
     frame = env.render()
     assert frame.shape == (240, 800, 3) and frame.dtype == np.uint8 and frame.std() > 0
+
+
+def test_the_frame_draws_the_reference_lane():
+    """Videos show the behaviour layer's lane: at the start it names the left lane (OV1 slower, the left lane free),
+    the keep-lane variant the EV's own, one lane width apart on the frame."""
+    rows = {}
+    for reference in ("behaviour", "keep-lane"):
+        env = gym.make("bimp/Overtaking-v0", render_mode="rgb_array", config={"reference": reference})
+        env.reset(seed=0)
+        drawn = np.all(env.render() == REFERENCE_COLOUR, axis=-1)
+        assert drawn.sum() > 100
+        rows[reference] = np.nonzero(drawn)[0].mean()
+    lane_px = env.unwrapped.config["scaling"] * env.unwrapped.scene.road.lane_width
+    assert rows["keep-lane"] - rows["behaviour"] == pytest.approx(lane_px, abs=2)
 
 
 def test_info_carries_safety_quantities_and_constraints():
