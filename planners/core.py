@@ -196,7 +196,7 @@ def _relax(Z, prior_std, relaxation):
 
 
 # --- one smoothing pass -----------------------------------------------------------------------------------------
-def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacles, ref_lane, v_ref, a_ref):
+def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacles, references):
     """One smoothing pass over the horizon; returns the smoothed control particles ``(N, H, 2)``."""
     n, horizon = cfg.n_particles, cfg.horizon
     dtype = problem.noise.dtype
@@ -209,13 +209,13 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
 
     def step(state, inputs):
         x, u_last, Z, nu = state
-        t, w_du, v_y, du_nom, obs_t, vr, ar = inputs
+        t, w_du, v_y, du_nom, obs_t, (vr, ar, lane) = inputs
         du = du_nom + w_du
         u = u_last + du
         x_next = vehicle.step(problem.model, x, u)
         Z = Z.at[:, :4].set(x_next).at[:, 4:6].set(du)
         Z = jax.lax.dynamic_update_slice(Z, u, (0, 6 + 2 * t))
-        h = measure(problem, x_next, u, du, Z[:, 6:8], u_prev, ref_lane, vr, ar, (*obs_t, present))
+        h = measure(problem, x_next, u, du, Z[:, 6:8], u_prev, lane, vr, ar, (*obs_t, present))
         Y = h + v_y
         active = _active(h)
         prior_std = _mean_std(Z)[1]
@@ -231,7 +231,7 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
     k_du, k_y = jax.random.split(key)
     inputs = (jnp.arange(horizon), student_t(k_du, sigma_du, cfg.nu, (horizon, n)),
               student_t(k_y, problem.noise, cfg.nu, (horizon, n)), du_nominal,
-              (s_o[1:], l_o[1:], v_o[1:], a_o[1:]), v_ref[1:], a_ref[1:])
+              (s_o[1:], l_o[1:], v_o[1:], a_o[1:]), tuple(r[1:] for r in references))
     start = (jnp.broadcast_to(ego, (n, 4)), jnp.broadcast_to(u_prev, (n, 2)), Z0, jnp.asarray(cfg.nu, dtype))
     (_, _, Z, _), _ = jax.lax.scan(step, start, inputs, unroll=UNROLL)
     return Z[:, 6:].reshape(n, horizon, 2)
@@ -248,10 +248,10 @@ def _plan(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, key: 
     shifted = jnp.concatenate([previous[1:], previous[-1:]])
     nominal = jnp.where(carry.has_previous, shifted, jnp.broadcast_to(u_prev, (cfg.horizon, 2)))
     obstacles = predict_obstacles(problem, ovs, cfg.horizon)
-    v_ref, a_ref = reference_profile(problem, ref, cfg.horizon)
+    references = reference_profile(problem, ref, ego, cfg.horizon)
     keys = jax.random.split(key, cfg.iterations)
     for i in range(cfg.iterations):  # static: the iterated variant is a longer program, not a data branch
-        U = _smooth(problem, cfg, keys[i], ego, u_prev, nominal, obstacles, ref[2], v_ref, a_ref)
+        U = _smooth(problem, cfg, keys[i], ego, u_prev, nominal, obstacles, references)
         nominal = U.mean(axis=0)
     ok = jnp.all(jnp.isfinite(nominal)) & jnp.all(jnp.isfinite(U))
     hold = jnp.broadcast_to(u_prev, (cfg.horizon, 2))
@@ -277,7 +277,7 @@ def roll_out(model, x0: jnp.ndarray, controls: jnp.ndarray) -> jnp.ndarray:
 plan_step = jax.jit(_plan, static_argnums=1)
 
 # One compiled program for a batch of episodes: the problem's road (and nothing else) differs per row.
-_BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None)
+_BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None, lane_rate=None)
 
 
 @partial(jax.jit, static_argnums=1)

@@ -49,7 +49,7 @@ class EnKTSConfig(ProblemConfig):
     seed: int = 0
 
     def __post_init__(self) -> None:
-        check_fields(self, allow_inf=("nu", "max_spread"))  # types, lengths; a barrier mapping -> BarrierShape
+        check_fields(self, allow_inf=(*self.INF_OK, "max_spread"))  # types, lengths; a barrier mapping -> BarrierShape
         if self.n_particles < 2:
             raise ConfigError("n_particles", "an int >= 2", self.n_particles)
         if self.iterations < 1:

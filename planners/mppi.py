@@ -120,7 +120,7 @@ class _Context:
 
     problem: Problem
     u_prev: np.ndarray
-    ref_lane: float
+    ref_lane: np.ndarray
     v_ref: np.ndarray
     a_ref: np.ndarray
     obstacles: tuple[np.ndarray, ...]
@@ -176,8 +176,8 @@ class MPPIPlanner:
         if not self._warm:
             mppi.U = torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
         problem = make_problem(scene, self.tuning)
-        v_ref, a_ref = reference_profile(problem, ref, self.horizon)
-        self._context = _Context(problem, u_prev, float(ref[2]), v_ref, a_ref,
+        v_ref, a_ref, lane = reference_profile(problem, ref, ego, self.horizon)
+        self._context = _Context(problem, u_prev, lane, v_ref, a_ref,
                                  predict_obstacles(problem, ovs, self.horizon))
         start = torch.from_numpy(np.concatenate([ego, u_prev, np.zeros(2), u_prev]))
         # MPPI's own shift refills with a fixed u_init; shift ourselves afterwards to hold the last control.
@@ -206,7 +206,7 @@ class MPPIPlanner:
         ctx = self._context
         b = block.numpy()
         s_o, l_o, v_o, a_o, present = ctx.obstacles
-        h = measure(ctx.problem, b[:, :4], b[:, 4:6], b[:, 6:8], b[:, 8:10], ctx.u_prev, ctx.ref_lane,
+        h = measure(ctx.problem, b[:, :4], b[:, 4:6], b[:, 6:8], b[:, 8:10], ctx.u_prev, ctx.ref_lane[t + 1],
                     ctx.v_ref[t + 1], ctx.a_ref[t + 1], (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
         return torch.from_numpy(0.5 * np.sum((h / ctx.problem.noise) ** 2, axis=1))
 

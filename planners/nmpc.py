@@ -377,8 +377,8 @@ class NMPCPlanner:
         H = self.horizon
         problem = make_problem(scene, self.tuning)
         s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
-        v_ref, a_ref = reference_profile(problem, ref, H)
-        return np.concatenate([ego, u_prev, [ref[2]], v_ref, a_ref, road_params(scene.road),
+        v_ref, a_ref, lane = reference_profile(problem, ref, ego, H)
+        return np.concatenate([ego, u_prev, lane, v_ref, a_ref, road_params(scene.road),
                                s_o.ravel(), l_o.ravel(), v_o.ravel(), a_o.ravel(), present.astype(float)])
 
     def _problem(self, scene: Scene) -> _Problem:
@@ -397,7 +397,7 @@ class NMPCPlanner:
         shape, b = tun.barrier, scene.bounds
         X = ca.MX.sym("X", 4, H)  # x_1 .. x_H (columns)
         U = ca.MX.sym("U", 2, H)  # u_0 .. u_{H-1}
-        x0, u_prev, ref_lane = ca.MX.sym("x0", 4), ca.MX.sym("u_prev", 2), ca.MX.sym("ref_lane")
+        x0, u_prev, ref_lane = ca.MX.sym("x0", 4), ca.MX.sym("u_prev", 2), ca.MX.sym("ref_lane", 1, H + 1)
         v_ref, a_ref = ca.MX.sym("v_ref", 1, H + 1), ca.MX.sym("a_ref", 1, H + 1)
         road = ca.MX.sym("road", len(ROAD_PARAMS))
         # predict_obstacles gives (H + 1, K) arrays, raveled row-major: reshape to (K, H + 1), columns = time.

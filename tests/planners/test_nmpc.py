@@ -170,10 +170,10 @@ def test_cost_is_the_nll_of_the_problem_tracking_rows():
     makes its rate change with t; random states over the curve make the feed-forward change."""
     H = 6
     ref_lane = 2.0
-    scene, planner, nlp, params, (_, u_prev, ovs) = curved_nlp(H, seed=5, ref=[0.5, -2.0, ref_lane])
+    scene, planner, nlp, params, (ego, u_prev, ovs) = curved_nlp(H, seed=5, ref=[0.5, -2.0, ref_lane])
     problem = make_problem(scene, planner.tuning)
     tun = planner.tuning
-    v_ref, a_ref = reference_profile(problem, np.array([0.5, -2.0, ref_lane]), H)
+    v_ref, a_ref, lane = reference_profile(problem, np.array([0.5, -2.0, ref_lane]), ego, H)
     assert len(set(a_ref.tolist())) == 2  # the rate switches to 0 where the reference stops
     s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
     f = nlp.solver.get_function("nlp_f")
@@ -184,7 +184,7 @@ def test_cost_is_the_nll_of_the_problem_tracking_rows():
         du = U - np.vstack([u_prev, U[:-1]])
         expected = 0.5 * np.sum((du / tun.sigma_du) ** 2)
         for t in range(H):
-            h = measure(problem, X[t:t + 1], U[t:t + 1], du[t:t + 1], U[:1], u_prev, ref_lane, v_ref[t + 1],
+            h = measure(problem, X[t:t + 1], U[t:t + 1], du[t:t + 1], U[:1], u_prev, lane[t + 1], v_ref[t + 1],
                         a_ref[t + 1], (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
             expected += 0.5 * np.sum((h[0, :N_TRACK] / problem.noise[:N_TRACK]) ** 2)
         got = float(f(np.concatenate([X.ravel(), U.ravel()]), params))

@@ -36,7 +36,7 @@ def test_obstacles_brake_to_a_stop_and_stay_there(problem):
 
 
 def test_reference_profile_never_negative(problem):
-    v, a = reference_profile(problem, np.array([2.0, -5.0, 2.0]), horizon=10)
+    v, a, _ = reference_profile(problem, np.array([2.0, -5.0, 2.0]), np.array([0.0, 2.0, 0.0, 2.0]), horizon=10)
     np.testing.assert_allclose(v, np.maximum(2.0 - 0.5 * np.arange(11), 0.0))
     assert np.all(a[v == 0] == 0.0) and a[0] == -5.0
 
@@ -114,3 +114,26 @@ def test_first_control_barriers_watch_the_applied_input_at_every_step(problem):
     k = 5 + 2  # tracking rows, then one barrier per OV
     assert np.all(h[0, k:k + 5] < 1e-3)  # edge, the step's input and rate barriers
     assert np.all(h[0, k + 5:] > 1.0)  # the first control's input and rate barriers
+
+
+@pytest.mark.parametrize("xp", [np, jnp])
+def test_the_reference_lane_changes_at_the_lane_change_rate(scene, xp):
+    """From the EV's lateral offset toward the reference lane at ``lane_change_rate``, then held there; ``inf`` is
+    the step (every state of the horizon asks for the far lane)."""
+    ego = xp.asarray([50.0, 2.0, 0.0, 25.0])  # straight road: the lateral offset is y
+    ref = xp.asarray([25.0, 0.0, -2.0])
+    _, _, lane = reference_profile(make_problem(scene, ProblemConfig(lane_change_rate=1.5)), ref, ego, 40)
+    lane = np.asarray(lane)
+    np.testing.assert_allclose(lane[:5], 2.0 - 0.15 * np.arange(5), atol=1e-5)
+    assert np.all(np.diff(lane) <= 1e-6) and np.all(np.diff(lane) >= -0.15 - 1e-5)
+    np.testing.assert_allclose(lane[27:], -2.0, atol=1e-5)  # 4 m at 1.5 m/s: there from t = 2.67 s
+    _, _, step = reference_profile(make_problem(scene, ProblemConfig()), ref, ego, 40)
+    np.testing.assert_allclose(np.asarray(step)[1:], -2.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0])
+def test_a_lane_change_rate_must_be_positive(bad):
+    from configs import ConfigError
+
+    with pytest.raises(ConfigError, match="lane_change_rate"):
+        ProblemConfig(lane_change_rate=bad)
