@@ -52,6 +52,24 @@ def config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return lines
 
 
+# What makes a result: a change elsewhere (docs, the results folders a run writes into) does not make a run dirty.
+CODE_PATHS = ("agents", "envs", "planners", "configs", "pyproject.toml")
+
+
+def git_state(root: Path = REPO_ROOT) -> tuple[str | None, bool | None]:
+    """``(commit, dirty)`` of the checkout at ``root``: dirty when a tracked file under ``CODE_PATHS`` differs
+    from the commit; ``(None, None)`` outside a git checkout."""
+    try:
+        run = functools.partial(subprocess.run, cwd=root, capture_output=True, text=True, timeout=10)
+        head = run(["git", "rev-parse", "HEAD"])
+        if head.returncode != 0:
+            return None, None
+        status = run(["git", "status", "--porcelain", "--untracked-files=no", "--", *CODE_PATHS])
+        return head.stdout.strip(), bool(status.stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        return None, None
+
+
 @functools.lru_cache(maxsize=1)
 def code_version() -> dict:
     """``{"bimp_version", "git_commit", "git_dirty"}``; the git entries are None outside a git checkout."""
@@ -59,16 +77,8 @@ def code_version() -> dict:
         version = metadata.version("bimp")
     except metadata.PackageNotFoundError:
         version = None
-    commit = dirty = None
-    try:
-        run = functools.partial(subprocess.run, cwd=REPO_ROOT, capture_output=True, text=True, timeout=10)
-        head = run(["git", "rev-parse", "HEAD"])
-        if head.returncode == 0:
-            commit = head.stdout.strip()
-            dirty = bool(run(["git", "status", "--porcelain", "--untracked-files=no"]).stdout.strip())
-    except (OSError, subprocess.SubprocessError):
-        pass
+    commit, dirty = git_state()
     return {"bimp_version": version, "git_commit": commit, "git_dirty": dirty}
 
 
-__all__ = ["code_version", "config_diff", "config_hash", "resolved_config"]
+__all__ = ["CODE_PATHS", "code_version", "git_state", "config_diff", "config_hash", "resolved_config"]
