@@ -140,7 +140,7 @@ def arm_config(policy, env) -> dict:
     """What produces an arm's episodes: the policy's resolved config and the scenario's definition (its parameters'
     values, ranges and options; a changed range must not resume onto the old episodes)."""
     base = env.unwrapped
-    keys = sorted([*base.PARAMS, *getattr(base, "OPTIONS", {})])
+    keys = sorted([*base.PARAMS, *base.OPTIONS])
     definition = json.loads(json.dumps({k: base.config[k] for k in keys}, default=float))
     return {**resolved_config(policy), "scenario": definition}
 

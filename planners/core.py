@@ -287,5 +287,5 @@ def plan_batch(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, 
     return jax.vmap(_plan, in_axes=(_BATCH_AXES, None, 0, 0, 0))(problem, cfg, carry, obs, keys)
 
 
-__all__ = ["Carry", "PlanOut", "Settings", "chi_square", "initial_carry", "plan_batch", "plan_step", "roll_out", "spread_factor",
-           "student_t", "student_t_update"]
+__all__ = ["Carry", "PlanOut", "Settings", "chi_square", "initial_carry", "plan_batch", "plan_step", "roll_out",
+           "spread_factor", "student_t", "student_t_update"]
