@@ -138,10 +138,14 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
 
 def arm_config(policy, env) -> dict:
     """What produces an arm's episodes: the policy's resolved config and the scenario's definition (its parameters'
-    values, ranges and options; a changed range must not resume onto the old episodes)."""
+    values, ranges and options, and its behaviour layer's rule; a changed range or rule must not resume onto the
+    old episodes)."""
     base = env.unwrapped
     keys = sorted([*base.PARAMS, *base.OPTIONS])
-    definition = json.loads(json.dumps({k: base.config[k] for k in keys}, default=float))
+    definition = {k: base.config[k] for k in keys}
+    if base.BEHAVIOUR is not None:
+        definition["behaviour"] = dataclasses.asdict(base.BEHAVIOUR)
+    definition = json.loads(json.dumps(definition, default=float))
     return {**resolved_config(policy), "scenario": definition}
 
 

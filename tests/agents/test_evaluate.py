@@ -209,6 +209,19 @@ def test_a_changed_scenario_range_is_another_config(tmp_path, monkeypatch):
         evaluate(out=tmp_path, **{**ARGS, "episodes": 1})
 
 
+def test_a_changed_behaviour_rule_is_another_config(tmp_path, monkeypatch):
+    import dataclasses
+
+    from envs.scenarios import OvertakingEnv
+
+    args = {**ARGS, "scenarios": ["overtaking"], "episodes": 1}
+    evaluate(out=tmp_path, **args)
+    rule = dataclasses.replace(OvertakingEnv.BEHAVIOUR, lane_change_s=3.0)
+    monkeypatch.setattr(OvertakingEnv, "BEHAVIOUR", rule)
+    with pytest.raises(EvaluationError, match=r"scenario\.behaviour\.lane_change_s: 2\.0 -> 3\.0"):
+        evaluate(out=tmp_path, **args)
+
+
 def test_compare_pairs_two_arms_across_both_scenarios(tmp_path, capsys):
     from agents import compare
 

@@ -50,3 +50,20 @@ def test_the_option_is_validated_and_the_emergency_brake_has_no_overtake():
     assert info["ahead_of_ov1"] is None
     with pytest.raises(ValueError, match="unknown config"):
         gym.make("bimp/EmergencyBrake-v0", config={"reference": "keep-lane"})
+
+
+def test_a_pass_that_could_not_finish_before_reaching_the_ov_waits_behind_it_first():
+    # 27 m/s closing at 12 m/s on OV1 25 m ahead: about 1.5 s to its tail, less than a lane change takes.
+    config = {"ev_speed": 27.0, "ov1_gap": 25.0, "ov1_speed": 15.0, "ov2_gap": 120.0, "ov2_speed": 20.0}
+    env = gym.make(OT, config=config)
+    obs, _ = env.reset(seed=0)
+    v_ref, _, lane = env.unwrapped.scene.split_obs(obs)[3]
+    assert lane == RIGHT and v_ref == pytest.approx(15.0)  # brake behind OV1 first
+    # The lane keeper brakes to the reference speed; the pass is asked for once the closing speed allows it.
+    episode = rollout(env, LaneKeeping(env), 0, max_steps=25)
+    lanes = [ref[2] for ref in episode.trace["reference"]]
+    start = lanes.index(LEFT)
+    assert start > 0 and episode.trace["speed"][start] < 23.0
+    # The same instance 10 m further back passes at once.
+    obs, _ = gym.make(OT, config={**config, "ov1_gap": 35.0}).reset(seed=0)
+    assert env.unwrapped.scene.split_obs(obs)[3][2] == LEFT

@@ -47,12 +47,12 @@ def pass_margin(ev, gap1, v1, gap2, v2, held=3.0, headway=0.6, dt=0.1, duration=
     """How far [m] ahead of OV1 (centre to centre) the EV ends an overtaking episode in the worst case of a pass
     ``(...)``: held behind OV1 at its speed, ``headway`` s plus a car and ``d_min`` behind it, until ``held`` s,
     then in the left lane accelerating at ``a_max`` toward the behaviour layer's speed (the cruise speed, OV2's
-    once OV2 is within ``CONSIDER_S`` of travel). The OVs hold speed and lane. Arrays broadcast."""
+    once OV2 is within ``consider_s`` of travel). The OVs hold speed and lane. Arrays broadcast."""
     ev, gap1, v1, gap2, v2 = np.broadcast_arrays(*(np.asarray(a, float) for a in (ev, gap1, v1, gap2, v2)))
     s_1, s_2, v = gap1 + v1 * held, gap2 + v2 * held, v1.copy()
     s_e = s_1 - (length + B.d_min + headway * v1)
     for _ in range(round((duration - held) / dt)):
-        close = s_2 - s_e < OvertakingEnv.CONSIDER_S * np.maximum(v, 1.0)
+        close = s_2 - s_e < OvertakingEnv.BEHAVIOUR.consider_s * np.maximum(v, 1.0)
         a = np.clip((np.where(close, np.minimum(v2, ev), ev) - v) / dt, *B.accel)
         s_e, v = s_e + v * dt, v + a * dt
         s_1, s_2 = s_1 + v1 * dt, s_2 + v2 * dt
