@@ -17,6 +17,7 @@ COMMANDS = {
     "render": ("agents.video", "one episode as an MP4 video"),
     "plot": ("agents.plots", "draw the paper's figures from an evaluation folder"),
     "sweep": ("agents.sweep", "sample-efficiency sweep over the ensemble size N"),
+    "tune": ("agents.tune", "tune a policy's config with Optuna on training seeds (best config to configs/tuned/)"),
     "bench": ("agents.bench", "plan-step timing of the planners, side by side"),
     "train-dynamics": ("planners.dynamics", "train the MLP vehicle model and print its accuracy"),
     "train-rl": ("agents.rl", "train the stable-baselines3 baseline"),

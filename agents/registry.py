@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 import gymnasium as gym
 
@@ -35,8 +36,14 @@ def policy_class(name: str):
     return getattr(importlib.import_module(module), factory)
 
 
-def make_policy(name: str, env: gym.Env, **overrides) -> Policy:
-    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``overrides`` go to its
-    config and an unknown one raises. ``name`` is a key of ``POLICIES`` or ``"module:factory"``.
-    ``ValueError`` for an unknown name."""
-    return policy_class(name)(env, **overrides)
+def make_policy(name: str, env: gym.Env, config: str | Path | None = None, **overrides) -> Policy:
+    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``config``: a YAML written by
+    ``bimp tune`` for this policy; ``overrides`` go to its config (after ``config``) and an unknown one raises.
+    ``name`` is a key of ``POLICIES`` or ``"module:factory"``. ``ValueError`` for an unknown name, or a ``config``
+    tuned for another policy."""
+    factory = policy_class(name)
+    if config is not None:
+        from agents.tune import load_tuned
+
+        overrides = {**load_tuned(name, config), **overrides}
+    return factory(env, **overrides)

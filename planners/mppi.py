@@ -211,11 +211,33 @@ class MPPIPlanner:
         return torch.from_numpy(0.5 * np.sum((h / ctx.problem.noise) ** 2, axis=1))
 
 
-def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> MPPIPlanner:
+def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
+              **overrides) -> MPPIPlanner:
     """MPPI for ``env``: settings from ``config`` (YAML, optional) plus ``overrides`` (an unknown key raises naming
-    it); cost and horizon from the shared problem ``tuning`` (``configs/problem.yaml``)."""
+    it); cost and horizon from the shared problem ``tuning`` (``configs/problem.yaml``) plus ``problem``, overrides
+    of it for this planner alone (a tuned cost)."""
     return MPPIPlanner(lambda: env.unwrapped.scene, load_config(MPPIConfig, config, **overrides),
-                       load_problem(tuning))
+                       load_problem(tuning, **(problem or {})))
+
+
+def search_space() -> dict:
+    """What ``bimp tune`` searches for MPPI: its temperature, sampling noise and control cost, and the weights and
+    margins of its cost (``problem.*``, this planner's copy of the shared problem). N is not tuned."""
+    from optuna.distributions import FloatDistribution as Float
+
+    return {
+        "temperature": Float(0.01, 100.0, log=True),
+        "noise_gain": Float(0.3, 5.0, log=True),
+        "control_cost": Float(0.0, 1.0),
+        "problem.sigma_barrier": Float(0.03, 3.0, log=True),
+        "problem.sigma_ref[0]": Float(0.3, 3.0, log=True),
+        "problem.sigma_ref[2]": Float(0.3, 3.0, log=True),
+        "problem.barrier.edge_margin": Float(0.1, 0.8),
+        "problem.barrier.headway": Float(0.3, 1.2),
+    }
+
+
+make_mppi.search_space = search_space
 
 
 __all__ = ["MPPIConfig", "MPPIPlanner", "make_mppi"]

@@ -468,18 +468,48 @@ class NMPCPlanner:
                         lbx, ubx, np.concatenate(lbg), np.concatenate(ubg))
 
 
-def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> NMPCPlanner:
+def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
+              **overrides) -> NMPCPlanner:
     """NMPC with the quadratic cost of eq. 21 for ``env``: solver settings from ``config`` (YAML, optional) plus
-    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem."""
+    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem plus
+    ``problem``, overrides of it for this planner alone (a tuned cost)."""
     return NMPCPlanner(lambda: env.unwrapped.scene, load_config(NMPCConfig, config, **overrides),
-                       load_problem(tuning))
+                       load_problem(tuning, **(problem or {})))
 
 
-def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> NMPCPlanner:
+def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
+                **overrides) -> NMPCPlanner:
     """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared problem (EnKTS's)."""
-    shared = load_problem(tuning)
+    shared = load_problem(tuning, **(problem or {}))
     return NMPCPlanner(lambda: env.unwrapped.scene,
                        load_config(NMPCConfig, config, **{"nu": shared.nu, **overrides}), shared)
+
+
+def search_space() -> dict:
+    """What ``bimp tune`` searches for NMPC: the weights of its cost and the margins of its constraints
+    (``problem.*``, this planner's copy of the shared problem), the keep-out's shape and the iteration cap."""
+    from optuna.distributions import CategoricalDistribution, FloatDistribution as Float, IntDistribution
+
+    return {
+        "problem.sigma_ref[0]": Float(0.3, 3.0, log=True),
+        "problem.sigma_ref[2]": Float(0.3, 3.0, log=True),
+        "problem.sigma_du[0]": Float(0.2, 1.5, log=True),
+        "problem.sigma_du[1]": Float(0.0005, 0.005, log=True),
+        "problem.barrier.edge_margin": Float(0.1, 0.8),
+        "problem.barrier.headway": Float(0.3, 1.2),
+        "keep_out_power": CategoricalDistribution([2, 4, 6]),
+        "max_iter": IntDistribution(10, 60),
+    }
+
+
+def nmpc_t_search_space() -> dict:
+    """NMPC's search space and the Student's-t cost's nu."""
+    from optuna.distributions import FloatDistribution as Float
+
+    return {**search_space(), "nu": Float(2.5, 30.0, log=True)}
+
+
+make_nmpc.search_space, make_nmpc_t.search_space = search_space, nmpc_t_search_space
 
 
 __all__ = ["NMPCConfig", "NMPCPlanner", "make_nmpc", "make_nmpc_t", "mlp_function", "bicycle_function", "frenet",
