@@ -87,7 +87,7 @@ def factory_kwargs(policy) -> dict:
 def _path(key: str) -> list[str | int]:
     parts = [name if name else int(index) for name, index in _PART.findall(key)]
     if not parts or "".join(f".{p}" if isinstance(p, str) else f"[{p}]" for p in parts).lstrip(".") != key:
-        raise TuneError(f"search-space key {key!r} is not of the form name, name.field or name[index]")
+        raise TuneError(f"config key {key!r} is not of the form name, name.field or name[index]")
     return parts
 
 
@@ -103,7 +103,7 @@ def set_value(tree: dict, key: str, value: Any) -> dict:
             known = sorted(node) if isinstance(node, dict) else f"{len(node)} entries" if isinstance(node, list) \
                 else "no entries"
             where = key if depth == 0 else f"{key} (at {parts[depth]!r})"
-            raise TuneError(f"search-space key {where} is not in the config; it has {known}")
+            raise TuneError(f"no config entry {where}; the config has {known}")
         if depth == len(parts) - 1:
             node[part] = value
         else:
