@@ -268,7 +268,8 @@ class NMPCPlanner:
 
     Attributes after ``act``: ``failures`` (fallback actions), ``capped`` (cap-stopped but feasible solves used),
     ``statuses`` (IPOPT return statuses), ``solve_times`` [s] and ``iterations`` per solve, ``plan`` (the last
-    usable solution ``(X (H + 1, 4), U (H, 2))``).
+    usable solution ``(X (H + 1, 4), U (H, 2))``), ``step_info`` (this step's ``status``, ``fallback`` and
+    ``iterations``: the episode loop records it per step).
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: NMPCConfig = NMPCConfig(),
@@ -319,6 +320,7 @@ class NMPCPlanner:
             self._controls = np.vstack([self._controls[1:], self._controls[-1:]])  # the old plan's next control
         if not usable:
             self.failures += 1
+        self.step_info = {"status": self._status, "fallback": not usable, "iterations": self._iterations}
         u = self._controls[0] if self._controls is not None else u_prev
         if not np.all(np.isfinite(u)):
             u = u_prev
@@ -351,11 +353,13 @@ class NMPCPlanner:
             stats = solver.stats()
         except RuntimeError:  # CasADi raises on evaluation errors it cannot hand to IPOPT
             self.statuses["exception"] += 1
+            self._status, self._iterations = "exception", -1
             return False, None
         status = stats.get("return_status", "unknown")
         self.statuses[status] += 1
         self.solve_times.append(time.perf_counter() - start)
         self.iterations.append(int(stats.get("iter_count", -1)))
+        self._status, self._iterations = status, self.iterations[-1]
         w = np.asarray(out["x"]).ravel()
         if not np.all(np.isfinite(w)):
             return False, None

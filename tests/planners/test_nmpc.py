@@ -330,3 +330,18 @@ def test_config_validation_and_unknown_overrides():
     with pytest.raises(ValueError, match="max_iters"):
         make_nmpc(env, max_iters=5)
     assert make_nmpc(env, horizon=7).horizon == 7
+
+
+def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
+    # No iterations allowed and an infeasible first guess: every solve stops at the cap, infeasible -> fallback.
+    from agents.evaluate import evaluate, read_records
+
+    evaluate(["emergency-brake"], ["nmpc"], 1, 3, out=tmp_path, traces=1, progress=False,
+             overrides={"nmpc": {"max_iter": 0, "cold_max_iter": 0, "horizon": 3}})
+    (record,) = read_records(tmp_path)
+    infos = record["trace"]["policy_info"]
+    assert len(infos) == record["steps"]
+    forced = [i for i, info in enumerate(infos) if info["status"] == "Maximum_Iterations_Exceeded" and info["fallback"]]
+    assert forced and record["policy_info"]["fallback_steps"] == [i for i, info in enumerate(infos) if info["fallback"]]
+    assert set(forced) <= set(record["policy_info"]["fallback_steps"])
+    assert sum(record["policy_info"]["status"].values()) == record["steps"]
