@@ -45,9 +45,9 @@ import yaml
 
 from agents.evaluate import EvaluationError, evaluate, read_records
 from agents.provenance import config_hash
+from agents.registry import TUNED_DIR
 
 RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
-TUNED_DIR = Path(__file__).resolve().parent.parent / "configs" / "tuned"
 _PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
 
 
@@ -111,17 +111,24 @@ def set_value(tree: dict, key: str, value: Any) -> dict:
     return root
 
 
-def overrides_for(base: dict, params: dict) -> dict:
-    """The overrides that give ``base`` (factory kwargs) the trial's ``params``: each top-level key touched, whole."""
+def with_params(base: dict, params: dict) -> dict:
+    """``base`` (factory kwargs) with every ``key: value`` of ``params`` set."""
     tree = base
     for key, value in params.items():
         tree = set_value(tree, key, value)
+    return tree
+
+
+def overrides_for(base: dict, params: dict) -> dict:
+    """The overrides that give ``base`` (factory kwargs) the ``params``: each top-level entry touched, whole."""
+    tree = with_params(base, params)
     return {name: tree[name] for name in {_path(key)[0] for key in params}}
 
 
 def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
     """Validate ``space`` for ``policy`` before any trial: every key names an entry of its config, and the policy
-    builds at the low and the high end of every distribution on every scenario. Returns the base factory kwargs."""
+    builds at the low and the high end of every distribution on every scenario. Returns the base: the factory's
+    own defaults (not a shipped tuned config, which a study must not drift with), as complete factory kwargs."""
     import gymnasium as gym
 
     import envs
@@ -133,14 +140,16 @@ def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
             envs_.append(gym.make(envs.env_id(scenario)))
         except ValueError as err:
             raise TuneError(str(err)) from None
-    base = factory_kwargs(make_policy(policy, envs_[0]))
+    from agents.registry import policy_class
+
+    base = factory_kwargs(policy_class(policy)(envs_[0]))
     for key in space:
         set_value(base, key, None)  # raises naming a key the config lacks
     for end in (0, -1):
         params = {k: _ends(d)[end] for k, d in space.items()}
         for env in envs_:
             try:
-                make_policy(policy, env, **overrides_for(base, params))
+                make_policy(policy, env, **with_params(base, params))
             except (ValueError, TypeError) as err:
                 raise TuneError(f"{policy} rejects its search space's {'low' if end == 0 else 'high'} end "
                                 f"{params}: {err}") from None
@@ -240,7 +249,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
 
     def objective(trial) -> float:
         params = {key: _suggest(trial, key, dist) for key, dist in space.items()}
-        overrides = overrides_for(base, params)
+        overrides = with_params(base, params)  # complete: no default of the day (a tuned config) leaks in
         folder = out / "trials" / config_hash(policy, overrides)
         trial.set_user_attr("folder", str(folder))
         value = math.nan
@@ -281,9 +290,7 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
     best = study.best_trial
     request = study.user_attrs.get("request", {})
     params = {k: best.params[k] for k in space if k in best.params}
-    config = base
-    for key, value in params.items():
-        config = set_value(config, key, value)
+    config = with_params(base, params)
     counts: dict[str, int] = {}
     for t in study.get_trials(deepcopy=False):
         counts[t.state.name.lower()] = counts.get(t.state.name.lower(), 0) + 1

@@ -60,6 +60,19 @@ def test_every_search_space_names_only_keys_its_config_accepts(policy):
     assert space and all(set_value(base, key, "x") != base for key in space)
 
 
+def test_a_shipped_tuned_config_is_the_default_and_a_study_does_not_drift_with_it(tmp_path, monkeypatch):
+    import agents.registry
+
+    study = _run(tmp_path, 2)
+    monkeypatch.setattr(agents.registry, "TUNED_DIR", tmp_path)
+    (tmp_path / "best.yaml").rename(tmp_path / "lane-keep.yaml")
+    env = gym.make("bimp/EmergencyBrake-v0")
+    assert make_policy("lane-keep", env).config == pytest.approx(study.best_trial.params)
+    # The study's base is the factory's own defaults: a resumed study runs its trials as before.
+    base = check_space("lane-keep", EB, search_space("lane-keep"))
+    assert base == LaneKeeping(env).config
+
+
 def test_make_policy_refuses_a_config_tuned_for_another_policy_or_not_tuned(tmp_path):
     _run(tmp_path, 1)
     env = gym.make("bimp/EmergencyBrake-v0")
