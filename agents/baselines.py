@@ -17,6 +17,14 @@ class LaneKeeping:
         self.env, self.k_lat, self.k_head, self.k_speed = env, k_lat, k_head, k_speed
         self.config = {"k_lat": k_lat, "k_head": k_head, "k_speed": k_speed}
 
+    @staticmethod
+    def search_space() -> dict:
+        """The gains ``bimp tune`` searches (log-uniform over a decade or more around the defaults)."""
+        from optuna.distributions import FloatDistribution as Float
+
+        return {"k_lat": Float(0.001, 0.02, log=True), "k_head": Float(0.02, 0.5, log=True),
+                "k_speed": Float(0.1, 2.0, log=True)}
+
     def reset(self, seed: int | None = None) -> None:
         """Deterministic: nothing to seed."""
 

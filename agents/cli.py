@@ -16,7 +16,9 @@ COMMANDS = {
     "compare": ("agents.compare", "paired per-seed comparison of two policies: McNemar, paired bootstrap"),
     "render": ("agents.video", "one episode as an MP4 video"),
     "plot": ("agents.plots", "draw the paper's figures from an evaluation folder"),
-    "sweep": ("agents.sweep", "sample-efficiency sweep over the ensemble size N"),
+    "sweep": ("agents.sweep", "policies along one config key (any --param, or N with --n)"),
+    "frontier": ("agents.sweep:frontier_main", "success and violations against plan time, across N / iterations"),
+    "tune": ("agents.tune", "tune a policy's config with Optuna on training seeds (best config to configs/tuned/)"),
     "bench": ("agents.bench", "plan-step timing of the planners, side by side"),
     "train-dynamics": ("planners.dynamics", "train the MLP vehicle model and print its accuracy"),
     "train-rl": ("agents.rl", "train the stable-baselines3 baseline"),
@@ -36,8 +38,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\nunknown command {argv[0]!r}", file=sys.stderr)
             return 2
         return 0
-    module = importlib.import_module(COMMANDS[argv[0]][0])
-    return int(module.main(argv[1:]) or 0)
+    module, _, function = COMMANDS[argv[0]][0].partition(":")
+    return int(getattr(importlib.import_module(module), function or "main")(argv[1:]) or 0)
 
 
 if __name__ == "__main__":

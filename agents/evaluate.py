@@ -30,13 +30,14 @@ import os
 import sys
 import time
 import traceback
-from collections import deque
+from collections import Counter, deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from agents.metrics import BINARY, METRICS, episode_metrics, summarize
@@ -211,6 +212,8 @@ def run_group(group: tuple[Job, ...]) -> list[dict]:
                           metrics=episode_metrics(episode.trace, scene.dt, truncated=episode.truncated))
             if batched:
                 record["batch"] = len(group)
+            if "policy_info" in episode.trace:
+                record["policy_info"] = step_info_summary(episode.trace["policy_info"])
             if job.trace:
                 record.update(trace=episode.trace, road=dataclasses.asdict(scene.road),
                               bounds=dataclasses.asdict(scene.bounds))
@@ -222,6 +225,22 @@ def run_group(group: tuple[Job, ...]) -> list[dict]:
     for record in records:
         record["wall_s"] = wall
     return records
+
+
+def step_info_summary(infos: list[dict]) -> dict:
+    """A policy's per-step ``step_info`` in one record: for a flag, the steps where it was set (``fallback`` ->
+    ``fallback_steps``: did a collision follow a solver fallback?); for a string, its counts; for a number, its
+    mean and maximum."""
+    summary: dict = {}
+    for key in infos[0] if infos else ():
+        values = [info.get(key) for info in infos]
+        if all(isinstance(v, bool) for v in values):
+            summary[f"{key}_steps"] = [i for i, v in enumerate(values) if v]
+        elif all(isinstance(v, str) for v in values):
+            summary[key] = dict(Counter(values))
+        elif all(isinstance(v, (int, float)) for v in values):
+            summary[key] = {"mean": float(np.mean(values)), "max": float(np.max(values))}
+    return summary
 
 
 def _crash_record(job: Job) -> dict:

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 import gymnasium as gym
 
 from agents.policy import Policy
+
+# Tuned configs written by `bimp tune` (configs/tuned/NAME.yaml): where one ships, it is NAME's default.
+TUNED_DIR = Path(__file__).resolve().parent.parent / "configs" / "tuned"
 
 # name -> "module:factory"; each factory takes (env, **overrides) and returns a Policy.
 POLICIES = {
@@ -35,8 +39,17 @@ def policy_class(name: str):
     return getattr(importlib.import_module(module), factory)
 
 
-def make_policy(name: str, env: gym.Env, **overrides) -> Policy:
-    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``overrides`` go to its
-    config and an unknown one raises. ``name`` is a key of ``POLICIES`` or ``"module:factory"``.
-    ``ValueError`` for an unknown name."""
-    return policy_class(name)(env, **overrides)
+def make_policy(name: str, env: gym.Env, config: str | Path | None = None, **overrides) -> Policy:
+    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``config``: a YAML written by
+    ``bimp tune`` for this policy (default: ``configs/tuned/<name>.yaml`` if it exists, else the policy's own
+    defaults); ``overrides`` go to its config (after ``config``) and an unknown one raises.
+    ``name`` is a key of ``POLICIES`` or ``"module:factory"``. ``ValueError`` for an unknown name, or a ``config``
+    tuned for another policy."""
+    factory = policy_class(name)
+    if config is None and (TUNED_DIR / f"{name}.yaml").is_file():
+        config = TUNED_DIR / f"{name}.yaml"  # a shipped tuned config is the policy's default
+    if config is not None:
+        from agents.tune import load_tuned
+
+        overrides = {**load_tuned(name, config), **overrides}
+    return factory(env, **overrides)

@@ -87,6 +87,9 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
             observations: list | None = None) -> Episode:
     """Run ``policy`` on ``env`` from the episode ``seed`` until termination, truncation or ``max_steps``.
 
+    A policy with a ``step_info`` dict (what its last ``act`` did, e.g. NMPC's solver status and fallback) has it
+    recorded per step in ``trace["policy_info"]``.
+
     ``on_step(env, obs, info)`` is called after the reset (``info`` of the reset) and after every step (for
     rendering); ``observations``, if given, receives every observation the policy acted on.
     """
@@ -104,6 +107,8 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
         plan_ms = 1e3 * (time.perf_counter() - start)
         obs, reward, terminated, truncated, info = env.step(action)
         _record(episode, scene, obs, reward, terminated, truncated, info, plan_ms)
+        if hasattr(policy, "step_info"):
+            episode.trace.setdefault("policy_info", []).append(dict(policy.step_info))
         done = terminated or truncated
         if on_step:
             on_step(env, obs, info)

@@ -1,37 +1,145 @@
-"""``bimp sweep``: sample efficiency, success and violation rates against the ensemble size N.
+"""``bimp sweep`` and ``bimp frontier``: policies evaluated along one axis of their configs.
 
-    bimp sweep --scenario overtaking emergency-brake --policy enkts enks --n 10 20 50 100 200 \\
-               --episodes 10 --out runs/sweep
+    bimp sweep --param enkts.sigma_barrier=0.05,0.1,0.2 --scenario overtaking --episodes 20 --seed 200 --out DIR
+    bimp sweep --policy enkts enks --n 10 20 50 100 200 --episodes 10 --out DIR        # N, for each policy
+    bimp frontier --scenario overtaking --policies enkts enks mppi nmpc ppo --n 10 20 50 100 200 500 1000 2000 \\
+                  --iters 5 10 20 40 --episodes 20 --seed 2000 --out DIR
 
-Each N is an ordinary (resumable) evaluation in ``OUT/N<n>``; ``OUT/sweep.json`` and ``OUT/sweep.png``
-collect them.
+A sweep is a list of *points* (a policy under one set of overrides, shown as a label such as ``enkts N=50``), each
+an ordinary evaluation (:func:`agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
+provenance, one ``episodes.jsonl``. ``--param POLICY.KEY=V1,V2,...`` sweeps any config key (``KEY`` as in ``bimp
+tune``'s search spaces: ``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` for
+different policies sweep together, value by value. ``--n`` sweeps ``n_particles`` of every ``--policy``.
+
+The frontier puts quality against compute: each policy along its compute axis (``FRONTIER_AXES``: the particles N
+of EnKTS, EnKS and MPPI, the iteration cap of NMPC; one point for a policy without one, such as PPO), success
+(Wilson interval) and bound violations against the plan time per step (the per-episode median, averaged over
+episodes). Episodes run one at a time (no ``--batch``): a batched plan's time is not one plan's. Run it on held-out
+seeds and an otherwise idle machine, with ``--workers 1`` (the default) so that no two episodes share a core.
+
+Writes ``OUT/sweep.json`` (the points with their summaries), ``OUT/sweep.md`` (one row per point and scenario)
+and ``OUT/sweep.png`` (or ``frontier.json``, ``frontier.md``, ``frontier.png``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
-from agents.evaluate import evaluate
+from agents.evaluate import EvaluationError, _fmt, evaluate, parse_overrides
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
+# The config key that buys a policy quality with compute, and its default values for the frontier.
+FRONTIER_AXES = {"enkts": "n_particles", "enks": "n_particles", "mppi": "n_particles", "nmpc": "max_iter",
+                 "nmpc-t": "max_iter"}
 
 
-def sweep(scenarios: list[str], policies: list[str], sizes: list[int], episodes: int, seed: int = 0,
-          workers: int = 1, out: str | Path = "runs/sweep", progress: bool = True) -> dict:
-    """``{str(N): summary}`` for every ensemble size, written to ``out/sweep.json``."""
-    out = Path(out)
-    results = {}
-    for n in sizes:
-        overrides = {p: {"n_particles": n} for p in policies}
-        results[str(n)] = evaluate(scenarios, policies, episodes, seed, workers, out / f"N{n}", traces=0,
-                                   overrides=overrides, progress=progress)
-    (out / "sweep.json").write_text(json.dumps(results, indent=2))
-    return results
+@dataclass(frozen=True)
+class Point:
+    """One policy under ``overrides``, the sweep's ``value`` of ``param`` (None: the policy's own config)."""
+
+    label: str
+    policy: str
+    overrides: dict
+    param: str | None = None
+    value: object = None
 
 
-def plot_sweep(results: dict, path: Path) -> Path:
+def param_points(params: list[str], base: dict | None = None) -> list[Point]:
+    """Points of ``--param POLICY.KEY=V1,V2,...`` (several params: swept together, value by value).
+    ``base``: ``{policy: overrides}`` under every point. :class:`EvaluationError` naming a malformed param."""
+    import yaml
+
+    from agents.tune import TuneError, overrides_for
+
+    parsed = []
+    for item in params:
+        name, eq, values = item.partition("=")
+        policy, dot, key = name.partition(".")
+        if not (eq and dot and policy and key and values):
+            raise EvaluationError(f"--param expects POLICY.KEY=V1,V2,..., got {item!r}")
+        try:
+            parsed.append((policy, key, [yaml.safe_load(v) for v in values.split(",")]))
+        except yaml.YAMLError as err:
+            raise EvaluationError(f"--param {item!r}: a value is not valid YAML ({err})") from None
+    if len({len(values) for _, _, values in parsed}) > 1:
+        raise EvaluationError(f"--param lists of different lengths cannot sweep together: {params}")
+    base = base or {}
+    points = []
+    for policy, key, values in parsed:
+        defaults = _factory_kwargs(policy, base.get(policy, {}))
+        for value in values:
+            try:
+                overrides = {**base.get(policy, {}), **overrides_for(defaults, {key: value})}
+            except TuneError as err:
+                raise EvaluationError(f"--param {policy}.{key}: {err}") from None
+            points.append(Point(f"{policy} {key}={value}", policy, overrides, key, value))
+    return points
+
+
+def _factory_kwargs(policy: str, overrides: dict) -> dict:
+    """The policy's complete keyword arguments under ``overrides`` (built once on the overtaking env)."""
+    import gymnasium as gym
+
+    import envs
+    from agents.registry import make_policy
+    from agents.tune import TuneError, factory_kwargs
+
+    try:
+        return factory_kwargs(make_policy(policy, gym.make(envs.env_id("overtaking")), **overrides))
+    except (TuneError, ValueError, TypeError) as err:
+        raise EvaluationError(f"policy {policy!r}: {err}") from None
+
+
+def axis_points(policies: list[str], axis: dict[str, tuple[str, list]], base: dict | None = None) -> list[Point]:
+    """Each policy along ``axis[policy] = (key, values)``, or one point if it has none there."""
+    base = base or {}
+    points = []
+    for policy in policies:
+        if policy not in axis:
+            points.append(Point(policy, policy, dict(base.get(policy, {}))))
+            continue
+        key, values = axis[policy]
+        short = {"n_particles": "N", "max_iter": "iters"}.get(key, key)
+        points += [Point(f"{policy} {short}={v}", policy, {**base.get(policy, {}), key: v}, key, v) for v in values]
+    return points
+
+
+def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: int, out: str | Path, *,
+               workers: int = 1, batch: int = 1, progress: bool = True) -> list[dict]:
+    """Evaluate every point into ``out``; ``[{label, policy, param, value, scenario, **summary entry}]``."""
+    labels = [p.label for p in points]
+    if not points or len(set(labels)) != len(labels):
+        raise EvaluationError(f"the points need distinct labels, got {labels}")
+    rows = []
+    for p in points:
+        summary = evaluate(scenarios, [p.policy], episodes, seed, workers, out, traces=0, progress=progress,
+                           overrides={p.policy: p.overrides}, labels={p.policy: p.label}, batch=batch)
+        rows += [{**entry, "label": p.label, "policy": p.policy, "param": p.param, "value": p.value}
+                 for entry in summary.values()]
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    """One row per point and scenario: the rates with their intervals and the plan time."""
+    head = ["scenario", "policy", "param", "value", "episodes", *RATES, "plan_time_ms_p50"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in sorted(rows, key=lambda r: (r["scenario"], r["policy"], _order(r["value"]))):
+        cells = [r["scenario"], r["policy"], r["param"] or "-", "-" if r["value"] is None else str(r["value"]),
+                 str(r["episodes"])] + [_fmt(r[m]) for m in (*RATES, "plan_time_ms_p50")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n\nIntervals: 95%, Wilson for the rates per episode, bootstrap for the plan time.\n"
+
+
+def _order(value):
+    return (0, value) if isinstance(value, (int, float)) else (1, str(value))
+
+
+def plot(rows: list[dict], path: Path, frontier: bool) -> Path:
+    """Per scenario: success (with its interval) and the bound-violation rate, against the swept value (a sweep)
+    or the plan time (the frontier), one line per policy."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -39,22 +147,36 @@ def plot_sweep(results: dict, path: Path) -> Path:
 
     from agents.plots import policy_color
 
-    sizes = sorted(int(n) for n in results)
-    entries = next(iter(results.values())).values()
-    scenarios = sorted({e["scenario"] for e in entries})
-    policies = sorted({e["policy"] for e in entries})
-    fig, axes = plt.subplots(len(scenarios), len(RATES), figsize=(3.2 * len(RATES), 2.8 * len(scenarios)),
-                             squeeze=False)
+    scenarios = sorted({r["scenario"] for r in rows})
+    fig, axes = plt.subplots(len(scenarios), 2, figsize=(10, 3.2 * len(scenarios)), squeeze=False)
     for i, scenario in enumerate(scenarios):
-        for j, rate in enumerate(RATES):
+        for policy in sorted({r["policy"] for r in rows}):
+            rs = sorted((r for r in rows if r["scenario"] == scenario and r["policy"] == policy),
+                        key=lambda r: _order(r["value"]))
+            if not rs:
+                continue
+            xs = [r["plan_time_ms_p50"]["mean"] if frontier else r["value"] for r in rs]
+            if not frontier and not all(isinstance(x, (int, float)) for x in xs):
+                xs = list(range(len(rs)))
+            s = [r["success_rate"] for r in rs]
+            err = [[x["mean"] - x["ci_low"] for x in s], [x["ci_high"] - x["mean"] for x in s]]
+            style = dict(color=policy_color(policy), label=policy, marker="o", capsize=3)
+            axes[i, 0].errorbar(xs, [x["mean"] for x in s], yerr=err, **style)
+            violation = [(r["input_violation_rate"]["mean"] + r["rate_violation_rate"]["mean"]) / 2 for r in rs]
+            axes[i, 1].plot(xs, violation, **{k: v for k, v in style.items() if k != "capsize"})
+            if frontier or len(rs) > 1:
+                for x, r in zip(xs, rs):
+                    if r["value"] is not None:
+                        axes[i, 0].annotate(str(r["value"]), (x, r["success_rate"]["mean"]), fontsize=6)
+        numeric = [x for r in rows for x in [r["plan_time_ms_p50"]["mean"] if frontier else r["value"]]
+                   if isinstance(x, (int, float)) and x > 0]
+        for j, name in enumerate(("success rate", "steps over an input or rate bound")):
             ax = axes[i, j]
-            for policy in policies:
-                ys = [results[str(n)][f"{policy}/{scenario}"][rate]["mean"] for n in sizes]
-                ax.plot(sizes, ys, "o-", color=policy_color(policy), label=policy)
-            ax.set_xscale("log")
-            ax.set_xlabel("particles N")
-            ax.set_title(f"{scenario}: {rate}", fontsize=8)
-            ax.set_ylim(-0.05, 1.05)
+            if numeric and max(numeric) / min(numeric) >= 10:
+                ax.set_xscale("log")
+            ax.set_xlabel("plan time per step [ms]" if frontier else (rows[0]["param"] or "point"))
+            ax.set_title(f"{scenario}: {name}", fontsize=9)
+        axes[i, 0].set_ylim(-0.05, 1.05)
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -62,20 +184,62 @@ def plot_sweep(results: dict, path: Path) -> Path:
     return path
 
 
+def write(rows: list[dict], out: Path, name: str) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(rows, indent=2, default=str))
+    (out / f"{name}.md").write_text(table(rows))
+    return [out / f"{name}.json", out / f"{name}.md", plot(rows, out / f"{name}.png", frontier=name == "frontier")]
+
+
+# --- command line ---------------------------------------------------------------------------------------------
+def _common(parser: argparse.ArgumentParser, seed: int) -> None:
+    parser.add_argument("--scenario", nargs="+", default=["overtaking", "emergency-brake"])
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=seed, help="first episode seed (seeds by role: docs/evaluation.md)")
+    parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="POLICY.KEY=VALUE",
+                        help="overrides under every point (as bimp evaluate --set)")
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--out", required=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp sweep", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenario", nargs="+", default=["overtaking", "emergency-brake"])
-    parser.add_argument("--policy", nargs="+", default=["enkts", "enks"])
-    parser.add_argument("--n", nargs="+", type=int, default=[10, 20, 50, 100, 200])
-    parser.add_argument("--episodes", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--out", default="runs/sweep")
+    _common(parser, seed=0)
+    parser.add_argument("--param", nargs="*", default=[], metavar="POLICY.KEY=V1,V2,...")
+    parser.add_argument("--policy", nargs="+", default=["enkts", "enks"], help="the policies --n sweeps")
+    parser.add_argument("--n", nargs="*", type=int, default=[], help="sweep n_particles of every --policy")
+    parser.add_argument("--batch", type=int, default=1)
     args = parser.parse_args(argv)
-    results = sweep(args.scenario, args.policy, args.n, args.episodes, args.seed, args.workers, args.out)
-    print(plot_sweep(results, Path(args.out) / "sweep.png"))
-    for n, summary in results.items():
-        for key, e in summary.items():
-            print(f"N={n:>4} {key:<28} " + " ".join(f"{r}={e[r]['mean']:.2f}" for r in RATES))
+    base = parse_overrides(args.overrides)
+    if bool(args.param) == bool(args.n):
+        parser.error("give either --param or --n")
+    points = (param_points(args.param, base) if args.param
+              else axis_points(args.policy, {p: ("n_particles", args.n) for p in args.policy}, base))
+    rows = run_points(points, args.scenario, args.episodes, args.seed, args.out, workers=args.workers,
+                      batch=args.batch)
+    for path in write(rows, Path(args.out), "sweep"):
+        print(path)
+    print(table(rows))
     return 0
+
+
+def frontier_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp frontier", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    _common(parser, seed=2000)
+    parser.add_argument("--policies", nargs="+", default=["enkts", "enks", "mppi", "nmpc", "ppo"])
+    parser.add_argument("--n", nargs="+", type=int, default=[10, 20, 50, 100, 200, 500, 1000, 2000])
+    parser.add_argument("--iters", nargs="+", type=int, default=[5, 10, 20, 40], help="NMPC's iteration caps")
+    args = parser.parse_args(argv)
+    values = {"n_particles": args.n, "max_iter": args.iters}
+    axis = {p: (FRONTIER_AXES[p], values[FRONTIER_AXES[p]]) for p in args.policies if p in FRONTIER_AXES}
+    rows = run_points(axis_points(args.policies, axis, parse_overrides(args.overrides)), args.scenario,
+                      args.episodes, args.seed, args.out, workers=args.workers)
+    for path in write(rows, Path(args.out), "frontier"):
+        print(path)
+    print(table(rows))
+    return 0
+
+
+__all__ = ["FRONTIER_AXES", "Point", "axis_points", "param_points", "run_points", "table"]

@@ -194,7 +194,34 @@ def make_enks(env, config: str | None = CONFIG_FILE, **overrides) -> EnKTSPlanne
     return make_enkts(env, config, **{"nu": math.inf, **overrides})
 
 
+def search_space() -> dict:
+    """What ``bimp tune`` searches for EnKTS (optuna distributions; keys as in :class:`EnKTSConfig`): the noise
+    scales of the virtual system, the barriers' tightness and margins, the update's safeguards, nu. N and H are
+    not tuned: they set the compute, compared across values by ``bimp frontier``."""
+    from optuna.distributions import FloatDistribution as Float
+
+    return {
+        "nu": Float(2.5, 30.0, log=True),
+        "sigma_du[0]": Float(0.2, 1.5, log=True),
+        "sigma_du[1]": Float(0.0005, 0.005, log=True),
+        "sigma_ref[0]": Float(0.3, 3.0, log=True),
+        "sigma_ref[2]": Float(0.3, 3.0, log=True),
+        "sigma_barrier": Float(0.03, 0.5, log=True),
+        "barrier.edge_margin": Float(0.1, 0.8),
+        "barrier.headway": Float(0.3, 1.2),
+        "lane_change_rate": Float(1.0, 4.0),
+        "max_innovation": Float(1.0, 4.0),
+        "relaxation": Float(0.0, 0.9),
+    }
+
+
+def enks_search_space() -> dict:
+    """EnKTS's search space without nu (EnKS is its Gaussian case)."""
+    return {k: v for k, v in search_space().items() if k != "nu"}
+
+
 make_enkts.batched = make_enks.batched = True
+make_enkts.search_space, make_enks.search_space = search_space, enks_search_space
 
 
 __all__ = ["BarrierShape", "EnKTSConfig", "EnKTSPlanner", "Plan", "make_enkts", "make_enks"]

@@ -16,15 +16,19 @@ each with the input that reached it.
 Choices: the dynamics wrap :meth:`planners.dynamics.LearnedDynamics.predict` (numpy, tensors converted without
 copies: float64 CPU tensors share memory with numpy): the same model object as EnKTS, and the faster path at
 N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`planners.problem.measure`,
-numpy too (the one definition of the problem, evaluated with numpy arrays). Noise: MPPI perturbs the controls ``u_t`` i.i.d. per step, not the increments; the default scale
-``noise_gain * sigma_du`` with gain 1 gives increments of spread ``sqrt(2) sigma_du`` (0.7 m/s^2 and 0.004 rad
-with the shipped tuning), inside the rate bounds, so most samples are not thrown away by the rate barrier,
-while the nominal sequence accumulates larger moves over the receding steps. Temperature 1: the weights
+numpy too (the one definition of the problem, evaluated with numpy arrays). Noise: by default MPPI's action is the
+control *increment* (``sample: increments``), perturbed i.i.d. per step with ``noise_gain * sigma_du`` (the
+virtual system's own prior on increments, eq. 7) and clamped to the rate bounds; the input integrates it. The
+literal alternative (``sample: inputs``) perturbs the inputs i.i.d.: with the shipped tuning its steering noise
+(0.0015 rad) averages out over the horizon, no sample ever turns toward the reference lane, and any larger noise
+breaks the steering rate bound (0.005 rad per step) at every step (on results seeds 1000-1199 it exceeded a rate
+bound on 37% of overtaking steps and left the road on 71% of the episodes). Increments keep the rate bounds by
+construction and let the steering wander far enough to change lanes. Temperature 1: the weights
 ``exp(-cost)`` are then the likelihood of the virtual observation, so the update is the importance-sampled
 posterior mean under the sampling prior (the Bayesian reading of MPPI). Actions are clamped to the actuator
 range (the env clips there); the planning bounds are the barriers' business, as for EnKTS. Warm start: the
-previous nominal sequence shifted by one step, its last control held (as EnKTS); the first plan of an episode
-holds the last input.
+previous nominal sequence shifted by one step (a zero increment, or the last input held, appended); the first
+plan of an episode holds the last input.
 
 What to expect: with this exact NLL and the shipped barrier shape, a keep-out penetration of 0.5 costs ~1e3 per
 step and half a metre off the road ~1e2, so when no sample brakes early enough MPPI swerves off the road
@@ -40,7 +44,7 @@ Cost per plan: H steps of O(N) model and cost work: linear in N and in H.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 import torch
@@ -67,7 +71,9 @@ class MPPIConfig:
     2018; 1 = pytorch_mppi's default). That term is the log-prior of controls that are zero-mean a priori; the
     virtual system's prior is on the increments and its input and rate terms are already in the running cost,
     so by default it is off (with it on, the steering feed-forward of a curve alone moves a plan's cost by tens,
-    which pulled the plans straight off the road in the curve); seed: default seed of the planner's generator.
+    which pulled the plans straight off the road in the curve); sample: what MPPI perturbs, ``"increments"`` (its
+    action is the control increment ``du``, clamped to the rate bounds, the input ``u`` part of its state) or
+    ``"inputs"`` (its action is ``u``, perturbed i.i.d. per step); seed: default seed of the planner's generator.
     A bad value raises :class:`configs.ConfigError` naming the key and the value (types by
     :func:`configs.check_fields`).
     """
@@ -77,6 +83,7 @@ class MPPIConfig:
     temperature: float = 1.0
     noise_gain: float = 1.0
     control_cost: float = 0.0
+    sample: Literal["increments", "inputs"] = "increments"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -172,29 +179,43 @@ class MPPIPlanner:
         ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
         lo, hi = scene.actuator_range
         mppi = self._mppi
-        mppi.u_min, mppi.u_max = torch.from_numpy(lo), torch.from_numpy(hi)
+        increments = self.config.sample == "increments"
+        if increments:  # the rate bounds, tightened as the barriers tighten them
+            rate = np.array([scene.bounds.accel_rate, scene.bounds.steer_rate]) * (1 - self.tuning.barrier.bound_margin)
+            mppi.u_min, mppi.u_max = torch.from_numpy(-rate), torch.from_numpy(rate)
+        else:
+            mppi.u_min, mppi.u_max = torch.from_numpy(lo), torch.from_numpy(hi)
+        # The nominal an episode starts from, and falls back to: hold the last input.
+        hold = torch.zeros(self.horizon, 2, dtype=torch.float64) if increments else \
+            torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
         if not self._warm:
-            mppi.U = torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
+            mppi.U = hold
         problem = make_problem(scene, self.tuning)
         v_ref, a_ref, lane = reference_profile(problem, ref, ego, self.horizon)
         self._context = _Context(problem, u_prev, lane, v_ref, a_ref,
                                  predict_obstacles(problem, ovs, self.horizon))
         start = torch.from_numpy(np.concatenate([ego, u_prev, np.zeros(2), u_prev]))
-        # MPPI's own shift refills with a fixed u_init; shift ourselves afterwards to hold the last control.
+        # MPPI's own shift refills with a fixed u_init; shift ourselves afterwards (hold the last input).
         u = mppi.command(start, shift_nominal_trajectory=False).numpy().copy()
+        if increments:
+            u = u_prev + u
         if not (np.all(np.isfinite(u)) and torch.isfinite(mppi.U).all()):
             self.fallbacks += 1
             u = u_prev
-            mppi.U = torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
-        mppi.U = torch.cat([mppi.U[1:], mppi.U[-1:]])
+            mppi.U = hold
+        last = torch.zeros(1, 2, dtype=torch.float64) if increments else mppi.U[-1:]
+        mppi.U = torch.cat([mppi.U[1:], last])
         self._warm = True
         return scene.to_normalized(np.clip(u, lo, hi)).astype(np.float32)
 
     # --- MPPI callbacks ----------------------------------------------------------------------------------
-    def _step(self, block: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
-        """Virtual-system transition ``(N, 10) -> (N, 10)`` with action ``u (N, 2)`` at step ``t`` (eq. 7): the
-        state reached with ``u``, the input, its increment, the first input."""
-        b, u = block.numpy(), u.numpy()
+    def _step(self, block: torch.Tensor, action: torch.Tensor, t: int) -> torch.Tensor:
+        """Virtual-system transition ``(N, 10) -> (N, 10)`` with MPPI's action ``(N, 2)`` at step ``t`` (eq. 7):
+        the state reached with the input ``u`` (the action, or the last input plus the action as an increment,
+        within the actuator range), the input, its increment, the first input."""
+        b, u = block.numpy(), action.numpy()
+        if self.config.sample == "increments":
+            u = np.clip(b[:, 4:6] + u, *self._scene().actuator_range)
         x = self.dynamics(b[:, :4], u)
         first = u if t == 0 else b[:, 8:10]
         return torch.from_numpy(np.concatenate([x, u, u - b[:, 4:6], first], axis=1))
@@ -211,11 +232,33 @@ class MPPIPlanner:
         return torch.from_numpy(0.5 * np.sum((h / ctx.problem.noise) ** 2, axis=1))
 
 
-def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> MPPIPlanner:
+def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
+              **overrides) -> MPPIPlanner:
     """MPPI for ``env``: settings from ``config`` (YAML, optional) plus ``overrides`` (an unknown key raises naming
-    it); cost and horizon from the shared problem ``tuning`` (``configs/problem.yaml``)."""
+    it); cost and horizon from the shared problem ``tuning`` (``configs/problem.yaml``) plus ``problem``, overrides
+    of it for this planner alone (a tuned cost)."""
     return MPPIPlanner(lambda: env.unwrapped.scene, load_config(MPPIConfig, config, **overrides),
-                       load_problem(tuning))
+                       load_problem(tuning, **(problem or {})))
+
+
+def search_space() -> dict:
+    """What ``bimp tune`` searches for MPPI: its temperature, sampling noise and control cost, and the weights and
+    margins of its cost (``problem.*``, this planner's copy of the shared problem). N is not tuned."""
+    from optuna.distributions import FloatDistribution as Float
+
+    return {
+        "temperature": Float(0.01, 100.0, log=True),
+        "noise_gain": Float(0.3, 10.0, log=True),
+        "control_cost": Float(0.0, 1.0),
+        "problem.sigma_barrier": Float(0.03, 3.0, log=True),
+        "problem.sigma_ref[0]": Float(0.3, 3.0, log=True),
+        "problem.sigma_ref[2]": Float(0.3, 3.0, log=True),
+        "problem.barrier.edge_margin": Float(0.1, 0.8),
+        "problem.barrier.headway": Float(0.3, 1.2),
+    }
+
+
+make_mppi.search_space = search_space
 
 
 __all__ = ["MPPIConfig", "MPPIPlanner", "make_mppi"]

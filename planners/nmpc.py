@@ -79,7 +79,10 @@ class NMPCConfig:
     ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin on the input and rate bounds, so that
     IPOPT's tolerance and the float32 action never cross the env's bound; feasibility_tol: largest constraint
     violation of a capped iterate that is still used; keep_out_power: even exponent p >= 2 of the keep-out
-    superellipse (2: an ellipse). A bad value raises :class:`configs.ConfigError` naming the key and the value
+    superellipse (2: an ellipse); slack_penalty: weight > 0 of the exact (L1) penalty on slack variables that soften
+    the keep-out and road-edge constraints (``inf``: hard constraints, the paper's eq. 21; with them a sudden
+    brake ahead makes the problem infeasible, IPOPT fails at every step and the fallback drives into the OV).
+    A bad value raises :class:`configs.ConfigError` naming the key and the value
     (types by :func:`configs.check_fields`).
     """
 
@@ -94,9 +97,10 @@ class NMPCConfig:
     bound_tightening: float = 1e-3
     feasibility_tol: float = 1e-4
     keep_out_power: int = 4
+    slack_penalty: float = 1e4
 
     def __post_init__(self) -> None:
-        check_fields(self, allow_inf=("nu",))
+        check_fields(self, allow_inf=("nu", "slack_penalty"))
         if self.horizon is not None and self.horizon < 1:
             raise ConfigError("horizon", "an int >= 1 or None", self.horizon)
         if not self.nu > 0:
@@ -113,6 +117,8 @@ class NMPCConfig:
             raise ConfigError("keep_out_power", "an even int >= 2", self.keep_out_power)
         if not 0 <= self.bound_tightening < 1:
             raise ConfigError("bound_tightening", "in [0, 1)", self.bound_tightening)
+        if not self.slack_penalty > 0:
+            raise ConfigError("slack_penalty", "> 0 (inf for hard constraints)", self.slack_penalty)
 
 
 # --- CasADi building blocks (each mirrors a numpy function elsewhere; tests check they agree) ---------------
@@ -255,6 +261,7 @@ class _Problem:
     ubx: np.ndarray
     lbg: np.ndarray
     ubg: np.ndarray
+    n_slack: int = 0  # slack variables after X and U in the decision vector (soft constraints)
 
 
 class NMPCPlanner:
@@ -268,7 +275,8 @@ class NMPCPlanner:
 
     Attributes after ``act``: ``failures`` (fallback actions), ``capped`` (cap-stopped but feasible solves used),
     ``statuses`` (IPOPT return statuses), ``solve_times`` [s] and ``iterations`` per solve, ``plan`` (the last
-    usable solution ``(X (H + 1, 4), U (H, 2))``).
+    usable solution ``(X (H + 1, 4), U (H, 2))``), ``step_info`` (this step's ``status``, ``fallback`` and
+    ``iterations``: the episode loop records it per step).
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: NMPCConfig = NMPCConfig(),
@@ -308,7 +316,7 @@ class NMPCPlanner:
         problem = self._problem(scene)
         params = self._params(scene, ego, u_prev, ovs, ref)
         X0, U0 = self._initial_guess(ego, u_prev)
-        w0 = np.concatenate([X0.ravel(), U0.ravel()])
+        w0 = np.concatenate([X0.ravel(), U0.ravel(), np.zeros(problem.n_slack)])
         usable, iterate = self._solve(problem, w0, params)
         # Even an unusable iterate (stopped by a cap while still infeasible) is further on than the old guess.
         self._guess = iterate if iterate is not None else (X0, U0)
@@ -319,6 +327,7 @@ class NMPCPlanner:
             self._controls = np.vstack([self._controls[1:], self._controls[-1:]])  # the old plan's next control
         if not usable:
             self.failures += 1
+        self.step_info = {"status": self._status, "fallback": not usable, "iterations": self._iterations}
         u = self._controls[0] if self._controls is not None else u_prev
         if not np.all(np.isfinite(u)):
             u = u_prev
@@ -351,15 +360,17 @@ class NMPCPlanner:
             stats = solver.stats()
         except RuntimeError:  # CasADi raises on evaluation errors it cannot hand to IPOPT
             self.statuses["exception"] += 1
+            self._status, self._iterations = "exception", -1
             return False, None
         status = stats.get("return_status", "unknown")
         self.statuses[status] += 1
         self.solve_times.append(time.perf_counter() - start)
         self.iterations.append(int(stats.get("iter_count", -1)))
+        self._status, self._iterations = status, self.iterations[-1]
         w = np.asarray(out["x"]).ravel()
         if not np.all(np.isfinite(w)):
             return False, None
-        iterate = (w[:4 * H].reshape(H, 4), w[4 * H:].reshape(H, 2))
+        iterate = (w[:4 * H].reshape(H, 4), w[4 * H:6 * H].reshape(H, 2))
         if status in _SUCCESS:
             return True, iterate
         if status not in _CAPPED:
@@ -424,6 +435,15 @@ class NMPCPlanner:
         J = ca.sum2(robust_cost(q_ref[:, 1:], 3, cfg.nu) + robust_cost(q_in, 2, cfg.nu)
                     + robust_cost(q_du, 2, cfg.nu))
 
+        # Soft constraints (keep-out and road edges) take a slack each, charged at an exact (L1) penalty: a problem
+        # that a sudden brake ahead makes infeasible becomes one that minimizes the violation, and as long as the
+        # constraints can be met (and the penalty beats their multipliers) the slack stays 0.
+        soft = math.isfinite(cfg.slack_penalty)
+        S_edge = ca.MX.sym("S_edge", 1, H) if soft else ca.MX.zeros(1, H)
+        S_ov = ca.MX.sym("S_ov", K, H) if soft else ca.MX.zeros(K, H)
+        if soft:
+            J = J + cfg.slack_penalty * (ca.sum2(S_edge) + ca.sum1(ca.sum2(S_ov)))
+
         # Constraints: rows over the steps 1..H (inputs and rates: 0..H-1), each with its lower and upper bound.
         g, lbg, ubg = [], [], []
 
@@ -442,15 +462,16 @@ class NMPCPlanner:
         for sign_l in (1.0, -1.0):
             for sign_h in (1.0, -1.0):
                 corner = sign_l * lat[:, 1:] + sign_h * half_l * ca.sin(dpsi[:, 1:]) + half_w * ca.cos(dpsi[:, 1:])
-                add(corner, -np.inf, scene.road.half_width - shape.edge_margin)
+                add(corner - S_edge, -np.inf, scene.road.half_width - shape.edge_margin)
         p_exp = cfg.keep_out_power
         for k in range(K):
             ds = s[:, 1:] - s_o[k, 1:]
             semi_s, semi_l = keep_out_semi_axes(scene, shape, ds, v[:, 1:], v_o[k, 1:], a_o[k, 1:])
             keep_out = (ds / semi_s) ** p_exp + ((lat[:, 1:] - l_o[k, 1:]) / semi_l) ** p_exp - 1.0
-            add(keep_out + (1.0 - present[k]) * _ABSENT, 0.0, np.inf)
+            add(keep_out + S_ov[k, :] + (1.0 - present[k]) * _ABSENT, 0.0, np.inf)
 
-        w = ca.vertcat(ca.vec(X), ca.vec(U))  # X column-major = x_1, x_2, ... row blocks of 4
+        slack = [ca.vec(S_edge), ca.vec(S_ov)] if soft else []
+        w = ca.vertcat(ca.vec(X), ca.vec(U), *slack)  # X column-major = x_1, x_2, ... row blocks of 4
         nlp = {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}
 
         def solver(name: str, max_iter: int, max_cpu_time: float) -> ca.Function:
@@ -461,25 +482,57 @@ class NMPCPlanner:
 
         lo_u = np.array([keep * b.accel[0], -keep * b.steer])
         hi_u = np.array([keep * b.accel[1], keep * b.steer])
-        lbx = np.concatenate([np.full(4 * H, -np.inf), np.tile(lo_u, H)])
-        ubx = np.concatenate([np.full(4 * H, np.inf), np.tile(hi_u, H)])
+        n_slack = (K + 1) * H if soft else 0
+        lbx = np.concatenate([np.full(4 * H, -np.inf), np.tile(lo_u, H), np.zeros(n_slack)])
+        ubx = np.concatenate([np.full(4 * H, np.inf), np.tile(hi_u, H), np.full(n_slack, np.inf)])
         return _Problem(solver("nmpc", cfg.max_iter, cfg.max_cpu_time),
                         solver("nmpc_cold", cfg.cold_max_iter, cfg.cold_max_cpu_time),
-                        lbx, ubx, np.concatenate(lbg), np.concatenate(ubg))
+                        lbx, ubx, np.concatenate(lbg), np.concatenate(ubg), n_slack)
 
 
-def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> NMPCPlanner:
+def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
+              **overrides) -> NMPCPlanner:
     """NMPC with the quadratic cost of eq. 21 for ``env``: solver settings from ``config`` (YAML, optional) plus
-    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem."""
+    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem plus
+    ``problem``, overrides of it for this planner alone (a tuned cost)."""
     return NMPCPlanner(lambda: env.unwrapped.scene, load_config(NMPCConfig, config, **overrides),
-                       load_problem(tuning))
+                       load_problem(tuning, **(problem or {})))
 
 
-def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, **overrides) -> NMPCPlanner:
+def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
+                **overrides) -> NMPCPlanner:
     """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared problem (EnKTS's)."""
-    shared = load_problem(tuning)
+    shared = load_problem(tuning, **(problem or {}))
     return NMPCPlanner(lambda: env.unwrapped.scene,
                        load_config(NMPCConfig, config, **{"nu": shared.nu, **overrides}), shared)
+
+
+def search_space() -> dict:
+    """What ``bimp tune`` searches for NMPC: the weights of its cost and the margins of its constraints
+    (``problem.*``, this planner's copy of the shared problem), the keep-out's shape and the iteration cap."""
+    from optuna.distributions import CategoricalDistribution, FloatDistribution as Float, IntDistribution
+
+    return {
+        "problem.sigma_ref[0]": Float(0.3, 3.0, log=True),
+        "problem.sigma_ref[2]": Float(0.3, 3.0, log=True),
+        "problem.sigma_du[0]": Float(0.2, 1.5, log=True),
+        "problem.sigma_du[1]": Float(0.0005, 0.005, log=True),
+        "problem.barrier.edge_margin": Float(0.1, 0.8),
+        "problem.barrier.headway": Float(0.3, 1.2),
+        "keep_out_power": CategoricalDistribution([2, 4, 6]),
+        "max_iter": IntDistribution(10, 60),
+        "slack_penalty": Float(1e2, 1e5, log=True),
+    }
+
+
+def nmpc_t_search_space() -> dict:
+    """NMPC's search space and the Student's-t cost's nu."""
+    from optuna.distributions import FloatDistribution as Float
+
+    return {**search_space(), "nu": Float(2.5, 30.0, log=True)}
+
+
+make_nmpc.search_space, make_nmpc_t.search_space = search_space, nmpc_t_search_space
 
 
 __all__ = ["NMPCConfig", "NMPCPlanner", "make_nmpc", "make_nmpc_t", "mlp_function", "bicycle_function", "frenet",

@@ -29,3 +29,19 @@ class Faulty:
                 os._exit(3)
             raise RuntimeError("injected failure")
         return self.inner.act(obs)
+
+
+class Fragile(LaneKeeping):
+    """Lane keeping that raises in ``act`` when its speed gain exceeds 1 (a tunable policy whose search space
+    holds configs that fail: ``tests.agents.faulty:Fragile``)."""
+
+    @staticmethod
+    def search_space() -> dict:
+        from optuna.distributions import FloatDistribution
+
+        return {"k_speed": FloatDistribution(0.1, 2.0)}
+
+    def act(self, obs):
+        if self.k_speed > 1.0:
+            raise RuntimeError("injected failure: gain too high")
+        return super().act(obs)

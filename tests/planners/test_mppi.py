@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import envs
+from agents.rollout import rollout
 from envs.road import RoadGeometry
 from envs.scene import Bounds, Scene
 from planners.dynamics import BicycleModel, load_model, save_model
@@ -81,7 +82,7 @@ def test_running_cost_is_the_nll_of_measure_on_random_blocks():
 
 def test_transition_is_the_virtual_system():
     model = load_model()
-    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), dynamics=model)
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3, sample="inputs"), dynamics=model)
     start = torch.tensor([[10.0, 2.0, 0.01, 20.0, -1.0, 0.01, 0.0, 0.0, -1.0, 0.01]], dtype=torch.float64)
     u0 = torch.tensor([[-1.5, 0.012]], dtype=torch.float64)
     b0 = planner._step(start, u0, 0).numpy()  # x_1 = f(x_0, u_0): the state the step's input reaches
@@ -91,6 +92,27 @@ def test_transition_is_the_virtual_system():
     b1 = planner._step(torch.from_numpy(b0), u1, 1).numpy()  # x_2 = f(x_1, u_1); u_0 kept in the last slot
     np.testing.assert_allclose(b1[:, :4], model.predict(b0[:, :4], u1.numpy()))
     np.testing.assert_allclose(b1[:, 4:], [[-2.0, 0.01, -0.5, -0.002, -1.5, 0.012]], atol=1e-15)
+
+
+def test_with_increments_the_action_is_added_to_the_input_within_the_actuator_range():
+    model = load_model()
+    scene = straight_scene()
+    planner = MPPIPlanner(scene, MPPIConfig(n_particles=4, horizon=3), dynamics=model)
+    start = torch.tensor([[10.0, 2.0, 0.01, 20.0, -1.0, 0.01, 0.0, 0.0, -1.0, 0.01]], dtype=torch.float64)
+    b0 = planner._step(start, torch.tensor([[-0.5, 0.002]], dtype=torch.float64), 0).numpy()
+    np.testing.assert_allclose(b0[:, 4:], [[-1.5, 0.012, -0.5, 0.002, -1.5, 0.012]], atol=1e-15)
+    np.testing.assert_allclose(b0[:, :4], model.predict(start.numpy()[:, :4], np.array([[-1.5, 0.012]])))
+    lo, hi = scene.actuator_range
+    b1 = planner._step(torch.from_numpy(b0), torch.tensor([[-1e3, 1e3]], dtype=torch.float64), 1).numpy()
+    np.testing.assert_allclose(b1[:, 4:6], [[lo[0], hi[1]]])  # the input stays in the actuator range
+
+
+def test_with_increments_every_step_keeps_the_rate_bounds():
+    env = gym.make("bimp/Overtaking-v0")
+    episode = rollout(env, make_mppi(env, noise_gain=3.0), 7, max_steps=30)
+    u = np.array(episode.trace["input"])
+    b = env.unwrapped.scene.bounds
+    assert np.all(np.abs(np.diff(u, axis=0)) <= np.array([b.accel_rate, b.steer_rate]) + 1e-6)
 
 
 @pytest.mark.parametrize("scenario", ["overtaking", "emergency-brake"])

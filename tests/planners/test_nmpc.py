@@ -145,7 +145,7 @@ def test_road_edge_rows_are_the_problem_edge_distance():
     rng = np.random.default_rng(4)
     x = random_states_near_the_road(scene, rng, H * n_batches)
     for X in x.reshape(n_batches, H, 4):
-        w = np.concatenate([X.ravel(), np.zeros(2 * H)])  # the inputs do not enter these rows
+        w = np.concatenate([X.ravel(), np.zeros(2 * H + nlp.n_slack)])  # inputs and slack 0: the bare rows
         corners = np.asarray(g(w, params)).ravel()[rows].reshape(4, H)
         s_f, l_f = problem_frenet(problem.road, X[:, :2])
         dpsi = X[:, 2] - scene.road.heading_at(s_f)
@@ -187,7 +187,7 @@ def test_cost_is_the_nll_of_the_problem_tracking_rows():
             h = measure(problem, X[t:t + 1], U[t:t + 1], du[t:t + 1], U[:1], u_prev, lane[t + 1], v_ref[t + 1],
                         a_ref[t + 1], (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
             expected += 0.5 * np.sum((h[0, :N_TRACK] / problem.noise[:N_TRACK]) ** 2)
-        got = float(f(np.concatenate([X.ravel(), U.ravel()]), params))
+        got = float(f(np.concatenate([X.ravel(), U.ravel(), np.zeros(nlp.n_slack)]), params))  # no slack used
         assert got == pytest.approx(expected, rel=1e-10)
 
 
@@ -279,7 +279,8 @@ def test_student_t_toy_matches_a_grid_search():
 
 def test_infeasible_problem_falls_back_and_counts():
     scene = toy_scene()
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=50, cold_max_iter=50), ProblemConfig(), toy_dynamics())
+    hard = NMPCConfig(horizon=3, max_iter=50, cold_max_iter=50, slack_penalty=math.inf)
+    planner = NMPCPlanner(scene, hard, ProblemConfig(), toy_dynamics())
     u_prev = np.array([-1.0, 0.002])
     lane = float(scene.road.lane_offset(1))
     blocked = [[1.0, 1.0, lane, 0.0, 20.0, 0.0], [0.0] * 6]  # an OV 1 m ahead: every plan is inside its keep-out
@@ -294,6 +295,22 @@ def test_infeasible_problem_falls_back_and_counts():
     action = planner.act(toy_obs(scene, 20.0, plan_controls[0], 25.0, blocked))
     assert planner.failures == 2
     np.testing.assert_allclose(scene.to_physical(action), plan_controls[1], atol=1e-6)  # the plan's next control
+
+
+def test_soft_constraints_turn_an_infeasible_problem_into_the_least_violation():
+    # An OV 10 m ahead at the EV's speed: inside the keep-out (headway and braking room) whatever the plan does in
+    # 0.3 s. Hard constraints: infeasible, the action falls back (holds the input). Soft: brake at the rate bound.
+    scene = toy_scene()
+    lane = float(scene.road.lane_offset(1))
+    obs = toy_obs(scene, 20.0, np.array([0.0, 0.0]), 20.0, [[1.0, 10.0, lane, 0.0, 20.0, 0.0], [0.0] * 6])
+    actions = {}
+    for penalty in (math.inf, 1e4):
+        planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=100, cold_max_iter=100, slack_penalty=penalty),
+                              ProblemConfig(), toy_dynamics())
+        actions[penalty] = scene.to_physical(planner.act(obs))
+        assert planner.step_info["fallback"] == math.isinf(penalty), planner.step_info
+    assert actions[math.inf][0] == pytest.approx(0.0, abs=1e-6)
+    assert actions[1e4][0] == pytest.approx(-Bounds().accel_rate, rel=0.01)
 
 
 def test_iteration_cap_uses_a_feasible_iterate():
@@ -330,3 +347,18 @@ def test_config_validation_and_unknown_overrides():
     with pytest.raises(ValueError, match="max_iters"):
         make_nmpc(env, max_iters=5)
     assert make_nmpc(env, horizon=7).horizon == 7
+
+
+def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
+    # No iterations allowed and an infeasible first guess: every solve stops at the cap, infeasible -> fallback.
+    from agents.evaluate import evaluate, read_records
+
+    evaluate(["emergency-brake"], ["nmpc"], 1, 3, out=tmp_path, traces=1, progress=False,
+             overrides={"nmpc": {"max_iter": 0, "cold_max_iter": 0, "horizon": 3}})
+    (record,) = read_records(tmp_path)
+    infos = record["trace"]["policy_info"]
+    assert len(infos) == record["steps"]
+    forced = [i for i, info in enumerate(infos) if info["status"] == "Maximum_Iterations_Exceeded" and info["fallback"]]
+    assert forced and record["policy_info"]["fallback_steps"] == [i for i, info in enumerate(infos) if info["fallback"]]
+    assert set(forced) <= set(record["policy_info"]["fallback_steps"])
+    assert sum(record["policy_info"]["status"].values()) == record["steps"]

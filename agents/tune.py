@@ -1,0 +1,352 @@
+"""``bimp tune``: a policy's config tuned by Optuna on training seeds, the same budget for every method.
+
+    bimp tune --policy mppi --scenario overtaking emergency-brake --trials 40 --episodes 20 --seed 100 \\
+              --out runs/tune/mppi
+    # study: runs/tune/mppi/study.db; best config: configs/tuned/mppi.yaml, loaded by
+    # make_policy("mppi", env, config="configs/tuned/mppi.yaml")
+
+Search space. Each tunable policy's factory declares ``search_space()`` beside its config: ``{key: optuna
+distribution}``, keys as its config names them (``temperature``; ``barrier.edge_margin`` in a nested config;
+``sigma_du[1]`` one entry of a list; ``problem.sigma_barrier`` the shared problem a peer planner's cost is built
+from). Every key is checked against the policy's resolved config, and the policy built at the space's bounds,
+before any trial runs.
+
+Trial. The sampled values replace those keys in the policy's resolved config; the trial is an ordinary evaluation
+(:func:`agents.evaluate.evaluate`) of that config on seeds ``seed .. seed + episodes - 1`` of every scenario, in
+``OUT/trials/<config hash>``, so a trial that is retried after an interruption resumes its episodes. It runs in
+rungs of ``--rung`` seeds; after each the running objective is reported and the median pruner stops a trial that
+trails the median of earlier trials at the same rung. Episodes that raise fail the trial with their error (a
+user attribute ``error``), and the study goes on; so does a sampled config that the policy rejects.
+
+Objective (maximized): the success rate over all episodes, ties broken safety-first by the collision rate, then the
+off-road rate, then the share of steps over an input or rate bound: ``success - e (collision + e (offroad + e
+violation))`` with ``e = 1 / (n + 2)`` for ``n`` episodes, small enough that no tie-break outweighs one success.
+
+Seeds. Tuning uses the training seeds (100-199 by convention, ``docs/evaluation.md``); seeds from 1000 on are the
+safety, results and claims seeds and are refused.
+
+Storage and resume. ``--storage`` is any Optuna RDB URL (default ``sqlite:///OUT/study.db``); several machines can
+share one study through PostgreSQL or MySQL. The study's name holds the policy, scenarios, seeds and episodes, so a
+different budget never mixes into it. ``--trials`` is the study's total: a rerun continues where it stopped;
+a trial left running by a killed process is failed after its heartbeat lapses and retried with the same values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from agents.evaluate import EvaluationError, evaluate, read_records
+from agents.provenance import config_hash
+from agents.registry import TUNED_DIR
+
+RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
+_PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
+
+
+class TuneError(ValueError):
+    """A tuning request that cannot run as given (unknown policy, a search-space key its config lacks, results
+    seeds)."""
+
+
+class TrialError(RuntimeError):
+    """A trial whose episodes raised: the trial fails with this message and the study goes on."""
+
+
+# --- the search space and the config it edits ---------------------------------------------------------------
+def search_space(policy: str) -> dict:
+    """``{key: optuna distribution}`` the policy's factory declares; :class:`TuneError` if it has none."""
+    from agents.registry import policy_class
+
+    try:
+        factory = policy_class(policy)
+    except ValueError as err:
+        raise TuneError(str(err)) from None
+    declare = getattr(factory, "search_space", None)
+    if declare is None:
+        raise TuneError(f"policy {policy!r} declares no search space (a `search_space()` beside its factory)")
+    return dict(declare())
+
+
+def factory_kwargs(policy) -> dict:
+    """The keyword arguments that rebuild ``policy`` exactly: its resolved config, and the shared problem of a
+    peer planner under ``problem``."""
+    from agents.provenance import resolved_config
+
+    resolved = resolved_config(policy)
+    return {**resolved["config"], **({"problem": resolved["tuning"]} if "tuning" in resolved else {})}
+
+
+def _path(key: str) -> list[str | int]:
+    parts = [name if name else int(index) for name, index in _PART.findall(key)]
+    if not parts or "".join(f".{p}" if isinstance(p, str) else f"[{p}]" for p in parts).lstrip(".") != key:
+        raise TuneError(f"config key {key!r} is not of the form name, name.field or name[index]")
+    return parts
+
+
+def set_value(tree: dict, key: str, value: Any) -> dict:
+    """A copy of the nested config ``tree`` (dicts and lists) with ``key`` (``a.b[1]``) set to ``value``;
+    :class:`TuneError` naming the key if the config has no such entry."""
+    parts = _path(key)
+    root = json.loads(json.dumps(tree))
+    node = root
+    for depth, part in enumerate(parts):
+        has = part in node if isinstance(node, dict) else isinstance(node, list) and 0 <= part < len(node)
+        if not has or isinstance(part, int) != isinstance(node, list):
+            known = sorted(node) if isinstance(node, dict) else f"{len(node)} entries" if isinstance(node, list) \
+                else "no entries"
+            where = key if depth == 0 else f"{key} (at {parts[depth]!r})"
+            raise TuneError(f"no config entry {where}; the config has {known}")
+        if depth == len(parts) - 1:
+            node[part] = value
+        else:
+            node = node[part]
+    return root
+
+
+def with_params(base: dict, params: dict) -> dict:
+    """``base`` (factory kwargs) with every ``key: value`` of ``params`` set."""
+    tree = base
+    for key, value in params.items():
+        tree = set_value(tree, key, value)
+    return tree
+
+
+def overrides_for(base: dict, params: dict) -> dict:
+    """The overrides that give ``base`` (factory kwargs) the ``params``: each top-level entry touched, whole."""
+    tree = with_params(base, params)
+    return {name: tree[name] for name in {_path(key)[0] for key in params}}
+
+
+def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
+    """Validate ``space`` for ``policy`` before any trial: every key names an entry of its config, and the policy
+    builds at the low and the high end of every distribution on every scenario. Returns the base: the factory's
+    own defaults (not a shipped tuned config, which a study must not drift with), as complete factory kwargs."""
+    import gymnasium as gym
+
+    import envs
+    from agents.registry import make_policy
+
+    envs_ = []
+    for scenario in scenarios:
+        try:
+            envs_.append(gym.make(envs.env_id(scenario)))
+        except ValueError as err:
+            raise TuneError(str(err)) from None
+    from agents.registry import policy_class
+
+    base = factory_kwargs(policy_class(policy)(envs_[0]))
+    for key in space:
+        set_value(base, key, None)  # raises naming a key the config lacks
+    for end in (0, -1):
+        params = {k: _ends(d)[end] for k, d in space.items()}
+        for env in envs_:
+            try:
+                make_policy(policy, env, **with_params(base, params))
+            except (ValueError, TypeError) as err:
+                raise TuneError(f"{policy} rejects its search space's {'low' if end == 0 else 'high'} end "
+                                f"{params}: {err}") from None
+    return base
+
+
+def _suggest(trial, key: str, distribution):
+    """``trial.suggest_*`` for an optuna distribution."""
+    from optuna.distributions import CategoricalDistribution, IntDistribution
+
+    if isinstance(distribution, CategoricalDistribution):
+        return trial.suggest_categorical(key, distribution.choices)
+    suggest = trial.suggest_int if isinstance(distribution, IntDistribution) else trial.suggest_float
+    return suggest(key, distribution.low, distribution.high, step=distribution.step, log=distribution.log)
+
+
+def _ends(distribution) -> tuple:
+    if hasattr(distribution, "choices"):
+        return distribution.choices[0], distribution.choices[-1]
+    return distribution.low, distribution.high
+
+
+# --- the objective -------------------------------------------------------------------------------------------
+def objective_value(summary: dict) -> float:
+    """Success first, then fewer collisions, off-road exits and bound violations (see the module docstring);
+    ``summary`` as :func:`agents.metrics.summarize` returns it. Rates are pooled over the arms by episodes."""
+    arms = [a for a in summary.values() if a["episodes"]]
+    n = sum(a["episodes"] for a in arms)
+    if not n:
+        raise TrialError("no episode ran to its end")
+
+    def rate(name: str) -> float:
+        return sum(a[name]["mean"] * a["episodes"] for a in arms) / n
+
+    violation = (rate("input_violation_rate") + rate("rate_violation_rate")) / 2
+    e = 1.0 / (n + 2)
+    return rate("success_rate") - e * (rate("collision_rate") + e * (rate("offroad_rate") + e * violation))
+
+
+def _trial_error(out: Path) -> str:
+    errors = [r for r in read_records(out) if r["status"] != "ok"]
+    first = errors[0]
+    return f"{len(errors)} episode(s) raised; seed {first['seed']} on {first['scenario']}: {first.get('error')}"
+
+
+# --- the study -------------------------------------------------------------------------------------------------
+def study_name(policy: str, scenarios: list[str], episodes: int, seed: int) -> str:
+    return f"{policy}:{'+'.join(scenarios)}:seeds{seed}-{seed + episodes - 1}"
+
+
+def _storage(url: str):
+    import warnings
+
+    import optuna
+    from optuna.storages import RetryHeartbeatStaleTrialCallback
+
+    # The heartbeat lets a rerun (or another machine) fail a trial whose process died, and retry its values once.
+    # Optuna flags the heartbeat as experimental (since 2.8); the warning says nothing to a user of bimp.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.storages.RDBStorage(url, heartbeat_interval=30, grace_period=90,
+                                          heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(1))
+
+
+def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: int = 100, *,
+         out: str | Path = "runs/tune", storage: str | None = None, yaml_path: str | Path | None = None,
+         rung: int | None = None, batch: int = 1, workers: int = 1, sampler_seed: int = 0,
+         startup_trials: int = 5, progress: bool = True):
+    """Run the study until it holds ``trials`` finished trials; write the best config to ``yaml_path`` (default
+    ``configs/tuned/<policy>.yaml``) and return the study. Raises :class:`TuneError` before any trial for an
+    invalid request."""
+    import optuna
+
+    if not scenarios:
+        raise TuneError("give at least one scenario")
+    if trials < 1 or episodes < 1:
+        raise TuneError(f"trials and episodes must be >= 1, got {trials} and {episodes}")
+    if seed < 0 or seed + episodes > RESULTS_SEEDS:
+        raise TuneError(f"tuning seeds {seed}..{seed + episodes - 1} must lie in 0..{RESULTS_SEEDS - 1}: seeds "
+                        f"from {RESULTS_SEEDS} on are the safety, results and claims seeds, never tuned on")
+    rung = episodes if rung is None else max(1, min(rung, episodes))
+    space = search_space(policy)
+    base = check_space(policy, scenarios, space)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    url = storage or f"sqlite:///{out.resolve() / 'study.db'}"
+    name, storage_ = study_name(policy, scenarios, episodes, seed), _storage(url)
+    # A resumed study's sampler is seeded past the trials it holds: the same seed again would redraw the values of
+    # its first (random) trials.
+    held = sum(s.n_trials for s in optuna.get_all_study_summaries(storage_) if s.study_name == name)
+    study = optuna.create_study(
+        storage=storage_, study_name=name, load_if_exists=True, direction="maximize",
+        sampler=optuna.samplers.TPESampler(seed=sampler_seed + held, n_startup_trials=startup_trials),
+        pruner=optuna.pruners.MedianPruner(n_startup_trials=startup_trials))
+    study.set_user_attr("request", {"policy": policy, "scenarios": scenarios, "episodes": episodes, "seed": seed})
+    seeds = list(range(seed, seed + episodes))
+
+    def objective(trial) -> float:
+        params = {key: _suggest(trial, key, dist) for key, dist in space.items()}
+        overrides = with_params(base, params)  # complete: no default of the day (a tuned config) leaks in
+        folder = out / "trials" / config_hash(policy, overrides)
+        trial.set_user_attr("folder", str(folder))
+        value = math.nan
+        for done in range(rung, episodes + rung, rung):
+            try:
+                summary = evaluate(scenarios, [policy], seeds=seeds[:done], out=folder, traces=0, batch=batch,
+                                   workers=workers, overrides={policy: overrides}, progress=False)
+            except EvaluationError as err:
+                trial.set_user_attr("error", str(err))
+                raise TrialError(str(err)) from None
+            if any(a["errors"] for a in summary.values()):
+                message = _trial_error(folder)
+                trial.set_user_attr("error", message)
+                raise TrialError(message)
+            value = objective_value(summary)
+            trial.report(value, step=min(done, episodes))
+            if done < episodes and trial.should_prune():
+                raise optuna.TrialPruned()
+        for name in ("success_rate", "collision_rate", "offroad_rate"):
+            trial.set_user_attr(name, {key: a[name]["mean"] for key, a in summary.items()})
+        return value
+
+    finished = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED, optuna.trial.TrialState.FAIL)
+    remaining = trials - len(study.get_trials(deepcopy=False, states=finished))
+    if remaining > 0:
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        study.optimize(objective, n_trials=remaining, catch=(TrialError,), show_progress_bar=progress,
+                       callbacks=[optuna.study.MaxTrialsCallback(trials, states=finished)])
+    if any(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials(deepcopy=False)):
+        write_best(study, policy, base, space, Path(yaml_path) if yaml_path else TUNED_DIR / f"{policy}.yaml")
+    return study
+
+
+def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
+    """The best trial's config as a YAML that ``make_policy(policy, env, config=path)`` loads: ``policy``, the
+    full ``config`` (factory kwargs) and, for the reader, ``tuning`` (the study, its budget and the chosen values).
+    """
+    best = study.best_trial
+    request = study.user_attrs.get("request", {})
+    params = {k: best.params[k] for k in space if k in best.params}
+    config = with_params(base, params)
+    counts: dict[str, int] = {}
+    for t in study.get_trials(deepcopy=False):
+        counts[t.state.name.lower()] = counts.get(t.state.name.lower(), 0) + 1
+    doc = {
+        "policy": policy,
+        "tuning": {"study": study.study_name, "trial": best.number, "objective": best.value, "trials": counts,
+                   "scenarios": request.get("scenarios"), "episodes_per_scenario": request.get("episodes"),
+                   "first_seed": request.get("seed"), "params": params,
+                   "success_rate": best.user_attrs.get("success_rate"),
+                   "written": datetime.now(timezone.utc).isoformat(timespec="seconds")},
+        "config": config,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"# Written by `bimp tune`; load with make_policy({policy!r}, env, config=<this file>).\n"
+                    + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))
+    return path
+
+
+def load_tuned(policy: str, path: str | Path) -> dict:
+    """The factory kwargs of a YAML written by :func:`write_best`; ``ValueError`` if the file is not one, or was
+    tuned for another policy."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no tuned config at {path}")
+    doc = yaml.safe_load(path.read_text())
+    if not isinstance(doc, dict) or not {"policy", "config"} <= set(doc) or not isinstance(doc["config"], dict):
+        raise ValueError(f"{path} is not a tuned config (a mapping with `policy` and `config`, as bimp tune writes)")
+    if doc["policy"] != policy:
+        raise ValueError(f"{path} holds a config tuned for {doc['policy']!r}, not {policy!r}")
+    return doc["config"]
+
+
+# --- command line -------------------------------------------------------------------------------------------
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp tune", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--policy", required=True)
+    parser.add_argument("--scenario", nargs="+", default=["overtaking", "emergency-brake"])
+    parser.add_argument("--trials", type=int, default=30, help="the study's total number of trials")
+    parser.add_argument("--episodes", type=int, default=20, help="episodes per scenario and trial")
+    parser.add_argument("--seed", type=int, default=100, help="first training seed (100-199 by convention)")
+    parser.add_argument("--rung", type=int, default=None, help="seeds per pruning step (default: no pruning)")
+    parser.add_argument("--storage", default=None, help="Optuna RDB URL (default sqlite:///OUT/study.db)")
+    parser.add_argument("--out", default="runs/tune")
+    parser.add_argument("--yaml", default=None, help="where the best config goes (default configs/tuned/POLICY.yaml)")
+    parser.add_argument("--batch", type=int, default=1)
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--sampler-seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    study = tune(args.policy, args.scenario, args.trials, args.episodes, args.seed, out=args.out,
+                 storage=args.storage, yaml_path=args.yaml, rung=args.rung, batch=args.batch, workers=args.workers,
+                 sampler_seed=args.sampler_seed)
+    for t in study.get_trials(deepcopy=False):
+        shown = "-" if t.value is None else f"{t.value:.4f}"
+        print(f"trial {t.number:>3} {t.state.name:<8} {shown:>8} {t.params} {t.user_attrs.get('error', '')}")
+    return 0
+
+
+__all__ = ["TrialError", "TuneError", "check_space", "load_tuned", "objective_value", "search_space", "tune"]

@@ -1,0 +1,56 @@
+"""``bimp sweep`` (any config key) and ``bimp frontier`` (quality against compute): points evaluated into one
+folder with evaluate's resume."""
+
+import json
+
+import pytest
+
+from agents.cli import main
+from agents.evaluate import EvaluationError, read_records
+from agents.sweep import axis_points, param_points
+
+EB = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5"]
+
+
+def test_a_param_sweep_runs_one_point_per_value_and_resumes(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    assert main(["sweep", "--param", "lane-keep.k_speed=0.2,0.8", *EB, "--out", str(out)]) == 0
+    rows = json.loads((out / "sweep.json").read_text())
+    assert [(r["label"], r["value"], r["episodes"]) for r in rows] == [("lane-keep k_speed=0.2", 0.2, 2),
+                                                                      ("lane-keep k_speed=0.8", 0.8, 2)]
+    records = read_records(out)
+    assert {r["config"]["config"]["k_speed"] for r in records} == {0.2, 0.8} and len(records) == 4
+    assert (out / "sweep.png").stat().st_size > 0 and "| emergency-brake | lane-keep | k_speed | 0.2 |" in \
+        (out / "sweep.md").read_text()
+    main(["sweep", "--param", "lane-keep.k_speed=0.2,0.8", *EB, "--out", str(out)])
+    assert len(read_records(out)) == 4  # resumed: nothing ran again
+
+
+def test_a_nested_key_is_swept_whole_and_bad_params_are_named():
+    (point,) = param_points(["mppi.problem.barrier.edge_margin=0.5"])
+    assert point.overrides["problem"]["barrier"]["edge_margin"] == 0.5
+    assert point.overrides["problem"]["barrier"]["headway"] == 0.6  # the rest of the entry as configured
+    for bad, match in ((["lane-keep.k_speed"], "POLICY.KEY=V1"), (["lane-keep.k_nope=1,2"], "k_nope"),
+                       (["nope.k=1"], "unknown policy"),
+                       (["lane-keep.k_lat=1", "lane-keep.k_head=1,2"], "different lengths")):
+        with pytest.raises(EvaluationError, match=match):
+            param_points(bad)
+
+
+def test_the_frontier_table_has_one_row_per_policy_and_compute_value(tmp_path):
+    out = tmp_path / "frontier"
+    assert main(["frontier", "--policies", "mppi", "lane-keep", "--n", "2", "4", "--set", "mppi.horizon=3",
+                 *EB, "--out", str(out)]) == 0
+    rows = json.loads((out / "frontier.json").read_text())
+    assert sorted((r["policy"], r["value"]) for r in rows) == [("lane-keep", None), ("mppi", 2), ("mppi", 4)]
+    assert all(r["plan_time_ms_p50"]["mean"] > 0 for r in rows)
+    lines = [line for line in (out / "frontier.md").read_text().splitlines() if line.startswith("| emergency")]
+    assert len(lines) == 3
+    assert {r["config"]["config"]["horizon"] for r in read_records(out) if r["policy"] == "mppi"} == {3}
+
+
+def test_axis_points_label_each_value_and_keep_a_policy_without_an_axis_whole():
+    points = axis_points(["enkts", "ppo"], {"enkts": ("n_particles", [10, 20])}, {"enkts": {"horizon": 5}})
+    assert [(p.label, p.overrides) for p in points] == [
+        ("enkts N=10", {"horizon": 5, "n_particles": 10}), ("enkts N=20", {"horizon": 5, "n_particles": 20}),
+        ("ppo", {})]

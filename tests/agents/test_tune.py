@@ -1,0 +1,122 @@
+"""``bimp tune``: Optuna studies over a policy's declared search space, on training seeds only."""
+
+import gymnasium as gym
+import optuna
+import pytest
+import yaml
+
+import envs  # noqa: F401  (registers the envs)
+from agents.baselines import LaneKeeping
+from agents.registry import POLICIES, make_policy, policy_class
+from agents.tune import TuneError, check_space, objective_value, search_space, set_value, tune
+
+EB = ["emergency-brake"]
+SMALL = dict(scenarios=EB, episodes=2, progress=False)
+
+
+def _run(tmp_path, trials, policy="lane-keep", **kw):
+    return tune(policy, trials=trials, out=tmp_path / "study", yaml_path=tmp_path / "best.yaml", **{**SMALL, **kw})
+
+
+def test_a_two_trial_study_writes_a_study_and_a_config_that_make_policy_loads(tmp_path):
+    study = _run(tmp_path, 2)
+    assert (tmp_path / "study" / "study.db").is_file()
+    assert [t.state for t in study.trials] == [optuna.trial.TrialState.COMPLETE] * 2
+    doc = yaml.safe_load((tmp_path / "best.yaml").read_text())
+    assert doc["policy"] == "lane-keep" and doc["tuning"]["trial"] == study.best_trial.number
+    policy = make_policy("lane-keep", gym.make("bimp/EmergencyBrake-v0"), config=tmp_path / "best.yaml")
+    assert policy.config == pytest.approx(study.best_trial.params)
+    # An override still wins over the tuned value.
+    policy = make_policy("lane-keep", gym.make("bimp/EmergencyBrake-v0"), config=tmp_path / "best.yaml", k_lat=0.01)
+    assert policy.k_lat == 0.01
+
+
+def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
+    first = [t.params for t in _run(tmp_path, 2).trials]
+    study = _run(tmp_path, 3)
+    assert [t.number for t in study.trials] == [0, 1, 2]
+    assert [t.params for t in study.trials[:2]] == first  # not rerun
+    assert study.trials[2].params not in first
+    assert len(_run(tmp_path, 3).trials) == 3  # a finished study runs nothing more
+
+
+def test_a_trial_whose_episodes_raise_fails_with_its_error_and_the_study_goes_on(tmp_path):
+    study = _run(tmp_path, 6, policy="tests.agents.faulty:Fragile")
+    states = {t.state for t in study.trials}
+    assert len(study.trials) == 6 and states == {optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL}
+    for t in study.trials:
+        failed = t.state == optuna.trial.TrialState.FAIL
+        assert failed == (t.params["k_speed"] > 1.0)
+        assert ("injected failure" in t.user_attrs.get("error", "")) == failed
+    assert study.best_trial.params["k_speed"] <= 1.0
+
+
+@pytest.mark.parametrize("policy", sorted(p for p in POLICIES if hasattr(policy_class(p), "search_space")))
+def test_every_search_space_names_only_keys_its_config_accepts(policy):
+    assert {"enkts", "enks", "mppi", "nmpc", "nmpc-t", "lane-keep"} <= {
+        p for p in POLICIES if hasattr(policy_class(p), "search_space")}
+    space = search_space(policy)
+    base = check_space(policy, ["overtaking"], space)  # raises naming a key the config lacks
+    assert space and all(set_value(base, key, "x") != base for key in space)
+
+
+def test_a_shipped_tuned_config_is_the_default_and_a_study_does_not_drift_with_it(tmp_path, monkeypatch):
+    import agents.registry
+
+    study = _run(tmp_path, 2)
+    monkeypatch.setattr(agents.registry, "TUNED_DIR", tmp_path)
+    (tmp_path / "best.yaml").rename(tmp_path / "lane-keep.yaml")
+    env = gym.make("bimp/EmergencyBrake-v0")
+    assert make_policy("lane-keep", env).config == pytest.approx(study.best_trial.params)
+    # The study's base is the factory's own defaults: a resumed study runs its trials as before.
+    base = check_space("lane-keep", EB, search_space("lane-keep"))
+    assert base == LaneKeeping(env).config
+
+
+def test_make_policy_refuses_a_config_tuned_for_another_policy_or_not_tuned(tmp_path):
+    _run(tmp_path, 1)
+    env = gym.make("bimp/EmergencyBrake-v0")
+    with pytest.raises(ValueError, match="tuned for 'lane-keep', not 'enkts'"):
+        make_policy("enkts", env, config=tmp_path / "best.yaml")
+    (tmp_path / "plain.yaml").write_text("n_particles: 20\n")
+    with pytest.raises(ValueError, match="not a tuned config"):
+        make_policy("enkts", env, config=tmp_path / "plain.yaml")
+
+
+def test_bad_requests_fail_before_any_trial(tmp_path, monkeypatch):
+    with pytest.raises(TuneError, match="unknown policy"):
+        _run(tmp_path, 1, policy="nope")
+    with pytest.raises(TuneError, match="declares no search space"):
+        _run(tmp_path, 1, policy="zero")
+    with pytest.raises(TuneError, match="never tuned on"):
+        _run(tmp_path, 1, seed=999)  # seeds 999 and 1000: the second is a results seed
+    space = {**LaneKeeping.search_space(), "k_nope": optuna.distributions.FloatDistribution(0, 1)}
+    monkeypatch.setattr(LaneKeeping, "search_space", staticmethod(lambda: space))
+    with pytest.raises(TuneError, match="k_nope"):
+        _run(tmp_path, 1)
+    assert not (tmp_path / "study").exists()
+
+
+def test_set_value_edits_nested_entries_and_names_a_missing_one():
+    tree = {"a": 1, "barrier": {"widths": [1, 2, 3]}, "sigma": [0.1, 0.2]}
+    assert set_value(tree, "barrier.widths[2]", 9)["barrier"]["widths"] == [1, 2, 9]
+    assert set_value(tree, "sigma[0]", 5)["sigma"] == [5, 0.2] and tree["sigma"] == [0.1, 0.2]
+    for key, missing in (("barrier.height", "height"), ("sigma[2]", "2"), ("a.b", "b"), ("nope", "nope")):
+        with pytest.raises(TuneError, match=missing):
+            set_value(tree, key, 0)
+
+
+def _summary(success, collision, offroad, violation, n=10):
+    rate = {"success_rate": success, "collision_rate": collision, "offroad_rate": offroad,
+            "input_violation_rate": violation, "rate_violation_rate": violation}
+    return {"arm": {"episodes": n, **{k: {"mean": v} for k, v in rate.items()}}}
+
+
+def test_the_objective_is_success_first_then_collisions_then_off_road_then_violations():
+    ranked = [_summary(0.9, 1.0, 1.0, 1.0),  # one success more outweighs every tie-break
+              _summary(0.8, 0.0, 1.0, 1.0),
+              _summary(0.8, 0.1, 0.0, 1.0),
+              _summary(0.8, 0.1, 0.1, 0.0),
+              _summary(0.8, 0.1, 0.1, 0.5)]
+    values = [objective_value(s) for s in ranked]
+    assert values == sorted(values, reverse=True) and len(set(values)) == len(values)
