@@ -27,9 +27,14 @@ def test_a_param_sweep_runs_one_point_per_value_and_resumes(tmp_path, capsys):
 
 
 def test_a_nested_key_is_swept_whole_and_bad_params_are_named():
+    import gymnasium as gym
+
+    from agents.registry import make_policy
+    from agents.tune import factory_kwargs
+
     (point,) = param_points(["mppi.problem.barrier.edge_margin=0.5"])
-    assert point.overrides["problem"]["barrier"]["edge_margin"] == 0.5
-    assert point.overrides["problem"]["barrier"]["headway"] == 0.6  # the rest of the entry as configured
+    configured = factory_kwargs(make_policy("mppi", gym.make("bimp/Overtaking-v0")))["problem"]["barrier"]
+    assert point.overrides["problem"]["barrier"] == {**configured, "edge_margin": 0.5}  # the rest as configured
     for bad, match in ((["lane-keep.k_speed"], "POLICY.KEY=V1"), (["lane-keep.k_nope=1,2"], "k_nope"),
                        (["nope.k=1"], "unknown policy"),
                        (["lane-keep.k_lat=1", "lane-keep.k_head=1,2"], "different lengths")):
