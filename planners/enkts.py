@@ -22,6 +22,7 @@ from envs.scene import Scene
 from planners import core
 from planners.model import model_params
 from planners.problem import PROBLEM_FILE, BarrierShape, Problem, ProblemConfig, Road, make_problem
+from planners.problem import search_space as problem_search_space
 
 
 @dataclass(frozen=True)
@@ -201,14 +202,9 @@ def search_space() -> dict:
     from optuna.distributions import FloatDistribution as Float
 
     return {
+        **problem_search_space(),
         "nu": Float(2.5, 30.0, log=True),
-        "sigma_du[0]": Float(0.2, 1.5, log=True),
-        "sigma_du[1]": Float(0.0005, 0.005, log=True),
-        "sigma_ref[0]": Float(0.3, 3.0, log=True),
-        "sigma_ref[2]": Float(0.3, 3.0, log=True),
         "sigma_barrier": Float(0.03, 0.5, log=True),
-        "barrier.edge_margin": Float(0.1, 0.8),
-        "barrier.headway": Float(0.3, 1.2),
         "lane_change_rate": Float(1.0, 4.0),
         "max_innovation": Float(1.0, 4.0),
         "relaxation": Float(0.0, 0.9),

@@ -55,6 +55,7 @@ from configs import ConfigError, check_fields, load_config
 from envs.scene import Scene
 from planners.problem import (PROBLEM_FILE, Problem, ProblemConfig, load_problem, make_problem, measure,
                               predict_obstacles, reference_profile)
+from planners.problem import search_space as problem_search_space
 
 Dynamics = Callable[[np.ndarray, np.ndarray], np.ndarray]
 NX = 10  # [x (4), u (2), du (2), u_0 (2)]
@@ -247,15 +248,14 @@ def search_space() -> dict:
     margins of its cost (``problem.*``, this planner's copy of the shared problem). N is not tuned."""
     from optuna.distributions import FloatDistribution as Float
 
+    # The increments' noise is noise_gain's to set; the barriers' noise is a cost weight here, searched wider.
+    shared = {k: v for k, v in problem_search_space("problem.").items() if not k.startswith("problem.sigma_du")}
     return {
         "temperature": Float(0.01, 100.0, log=True),
         "noise_gain": Float(0.3, 10.0, log=True),
         "control_cost": Float(0.0, 1.0),
         "problem.sigma_barrier": Float(0.03, 3.0, log=True),
-        "problem.sigma_ref[0]": Float(0.3, 3.0, log=True),
-        "problem.sigma_ref[2]": Float(0.3, 3.0, log=True),
-        "problem.barrier.edge_margin": Float(0.1, 0.8),
-        "problem.barrier.headway": Float(0.3, 1.2),
+        **shared,
     }
 
 

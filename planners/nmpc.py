@@ -61,6 +61,7 @@ from envs.road import RoadGeometry
 from envs.scene import Scene
 from planners.problem import (PROBLEM_FILE, BarrierShape, ProblemConfig, load_problem, make_problem,
                               predict_obstacles, reference_profile)
+from planners.problem import search_space as problem_search_space
 
 _SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 _CAPPED = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded", "Maximum_WallTime_Exceeded")
@@ -513,12 +514,7 @@ def search_space() -> dict:
     from optuna.distributions import CategoricalDistribution, FloatDistribution as Float, IntDistribution
 
     return {
-        "problem.sigma_ref[0]": Float(0.3, 3.0, log=True),
-        "problem.sigma_ref[2]": Float(0.3, 3.0, log=True),
-        "problem.sigma_du[0]": Float(0.2, 1.5, log=True),
-        "problem.sigma_du[1]": Float(0.0005, 0.005, log=True),
-        "problem.barrier.edge_margin": Float(0.1, 0.8),
-        "problem.barrier.headway": Float(0.3, 1.2),
+        **problem_search_space("problem."),
         "keep_out_power": CategoricalDistribution([2, 4, 6]),
         "max_iter": IntDistribution(10, 60),
         "slack_penalty": Float(1e2, 1e5, log=True),

@@ -196,6 +196,23 @@ def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
                     + [config.sigma_barrier] * (n_obstacles + N_BOUND_BARRIERS))
 
 
+def search_space(prefix: str = "") -> dict:
+    """The planning problem's numbers ``bimp tune`` searches, for every planner built on it (optuna
+    distributions): the noise of the increments and of the tracked reference (lateral, speed), the edge margin and
+    the headway. ``prefix``: ``"problem."`` for a peer's own copy of the problem."""
+    from optuna.distributions import FloatDistribution as Float
+
+    space = {
+        "sigma_du[0]": Float(0.2, 1.5, log=True),
+        "sigma_du[1]": Float(0.0005, 0.005, log=True),
+        "sigma_ref[0]": Float(0.3, 3.0, log=True),
+        "sigma_ref[2]": Float(0.3, 3.0, log=True),
+        "barrier.edge_margin": Float(0.1, 0.8),
+        "barrier.headway": Float(0.3, 1.2),
+    }
+    return {prefix + key: value for key, value in space.items()}
+
+
 def load_problem(source=PROBLEM_FILE, **overrides) -> ProblemConfig:
     """The shared problem tuning: ``configs/problem.yaml`` (or ``source``) plus ``overrides``."""
     from configs import load_config
