@@ -40,9 +40,10 @@ def policy_class(name: str):
 
 
 def make_policy(name: str, env: gym.Env, config: str | Path | None = None, **overrides) -> Policy:
-    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package); ``config``: a YAML written by
-    ``bimp tune`` for this policy (default: ``configs/tuned/<name>.yaml`` if it exists, else the policy's own
-    defaults); ``overrides`` go to its config (after ``config``) and an unknown one raises.
+    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package). ``config``: a YAML written by
+    ``bimp tune`` for this policy (default: ``configs/tuned/<name>.yaml`` if one ships), or a plain YAML of
+    overrides, handed to the factory as its own ``config``; ``overrides`` go on top, a nested mapping merged key by
+    key (``problem={"horizon": 30}`` keeps the rest of a tuned problem), and an unknown key raises.
     ``name`` is a key of ``POLICIES`` or ``"module:factory"``. ``ValueError`` for an unknown name, or a ``config``
     tuned for another policy."""
     factory = policy_class(name)
@@ -51,5 +52,14 @@ def make_policy(name: str, env: gym.Env, config: str | Path | None = None, **ove
     if config is not None:
         from agents.tune import load_tuned
 
-        overrides = {**load_tuned(name, config), **overrides}
+        tuned = load_tuned(name, config)
+        overrides = _merge(tuned, overrides) if tuned is not None else {"config": config, **overrides}
     return factory(env, **overrides)
+
+
+def _merge(base: dict, top: dict) -> dict:
+    """``top`` over ``base``, nested mappings merged key by key."""
+    out = dict(base)
+    for key, value in top.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out

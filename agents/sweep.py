@@ -8,8 +8,8 @@
 A sweep is a list of *points* (a policy under one set of overrides, shown as a label such as ``enkts N=50``), each
 an ordinary evaluation (:func:`agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
 provenance, one ``episodes.jsonl``. ``--param POLICY.KEY=V1,V2,...`` sweeps any config key (``KEY`` as in ``bimp
-tune``'s search spaces: ``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` for
-different policies sweep together, value by value. ``--n`` sweeps ``n_particles`` of every ``--policy``.
+tune``'s search spaces: ``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` sweep
+together, value by value (the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles`` of every ``--policy``.
 
 The frontier puts quality against compute: each policy along its compute axis (``FRONTIER_AXES``: the particles N
 of EnKTS, EnKS and MPPI, the iteration cap of NMPC; one point for a policy without one, such as PPO), success
@@ -67,15 +67,17 @@ def param_points(params: list[str], base: dict | None = None) -> list[Point]:
     if len({len(values) for _, _, values in parsed}) > 1:
         raise EvaluationError(f"--param lists of different lengths cannot sweep together: {params}")
     base = base or {}
+    defaults = {policy: _factory_kwargs(policy, base.get(policy, {})) for policy, _, _ in parsed}
     points = []
-    for policy, key, values in parsed:
-        defaults = _factory_kwargs(policy, base.get(policy, {}))
-        for value in values:
+    for i in range(len(parsed[0][2]) if parsed else 0):
+        for policy in dict.fromkeys(p for p, _, _ in parsed):  # one point per policy and value index
+            params_i = {key: values[i] for p, key, values in parsed if p == policy}
             try:
-                overrides = {**base.get(policy, {}), **overrides_for(defaults, {key: value})}
+                overrides = {**base.get(policy, {}), **overrides_for(defaults[policy], params_i)}
             except TuneError as err:
-                raise EvaluationError(f"--param {policy}.{key}: {err}") from None
-            points.append(Point(f"{policy} {key}={value}", policy, overrides, key, value))
+                raise EvaluationError(f"--param {policy}: {err}") from None
+            label = f"{policy} " + " ".join(f"{k}={v}" for k, v in params_i.items())
+            points.append(Point(label, policy, overrides, "+".join(params_i), next(iter(params_i.values()))))
     return points
 
 

@@ -2,8 +2,8 @@
 
     bimp tune --policy mppi --scenario overtaking emergency-brake --trials 40 --episodes 20 --seed 100 \\
               --out runs/tune/mppi
-    # study: runs/tune/mppi/study.db; best config: configs/tuned/mppi.yaml, loaded by
-    # make_policy("mppi", env, config="configs/tuned/mppi.yaml")
+    # study: runs/tune/mppi/study.db; best config: runs/tune/mppi/best.yaml, loaded by
+    # make_policy("mppi", env, config="runs/tune/mppi/best.yaml"); --yaml configs/tuned/mppi.yaml ships it
 
 Search space. Each tunable policy's factory declares ``search_space()`` beside its config: ``{key: optuna
 distribution}``, keys as its config names them (``temperature``; ``barrier.edge_margin`` in a nested config;
@@ -45,7 +45,6 @@ import yaml
 
 from agents.evaluate import EvaluationError, evaluate, read_records
 from agents.provenance import config_hash
-from agents.registry import TUNED_DIR
 
 RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
 _PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
@@ -98,8 +97,11 @@ def set_value(tree: dict, key: str, value: Any) -> dict:
     root = json.loads(json.dumps(tree))
     node = root
     for depth, part in enumerate(parts):
-        has = part in node if isinstance(node, dict) else isinstance(node, list) and 0 <= part < len(node)
-        if not has or isinstance(part, int) != isinstance(node, list):
+        if isinstance(node, dict):
+            has = isinstance(part, str) and part in node
+        else:
+            has = isinstance(node, list) and isinstance(part, int) and part < len(node)
+        if not has:
             known = sorted(node) if isinstance(node, dict) else f"{len(node)} entries" if isinstance(node, list) \
                 else "no entries"
             where = key if depth == 0 else f"{key} (at {parts[depth]!r})"
@@ -219,7 +221,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
          rung: int | None = None, batch: int = 1, workers: int = 1, sampler_seed: int = 0,
          startup_trials: int = 5, progress: bool = True):
     """Run the study until it holds ``trials`` finished trials; write the best config to ``yaml_path`` (default
-    ``configs/tuned/<policy>.yaml``) and return the study. Raises :class:`TuneError` before any trial for an
+    ``OUT/best.yaml``; ``configs/tuned/<policy>.yaml`` ships it as the policy's default) and return the study. Raises :class:`TuneError` before any trial for an
     invalid request."""
     import optuna
 
@@ -236,7 +238,9 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     url = storage or f"sqlite:///{out.resolve() / 'study.db'}"
-    name, storage_ = study_name(policy, scenarios, episodes, seed), _storage(url)
+    # The name holds what the trials mean: a changed space or base config is another study, never a resumed one.
+    meaning = config_hash(policy, {"base": base, "space": {k: repr(v) for k, v in space.items()}})[:8]
+    name, storage_ = f"{study_name(policy, scenarios, episodes, seed)}:{meaning}", _storage(url)
     # A resumed study's sampler is seeded past the trials it holds: the same seed again would redraw the values of
     # its first (random) trials.
     held = sum(s.n_trials for s in optuna.get_all_study_summaries(storage_) if s.study_name == name)
@@ -279,7 +283,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
         study.optimize(objective, n_trials=remaining, catch=(TrialError,), show_progress_bar=progress,
                        callbacks=[optuna.study.MaxTrialsCallback(trials, states=finished)])
     if any(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials(deepcopy=False)):
-        write_best(study, policy, base, space, Path(yaml_path) if yaml_path else TUNED_DIR / f"{policy}.yaml")
+        write_best(study, policy, base, space, Path(yaml_path) if yaml_path else out / "best.yaml")
     return study
 
 
@@ -309,15 +313,15 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
     return path
 
 
-def load_tuned(policy: str, path: str | Path) -> dict:
-    """The factory kwargs of a YAML written by :func:`write_best`; ``ValueError`` if the file is not one, or was
-    tuned for another policy."""
+def load_tuned(policy: str, path: str | Path) -> dict | None:
+    """The factory kwargs of a YAML written by :func:`write_best` (``policy`` and ``config``), or None for any
+    other YAML (a plain file of overrides); ``ValueError`` if it was tuned for another policy."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"no tuned config at {path}")
+        raise FileNotFoundError(f"no config file at {path}")
     doc = yaml.safe_load(path.read_text())
-    if not isinstance(doc, dict) or not {"policy", "config"} <= set(doc) or not isinstance(doc["config"], dict):
-        raise ValueError(f"{path} is not a tuned config (a mapping with `policy` and `config`, as bimp tune writes)")
+    if not (isinstance(doc, dict) and {"policy", "config"} <= set(doc) and isinstance(doc["config"], dict)):
+        return None
     if doc["policy"] != policy:
         raise ValueError(f"{path} holds a config tuned for {doc['policy']!r}, not {policy!r}")
     return doc["config"]
@@ -335,7 +339,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rung", type=int, default=None, help="seeds per pruning step (default: no pruning)")
     parser.add_argument("--storage", default=None, help="Optuna RDB URL (default sqlite:///OUT/study.db)")
     parser.add_argument("--out", default="runs/tune")
-    parser.add_argument("--yaml", default=None, help="where the best config goes (default configs/tuned/POLICY.yaml)")
+    parser.add_argument("--yaml", default=None, help="where the best config goes (default OUT/best.yaml; "
+                        "configs/tuned/POLICY.yaml makes it the policy's default)")
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--sampler-seed", type=int, default=0)

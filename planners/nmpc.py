@@ -276,8 +276,8 @@ class NMPCPlanner:
 
     Attributes after ``act``: ``failures`` (fallback actions), ``capped`` (cap-stopped but feasible solves used),
     ``statuses`` (IPOPT return statuses), ``solve_times`` [s] and ``iterations`` per solve, ``plan`` (the last
-    usable solution ``(X (H + 1, 4), U (H, 2))``), ``step_info`` (this step's ``status``, ``fallback`` and
-    ``iterations``: the episode loop records it per step).
+    usable solution ``(X (H + 1, 4), U (H, 2))``), ``step_info`` (this step's ``status``, ``fallback``,
+    ``iterations`` and the largest ``slack`` of the solve: the episode loop records it per step).
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: NMPCConfig = NMPCConfig(),
@@ -328,7 +328,8 @@ class NMPCPlanner:
             self._controls = np.vstack([self._controls[1:], self._controls[-1:]])  # the old plan's next control
         if not usable:
             self.failures += 1
-        self.step_info = {"status": self._status, "fallback": not usable, "iterations": self._iterations}
+        self.step_info = {"status": self._status, "fallback": not usable, "iterations": self._iterations,
+                          "slack": self._slack}
         u = self._controls[0] if self._controls is not None else u_prev
         if not np.all(np.isfinite(u)):
             u = u_prev
@@ -361,7 +362,7 @@ class NMPCPlanner:
             stats = solver.stats()
         except RuntimeError:  # CasADi raises on evaluation errors it cannot hand to IPOPT
             self.statuses["exception"] += 1
-            self._status, self._iterations = "exception", -1
+            self._status, self._iterations, self._slack = "exception", -1, math.inf
             return False, None
         status = stats.get("return_status", "unknown")
         self.statuses[status] += 1
@@ -369,6 +370,8 @@ class NMPCPlanner:
         self.iterations.append(int(stats.get("iter_count", -1)))
         self._status, self._iterations = status, self.iterations[-1]
         w = np.asarray(out["x"]).ravel()
+        # The largest slack: how far the iterate breaks a softened constraint (0 where it keeps them all).
+        self._slack = float(np.max(w[6 * H:], initial=0.0)) if np.all(np.isfinite(w)) else math.inf
         if not np.all(np.isfinite(w)):
             return False, None
         iterate = (w[:4 * H].reshape(H, 4), w[4 * H:6 * H].reshape(H, 2))
@@ -510,13 +513,13 @@ def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FIL
 
 def search_space() -> dict:
     """What ``bimp tune`` searches for NMPC: the weights of its cost and the margins of its constraints
-    (``problem.*``, this planner's copy of the shared problem), the keep-out's shape and the iteration cap."""
-    from optuna.distributions import CategoricalDistribution, FloatDistribution as Float, IntDistribution
+    (``problem.*``, this planner's copy of the shared problem), the keep-out's shape and the slack penalty. Not the
+    iteration cap: it buys quality with compute, compared across values by ``bimp frontier``."""
+    from optuna.distributions import CategoricalDistribution, FloatDistribution as Float
 
     return {
         **problem_search_space("problem."),
         "keep_out_power": CategoricalDistribution([2, 4, 6]),
-        "max_iter": IntDistribution(10, 60),
         "slack_penalty": Float(1e2, 1e5, log=True),
     }
 

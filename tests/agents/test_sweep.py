@@ -42,6 +42,13 @@ def test_a_nested_key_is_swept_whole_and_bad_params_are_named():
             param_points(bad)
 
 
+def test_several_params_of_a_policy_sweep_together_value_by_value():
+    points = param_points(["lane-keep.k_lat=0.01,0.02", "lane-keep.k_head=0.1,0.2"])
+    assert [(p.label, p.overrides) for p in points] == [
+        ("lane-keep k_lat=0.01 k_head=0.1", {"k_lat": 0.01, "k_head": 0.1}),
+        ("lane-keep k_lat=0.02 k_head=0.2", {"k_lat": 0.02, "k_head": 0.2})]
+
+
 def test_the_frontier_table_has_one_row_per_policy_and_compute_value(tmp_path):
     out = tmp_path / "frontier"
     assert main(["frontier", "--policies", "mppi", "lane-keep", "--n", "2", "4", "--set", "mppi.horizon=3",

@@ -360,5 +360,5 @@ def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
     assert len(infos) == record["steps"]
     forced = [i for i, info in enumerate(infos) if info["status"] == "Maximum_Iterations_Exceeded" and info["fallback"]]
     assert forced and record["policy_info"]["fallback_steps"] == [i for i, info in enumerate(infos) if info["fallback"]]
-    assert set(forced) <= set(record["policy_info"]["fallback_steps"])
+    assert record["policy_info"]["slack"]["max"] >= 0.0  # the largest slack of a solve, recorded
     assert sum(record["policy_info"]["status"].values()) == record["steps"]
