@@ -134,7 +134,7 @@ def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
     import gymnasium as gym
 
     import envs
-    from agents.registry import make_policy
+    from agents.registry import make_policy, policy_class
 
     envs_ = []
     for scenario in scenarios:
@@ -142,16 +142,13 @@ def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
             envs_.append(gym.make(envs.env_id(scenario)))
         except ValueError as err:
             raise TuneError(str(err)) from None
-    from agents.registry import policy_class
-
     base = factory_kwargs(policy_class(policy)(envs_[0]))
-    for key in space:
-        set_value(base, key, None)  # raises naming a key the config lacks
     for end in (0, -1):
         params = {k: _ends(d)[end] for k, d in space.items()}
+        config = with_params(base, params)  # raises naming a key the config lacks
         for env in envs_:
             try:
-                make_policy(policy, env, **with_params(base, params))
+                make_policy(policy, env, **config)
             except (ValueError, TypeError) as err:
                 raise TuneError(f"{policy} rejects its search space's {'low' if end == 0 else 'high'} end "
                                 f"{params}: {err}") from None
