@@ -28,7 +28,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from agents.evaluate import EvaluationError, _fmt, evaluate, parse_overrides
+from agents.evaluate import EvaluationError, _fmt, evaluate, parse_overrides, write_summary
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 # The config key that buys a policy quality with compute, and its default values for the frontier.
@@ -115,12 +115,14 @@ def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: i
     labels = [p.label for p in points]
     if not points or len(set(labels)) != len(labels):
         raise EvaluationError(f"the points need distinct labels, got {labels}")
-    rows = []
+    rows, combined = [], {}
     for p in points:
         summary = evaluate(scenarios, [p.policy], episodes, seed, workers, out, traces=0, progress=progress,
                            overrides={p.policy: p.overrides}, labels={p.policy: p.label}, batch=batch)
+        combined.update(summary)
         rows += [{**entry, "label": p.label, "policy": p.policy, "param": p.param, "value": p.value}
                  for entry in summary.values()]
+    write_summary(combined, Path(out))  # each evaluation wrote its own point's; the folder's files hold them all
     return rows
 
 

@@ -22,6 +22,8 @@ def test_a_param_sweep_runs_one_point_per_value_and_resumes(tmp_path, capsys):
     assert {r["config"]["config"]["k_speed"] for r in records} == {0.2, 0.8} and len(records) == 4
     assert (out / "sweep.png").stat().st_size > 0 and "| emergency-brake | lane-keep | k_speed | 0.2 |" in \
         (out / "sweep.md").read_text()
+    summary = json.loads((out / "summary.json").read_text())  # the folder's summary holds every point
+    assert sorted(summary) == ["lane-keep k_speed=0.2/emergency-brake", "lane-keep k_speed=0.8/emergency-brake"]
     main(["sweep", "--param", "lane-keep.k_speed=0.2,0.8", *EB, "--out", str(out)])
     assert len(read_records(out)) == 4  # resumed: nothing ran again
 
