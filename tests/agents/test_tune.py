@@ -7,7 +7,7 @@ import yaml
 
 import envs  # noqa: F401  (registers the envs)
 from agents.baselines import LaneKeeping
-from agents.registry import POLICIES, make_policy, policy_class
+from agents.registry import POLICIES, TUNED_DIR, make_policy, policy_class
 from agents.tune import TuneError, check_space, objective_value, search_space, set_value, tune
 
 EB = ["emergency-brake"]
@@ -137,3 +137,17 @@ def test_the_objective_is_success_first_then_collisions_then_off_road_then_viola
               _summary(0.8, 0.1, 0.1, 0.5)]
     values = [objective_value(s) for s in ranked]
     assert values == sorted(values, reverse=True) and len(set(values)) == len(values)
+
+
+@pytest.mark.parametrize("path", sorted(TUNED_DIR.glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_shipped_tuned_config_is_its_policys_and_drives(path):
+    import numpy as np
+
+    assert yaml.safe_load(path.read_text())["policy"] == path.stem  # configs/tuned/NAME.yaml is NAME's
+    env = gym.make("bimp/EmergencyBrake-v0")
+    policy = make_policy(path.stem, env)
+    assert policy.config == make_policy(path.stem, env, config=path).config  # and its default
+    obs, _ = env.reset(seed=3)
+    policy.reset(seed=3)
+    action = policy.act(obs)
+    assert np.all(np.isfinite(action)) and env.action_space.contains(np.asarray(action, env.action_space.dtype))
