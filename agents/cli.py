@@ -14,6 +14,7 @@ COMMANDS = {
     "demo": ("agents.demo", "small evaluation of both scenarios and planners, with table and figures"),
     "evaluate": ("agents.evaluate", "run policies x scenarios x seeds and write safety metrics"),
     "compare": ("agents.compare", "paired per-seed comparison of two policies: McNemar, paired bootstrap"),
+    "aggregate": ("agents.aggregate", "a learning algorithm over its training seeds, intervals over the seeds"),
     "render": ("agents.video", "one episode as an MP4 video"),
     "plot": ("agents.plots", "draw the paper's figures from an evaluation folder"),
     "sweep": ("agents.sweep", "policies along one config key (any --param, or N with --n)"),

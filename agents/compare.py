@@ -21,7 +21,7 @@ from agents.metrics import BINARY, METRICS
 from agents.stats import mcnemar_exact, paired_bootstrap
 
 
-def _results(folder: Path, label: str) -> dict[tuple[str, int], dict]:
+def label_results(folder: Path, label: str) -> dict[tuple[str, int], dict]:
     """``{(scenario, seed): metrics}`` of the successful episodes of ``label`` in ``folder``."""
     rows = [r for r in latest_records(read_records(folder))
             if r.get("label", r["policy"]) == label and r["status"] == "ok"]
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     if folder_a == folder_b and label_a == label_b:
         parser.error("comparing an arm with itself: name two labels, or two folders")
     try:
-        a, b = _results(folder_a, label_a), _results(folder_b, label_b)
+        a, b = label_results(folder_a, label_a), label_results(folder_b, label_b)
     except ValueError as err:
         print(f"bimp compare: error: {err}", file=sys.stderr)
         return 2
@@ -116,4 +116,4 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if result else 1
 
 
-__all__ = ["compare", "report"]
+__all__ = ["compare", "label_results", "report"]

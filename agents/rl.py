@@ -6,11 +6,14 @@ Training (``bimp train-rl``)::
 
 writes ``{algo}_{scenario}.zip`` (the final model), ``checkpoints/``, ``*.monitor.csv``, ``curve.png`` (episode
 return vs timesteps), ``config.json`` and ``eval.json`` (a quick check against the zero action) to ``--out``
-(default ``runs/rl/{algo}_{scenario}_s{seed}``). Copy the model to ``agents/models/`` to ship it; the shipped
-ones and how they were made: ``docs/rl.md``. Only PPO models ship; ``make_sac`` says so.
+(default ``runs/rl/{algo}_{scenario}_s{seed}``); a rerun into the same folder resumes from the latest
+checkpoint. Copy the model to ``agents/models/{algo}_{scenario}_s{seed}.zip`` to ship it; the shipped ones and
+how they were made: ``docs/rl.md``.
 
-Inference: ``make_policy("ppo", env)`` (or ``"sac"``) loads ``agents/models/{algo}_{scenario}.zip``, the scenario
-taken from ``env.spec.id``; ``model_path=...`` picks another file.
+Inference: ``make_policy("ppo", env)`` loads the default training seed's model of the env's scenario
+(``agents/models/{algo}_{scenario}_s{seed}.zip``, the default in ``agents/models/defaults.json``), the scenario
+taken from ``env.spec.id``; ``training_seed=S`` picks another shipped seed, ``model=PATH`` any file. A model
+records the scenario it was trained on and is refused on another's env. Over training seeds: ``bimp aggregate``.
 
 Observation and action go through fixed transforms, the same at training (:class:`envs.PlanningWrapper`) and
 at inference (:class:`SB3Policy`): ego-relative scaled features and actions on the planning bounds, rate-limited
@@ -19,8 +22,8 @@ at inference (:class:`SB3Policy`): ego-relative scaled features and actions on t
 The env's reward is used as it is: it pays tracking of the reference speed *along the road* and of the
 reference lane, so weaving or spinning earns less than driving straight; stopping earns only the lane term
 (0.4 of 1 per step), less than driving at the reference speed, and a crash costs 20 and ends the episode.
-Its speed term is narrow (width 0.2 v_ref), though: following a slower OV earns about what stopping earns,
-and the overtaking model learns to brake to a stop behind OV1 (docs/rl.md).
+Its speed term is 0.5 v_ref wide: at 0.2 v_ref, following a slower OV earned about what stopping earns and the
+overtaking model learned to stop behind OV1. One of the three shipped overtaking seeds still does (docs/rl.md).
 """
 
 from __future__ import annotations
@@ -72,7 +75,7 @@ class RLConfig:
     buffer_size: int = 200_000
     learning_starts: int = 2_000
     tau: float = 0.005
-    checkpoint_every: int = 50_000
+    checkpoint_every: int = 25_000
 
     def __post_init__(self) -> None:
         check_fields(self)  # types and lengths, errors naming the key
@@ -198,22 +201,61 @@ def make_model(cfg: RLConfig, venv):
                batch_size=cfg.batch_size or 256, tau=cfg.tau, **common)
 
 
+def _latest_checkpoint(out: Path) -> Path | None:
+    """The checkpoint with the most timesteps in ``out/checkpoints`` (``{name}_{steps}_steps.zip``), if any."""
+    found = sorted((int(p.stem.split("_")[-2]), p) for p in (out / "checkpoints").glob("*_steps.zip"))
+    return found[-1][1] if found else None
+
+
+def _check_same_run(cfg: RLConfig, out: Path) -> None:
+    """Refuse to write into ``out`` when it holds another configuration's run: results never mix."""
+    path = out / "config.json"
+    if not path.is_file():
+        return
+    before = json.loads(path.read_text())
+    now = json.loads(json.dumps(asdict(cfg)))  # tuples as lists, as they were written
+    differ = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
+    if differ:
+        changes = ", ".join(f"{k}: {before.get(k)!r} there, {now.get(k)!r} here" for k in differ)
+        raise ValueError(f"{out} holds a run with other settings ({changes}); choose another --out")
+
+
 def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     """Train ``cfg``, writing the model, checkpoints, monitor logs, ``curve.png`` and ``config.json`` to
-    ``out``. Returns the model's path."""
+    ``out``. Returns the model's path.
+
+    Resumes: when ``out`` holds checkpoints of the same config, training continues from the latest one for the
+    remaining timesteps (its envs take the next seeds, ``seed + rank``, and its monitor logs the next file
+    numbers, so the curve keeps every episode); when the final model is there, nothing is trained. A resumed run
+    is reproducible for a given checkpoint, not identical to an uninterrupted one. ``out`` holding another
+    config's run is an error."""
     import torch
     from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
+    path = out / cfg.model_name
+    _check_same_run(cfg, out)
+    if path.is_file() and (out / "train_time.json").is_file():
+        return path
     # The nets are tiny: more threads only fight the env processes (and other users) for the cores.
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
-    venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, monitor_dir=str(out),
-                        wrapper_class=PlanningWrapper,
+    segment = len(list(out.glob("*.monitor.csv"))) // cfg.n_envs
+    venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, start_index=segment * cfg.n_envs,
+                        monitor_dir=str(out), wrapper_class=PlanningWrapper,
                         vec_env_cls=SubprocVecEnv if cfg.vec_env == "subproc" else DummyVecEnv)
-    model = make_model(cfg, venv)
+    checkpoint = _latest_checkpoint(out)
+    if checkpoint is None:
+        model = make_model(cfg, venv)
+    else:
+        model = _algo_class(cfg.algo).load(checkpoint, env=venv, device="cpu")
+        model.set_random_seed(cfg.seed + model.num_timesteps)
+    # Saved with the model (SB3 pickles its attributes): a model is refused on another scenario's env, whose
+    # features may have the same length and mean other things.
+    model.bimp = {"scenario": cfg.scenario, "algo": cfg.algo, "n_features": venv.observation_space.shape[0]}
+    done = model.num_timesteps
     callbacks = []
     if cfg.checkpoint_every:
         callbacks.append(CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1),
@@ -222,12 +264,12 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     if progress:
         callbacks.append(_progress_callback(cfg.timesteps))
     start = time.perf_counter()
-    model.learn(total_timesteps=cfg.timesteps, callback=callbacks)
+    model.learn(total_timesteps=max(cfg.timesteps - done, 0), callback=callbacks, reset_num_timesteps=done == 0)
     wall = time.perf_counter() - start
     venv.close()
-    path = out / cfg.model_name
     model.save(path)
-    (out / "train_time.json").write_text(json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps}) + "\n")
+    (out / "train_time.json").write_text(json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps,
+                                                     "resumed_at": done or None}) + "\n")
     plot_curve(out, out / "curve.png", title=f"{cfg.algo.upper()} {cfg.scenario} (seed {cfg.seed})")
     return path
 
@@ -255,6 +297,39 @@ def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
     plt.close(fig)
 
 
+def plot_seed_curves(run_dirs: list[Path], path: Path, title: str = "", bin_steps: int = 5_000) -> None:
+    """Learning curves over training seeds: per run, the mean episode return in bins of ``bin_steps``
+    timesteps (from its monitor logs); drawn as the mean over runs with the band from the lowest to the
+    highest run, and each run thin."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from stable_baselines3.common.monitor import load_results
+
+    curves = []
+    for run in run_dirs:
+        df = load_results(str(run))
+        steps, returns = np.cumsum(df["l"].to_numpy()), df["r"].to_numpy()
+        bins = steps // bin_steps
+        curves.append(np.array([returns[bins == b].mean() if np.any(bins == b) else np.nan
+                                for b in range(int(bins.max()) + 1)]))
+    n = min(len(c) for c in curves)
+    y = np.stack([c[:n] for c in curves])  # (runs, bins)
+    x = (np.arange(n) + 0.5) * bin_steps
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for run, c in zip(run_dirs, y):
+        ax.plot(x, c, lw=0.8, alpha=0.5, label=Path(run).name)
+    ax.plot(x, np.nanmean(y, axis=0), color="k", lw=2, label=f"mean of {len(y)} seeds")
+    ax.fill_between(x, np.nanmin(y, axis=0), np.nanmax(y, axis=0), color="k", alpha=0.12, label="min-max")
+    ax.set(xlabel="timesteps", ylabel=f"episode return (mean per {bin_steps} steps)", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 # --- inference -----------------------------------------------------------------------------------------
 class SB3Policy:
     """A trained SB3 model as a :class:`Policy`: the deterministic prediction on :func:`features` of the raw
@@ -273,6 +348,13 @@ class SB3Policy:
         # Schedules are pickled closures; replacing them keeps loading independent of the training Python.
         custom = {"learning_rate": 0.0, "lr_schedule": lambda _: 0.0, "clip_range": lambda _: 0.0}
         self.model = _algo_class(algo).load(path, device="cpu", custom_objects=custom)
+        meta = getattr(self.model, "bimp", None)
+        if meta is None:
+            raise ValueError(f"{path} was not written by `bimp train-rl` (it records no scenario); retrain it")
+        scenario = _scenario_of(env)
+        if scenario is not None and meta["scenario"] != scenario:
+            raise ValueError(f"{path} was trained on {meta['scenario']}, not {scenario}: its features mean other "
+                             f"things there")
         n = n_features(env.unwrapped.scene)
         if self.model.observation_space.shape != (n,) or self.model.action_space.shape != (2,):
             raise ValueError(f"{path} expects observations {self.model.observation_space.shape} and actions "
@@ -294,28 +376,51 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def _shipped_model(env: gym.Env, algo: str) -> Path:
+def _scenario_of(env: gym.Env) -> str | None:
+    """The scenario of an env made by ``gym.make(envs.env_id(...))``; None for any other env."""
     spec = env.spec or env.unwrapped.spec
-    if spec is None or spec.id not in envs.ENV_IDS.values():
+    return {v: k for k, v in envs.ENV_IDS.items()}.get(spec.id) if spec is not None else None
+
+
+def shipped_name(algo: str, scenario: str, training_seed: int) -> str:
+    """File name of a shipped model under ``agents/models/``: ``{algo}_{scenario}_s{training_seed}.zip``."""
+    return model_name(algo, scenario).replace(".zip", f"_s{training_seed}.zip")
+
+
+def default_training_seeds() -> dict[str, int]:
+    """``{"{algo}_{scenario}": training seed}`` of the shipped defaults (``agents/models/defaults.json``: the
+    median of the shipped training seeds on the tuning seeds, docs/rl.md)."""
+    path = MODEL_DIR / "defaults.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _shipped_model(env: gym.Env, algo: str, training_seed: int | None) -> Path:
+    scenario = _scenario_of(env)
+    if scenario is None:
         raise ValueError(f"cannot tell the scenario of {env}: make it with gym.make(envs.env_id(...)) "
-                         f"or pass model_path=")
-    scenario = {v: k for k, v in envs.ENV_IDS.items()}[spec.id]
-    path = MODEL_DIR / model_name(algo, scenario)
-    if not path.is_file():
+                         f"or pass model=")
+    key = model_name(algo, scenario).removesuffix(".zip")
+    if training_seed is None:
+        training_seed = default_training_seeds().get(key)
+    path = MODEL_DIR / shipped_name(algo, scenario, training_seed) if training_seed is not None else None
+    if path is None or not path.is_file():
+        shipped = sorted(p.name for p in MODEL_DIR.glob(f"{key}_s*.zip"))
         raise FileNotFoundError(
-            f"no {algo.upper()} model is shipped for {scenario} (looked for {path}); train one with "
-            f"`bimp train-rl --scenario {scenario} --algo {algo}` and pass model_path=")
+            f"no {algo.upper()} model is shipped for {scenario}"
+            + (f" with training seed {training_seed} (shipped: {shipped})" if shipped else "")
+            + f"; train one with `bimp train-rl --scenario {scenario} --algo {algo}` and pass model=")
     return path
 
 
-def make_ppo(env: gym.Env, *, model_path: str | Path | None = None) -> SB3Policy:
-    """The PPO baseline for ``env``: the shipped model of its scenario unless ``model_path`` is given."""
-    return SB3Policy(env, model_path or _shipped_model(env, "ppo"), "ppo")
+def make_ppo(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None) -> SB3Policy:
+    """The PPO baseline for ``env``: the shipped model of its scenario trained with ``training_seed`` (default:
+    the shipped default, :func:`default_training_seeds`), or the file ``model``."""
+    return SB3Policy(env, model or _shipped_model(env, "ppo", training_seed), "ppo")
 
 
-def make_sac(env: gym.Env, *, model_path: str | Path | None = None) -> SB3Policy:
-    """The SAC baseline for ``env``: the shipped model of its scenario unless ``model_path`` is given."""
-    return SB3Policy(env, model_path or _shipped_model(env, "sac"), "sac")
+def make_sac(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None) -> SB3Policy:
+    """The SAC baseline for ``env``, as :func:`make_ppo` (no SAC model ships: docs/rl.md)."""
+    return SB3Policy(env, model or _shipped_model(env, "sac", training_seed), "sac")
 
 
 def quick_check(env: gym.Env, policy, seed: int) -> dict[str, float]:
@@ -373,7 +478,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.eval_seeds:
         env = gym.make(cfg.env_id)
         policy = SB3Policy(env, path, cfg.algo)
-        result = compare_with_zero(env, policy, range(1000, 1000 + args.eval_seeds))
+        result = compare_with_zero(env, policy, range(100, 100 + args.eval_seeds))  # training seeds
         (out / "eval.json").write_text(json.dumps(result, indent=2) + "\n")
         for who, r in result.items():
             print(f"{who:>6}: progress {r['progress']:.1f} m, collisions {r['collision']:.2f}, "

@@ -4,6 +4,8 @@
   interval, which keeps its coverage at 0 or n successes where mean ± std of a 0/1 outcome says nothing.
 - A continuous per-episode metric gets a bootstrap interval of its mean (BCa; percentile where BCa is
   undefined, e.g. all values equal), from a generator seeded here so a summary is reproducible.
+- Runs of a learning algorithm (training seeds): the mean over tasks of the mean score over runs, with the
+  stratified bootstrap interval of Agarwal et al. (2021): runs resampled within each task.
 - Two policies on the same seeds: the exact McNemar test on the discordant pairs of a 0/1 outcome, and a paired
   bootstrap interval of the mean per-seed difference of a continuous metric.
 """
@@ -80,4 +82,25 @@ def paired_bootstrap(a, b, confidence: float = CONFIDENCE) -> dict:
     return {"mean_diff": float(d.mean()) if d.size else None, "ci_low": low, "ci_high": high, "n": int(d.size)}
 
 
-__all__ = ["bootstrap_mean_ci", "mcnemar_exact", "mean_summary", "paired_bootstrap", "rate_summary", "wilson"]
+def stratified_bootstrap(scores: list, confidence: float = CONFIDENCE, n_resamples: int = 10_000,
+                         seed: int = BOOTSTRAP_SEED) -> dict:
+    """Mean over tasks of the per-task mean over runs, with its percentile interval under resampling the runs
+    of each task with replacement (stratified by task; Agarwal et al. 2021, rliable's ``StratifiedBootstrap``).
+
+    ``scores``: one 1-D sequence per task, a score per run (e.g. one training seed's success rate on a
+    scenario). Returns ``{mean, ci_low, ci_high, runs}``. With few runs the interval is wide by construction:
+    with 3 runs of one task it is their range (all three draws alike has probability 1/27 > 2.5%)."""
+    tasks = [np.asarray(s, dtype=float) for s in scores]
+    if not tasks or any(t.ndim != 1 or t.size == 0 for t in tasks):
+        raise ValueError("scores must be one non-empty 1-D sequence of run scores per task")
+    rng = np.random.default_rng(seed)
+    # (n_resamples,) per task: the mean of a resample of its runs; then the mean over tasks
+    resampled = np.mean([t[rng.integers(0, t.size, (n_resamples, t.size))].mean(axis=1) for t in tasks], axis=0)
+    alpha = (1.0 - confidence) / 2.0
+    low, high = np.quantile(resampled, [alpha, 1.0 - alpha])
+    return {"mean": float(np.mean([t.mean() for t in tasks])), "ci_low": float(low), "ci_high": float(high),
+            "runs": [int(t.size) for t in tasks]}
+
+
+__all__ = ["bootstrap_mean_ci", "mcnemar_exact", "mean_summary", "paired_bootstrap", "rate_summary",
+           "stratified_bootstrap", "wilson"]

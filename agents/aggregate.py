@@ -1,0 +1,108 @@
+"""``bimp aggregate``: one learning algorithm over its training seeds, with intervals over the seeds.
+
+Each training seed's model is evaluated as its own labelled arm of one folder (``bimp evaluate --policy ppo
+--set ppo.model=PATH --label ppo-s1``); this command reports, per scenario and over both, the mean over
+training seeds of each arm's episode mean, with the stratified bootstrap interval over training seeds
+(:func:`agents.stats.stratified_bootstrap`), and every seed's own value. A single training seed says little
+about an algorithm (Henderson et al. 2018): the interval is over seeds, not episodes. Every arm must have run
+the same episode seeds, so the seeds compare like with like.
+
+    bimp aggregate results/rl --runs ppo-s1 ppo-s2 ppo-s3 --name ppo
+
+writes ``DIR/aggregate_{name}.{json,md}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from agents.compare import label_results
+from agents.stats import stratified_bootstrap
+
+METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "progress_m")
+
+
+def aggregate(per_run: dict[str, dict[tuple[str, int], dict]], metrics=METRICS) -> dict[str, dict]:
+    """``{scenario or "all": {metric: {mean, ci_low, ci_high, runs, per_run}}}`` from ``{run label:
+    {(scenario, seed): episode metrics}}``. Raises ``ValueError`` when the runs did not run the same seeds."""
+    labels = list(per_run)
+    if len(labels) < 2:
+        raise ValueError(f"aggregate needs at least 2 runs (training seeds), got {labels}")
+    keys = {label: set(per_run[label]) for label in labels}
+    first = keys[labels[0]]
+    for label in labels[1:]:
+        if keys[label] != first:
+            raise ValueError(f"{label!r} and {labels[0]!r} ran different episodes "
+                             f"({len(keys[label] ^ first)} (scenario, seed) pairs differ); evaluate every run "
+                             "on the same seeds")
+    scenarios = sorted({scenario for scenario, _ in first})
+    # scores[metric][scenario]: one value per run, the run's mean over its episodes
+    scores: dict[str, dict[str, list[float]]] = {m: {} for m in metrics}
+    for metric in metrics:
+        for scenario in scenarios:
+            values = [[per_run[label][k][metric] for k in sorted(first) if k[0] == scenario] for label in labels]
+            if all(v is not None for row in values for v in row):
+                scores[metric][scenario] = [float(np.mean(row)) for row in values]
+    out: dict[str, dict] = {}
+    for scenario in scenarios + ["all"]:
+        out[scenario] = {}
+        for metric, by_task in scores.items():
+            tasks = list(by_task.values()) if scenario == "all" else [by_task[scenario]] if scenario in by_task else []
+            if not tasks or (scenario == "all" and len(tasks) < len(scenarios)):
+                continue  # a metric a scenario does not have (overtake in the emergency brake)
+            entry = stratified_bootstrap(tasks)
+            entry["per_run"] = dict(zip(labels, by_task[scenario])) if scenario != "all" else None
+            out[scenario][metric] = entry
+    return out
+
+
+def markdown(result: dict, name: str, labels: list[str]) -> str:
+    metrics = [m for m in METRICS if any(m in row for row in result.values())]
+    lines = [f"| scenario | {' | '.join(metrics)} |", "|---" * (len(metrics) + 1) + "|"]
+    for scenario, row in result.items():
+        cells = [f"{row[m]['mean']:.3f} [{row[m]['ci_low']:.3f}, {row[m]['ci_high']:.3f}]" if m in row else "-"
+                 for m in metrics]
+        lines.append(f"| {scenario} | {' | '.join(cells)} |")
+    lines += ["", f"{name}: mean over the training-seed runs {', '.join(labels)} of each run's mean over its "
+              "episodes; 95% stratified bootstrap interval over the runs (runs resampled within each scenario). "
+              "Per run:", ""]
+    for scenario, row in result.items():
+        if scenario == "all":
+            continue
+        for m in metrics:
+            if m in row:
+                per = ", ".join(f"{k} {v:.3f}" for k, v in row[m]["per_run"].items())
+                lines.append(f"- {scenario} {m}: {per}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp aggregate", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folder", metavar="DIR", help="an evaluation folder holding every run's arm")
+    parser.add_argument("--runs", nargs="+", required=True, metavar="LABEL", help="one label per training seed")
+    parser.add_argument("--name", required=True, help="the algorithm's name in the output files")
+    args = parser.parse_args(argv)
+    folder = Path(args.folder)
+    try:
+        per_run = {label: label_results(folder, label) for label in args.runs}
+        missing = [label for label, got in per_run.items() if not got]
+        if missing:
+            raise ValueError(f"no results of {missing} in {folder}")
+        result = aggregate(per_run)
+    except ValueError as err:
+        print(f"bimp aggregate: error: {err}", file=sys.stderr)
+        return 2
+    text = markdown(result, args.name, args.runs)
+    (folder / f"aggregate_{args.name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (folder / f"aggregate_{args.name}.md").write_text(text)
+    print(text)
+    return 0
+
+
+__all__ = ["aggregate", "markdown"]

@@ -1,0 +1,61 @@
+"""Aggregating a learning algorithm over training seeds: the stratified bootstrap against hand computation."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from agents.aggregate import aggregate
+from agents.stats import stratified_bootstrap
+
+
+def test_three_runs_of_one_task_give_their_range():
+    # Each of the 27 equally likely resamples has probability 1/27 = 3.7% > 2.5%: the all-lowest and the
+    # all-highest resample sit beyond the 2.5% and 97.5% quantiles, so the interval is the runs' range.
+    got = stratified_bootstrap([[0.90, 0.96, 0.99]])
+    assert got["mean"] == pytest.approx(0.95)
+    assert (got["ci_low"], got["ci_high"]) == pytest.approx((0.90, 0.99))
+    assert got["runs"] == [3]
+
+
+def test_two_tasks_match_the_exact_bootstrap_distribution():
+    a, b = np.array([0.2, 0.6, 1.0]), np.array([0.0, 0.5, 0.5, 1.0])
+    # every resample of a (27) with every resample of b (256), equally likely: the exact distribution
+    exact = np.array([(np.mean(ra) + np.mean(rb)) / 2 for ra in itertools.product(a, repeat=3)
+                      for rb in itertools.product(b, repeat=4)])
+    low, high = np.quantile(exact, [0.025, 0.975])
+    got = stratified_bootstrap([a, b], n_resamples=200_000)
+    assert got["mean"] == pytest.approx((0.6 + 0.5) / 2)
+    assert got["ci_low"] == pytest.approx(low, abs=0.02) and got["ci_high"] == pytest.approx(high, abs=0.02)
+    assert low > 0.2 and high < 0.85  # strictly inside the range: the test can tell a wrong resampling
+
+
+def test_bad_scores_are_refused():
+    for bad in ([], [[]], [[[0.1, 0.2]]]):
+        with pytest.raises(ValueError, match="one non-empty 1-D sequence"):
+            stratified_bootstrap(bad)
+
+
+def _runs(success: dict[str, list[float]], scenario="overtaking", seeds=(1000, 1001)):
+    return {label: {(scenario, seed): {"success_rate": s, "collision_rate": 1 - s, "offroad_rate": 0.0,
+                                       "overtake_rate": s, "progress_m": 100 * s}
+                    for seed, s in zip(seeds, values)} for label, values in success.items()}
+
+
+def test_aggregate_averages_each_runs_mean_and_lists_the_runs():
+    per_run = _runs({"s1": [1, 1], "s2": [1, 0], "s3": [0, 0]})
+    out = aggregate(per_run)
+    row = out["overtaking"]["success_rate"]
+    assert row["mean"] == pytest.approx(0.5) and row["per_run"] == {"s1": 1.0, "s2": 0.5, "s3": 0.0}
+    assert (row["ci_low"], row["ci_high"]) == pytest.approx((0.0, 1.0))
+    assert out["all"]["success_rate"]["mean"] == pytest.approx(0.5)
+
+
+def test_runs_on_different_seeds_are_refused():
+    per_run = {**_runs({"s1": [1, 1]}), **_runs({"s2": [1, 1]}, seeds=(1000, 1002))}
+    with pytest.raises(ValueError, match="'s2' and 's1' ran different episodes"):
+        aggregate(per_run)
+    with pytest.raises(ValueError, match="at least 2 runs"):
+        aggregate(_runs({"s1": [1, 1]}))
