@@ -25,6 +25,9 @@ from agents.compare import label_results
 from agents.stats import stratified_bootstrap
 
 METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "progress_m")
+# Rates are on one scale in every scenario; progress is not (a 110 m brake against a 300 m pass), so it is not
+# averaged over scenarios.
+RATES = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate")
 
 
 def aggregate(per_run: dict[str, dict[tuple[str, int], dict]], metrics=METRICS) -> dict[str, dict]:
@@ -37,24 +40,33 @@ def aggregate(per_run: dict[str, dict[tuple[str, int], dict]], metrics=METRICS) 
     first = keys[labels[0]]
     for label in labels[1:]:
         if keys[label] != first:
-            raise ValueError(f"{label!r} and {labels[0]!r} ran different episodes "
-                             f"({len(keys[label] ^ first)} (scenario, seed) pairs differ); evaluate every run "
-                             "on the same seeds")
+            raise ValueError(f"{label!r} and {labels[0]!r} have results on different episodes "
+                             f"({len(keys[label] ^ first)} (scenario, seed) pairs differ): evaluate every run on "
+                             "the same seeds, and rerun the evaluation to retry an episode that raised")
     scenarios = sorted({scenario for scenario, _ in first})
     # scores[metric][scenario]: one value per run, the run's mean over its episodes
     scores: dict[str, dict[str, list[float]]] = {m: {} for m in metrics}
     for metric in metrics:
         for scenario in scenarios:
-            values = [[per_run[label][k][metric] for k in sorted(first) if k[0] == scenario] for label in labels]
-            if all(v is not None for row in values for v in row):
-                scores[metric][scenario] = [float(np.mean(row)) for row in values]
+            values = [[per_run[label][k].get(metric) for k in sorted(first) if k[0] == scenario] for label in labels]
+            missing = sum(v is None for row in values for v in row)
+            if missing == sum(len(row) for row in values):
+                continue  # a metric the scenario does not have (overtake in the emergency brake)
+            if missing:
+                raise ValueError(f"{metric} is missing in {missing} episode record(s) of {scenario}")
+            scores[metric][scenario] = [float(np.mean(row)) for row in values]
     out: dict[str, dict] = {}
     for scenario in scenarios + ["all"]:
         out[scenario] = {}
         for metric, by_task in scores.items():
-            tasks = list(by_task.values()) if scenario == "all" else [by_task[scenario]] if scenario in by_task else []
-            if not tasks or (scenario == "all" and len(tasks) < len(scenarios)):
-                continue  # a metric a scenario does not have (overtake in the emergency brake)
+            if scenario == "all":
+                if metric not in RATES or len(by_task) < len(scenarios):
+                    continue  # not on one scale, or not in every scenario
+                tasks = list(by_task.values())
+            elif scenario in by_task:
+                tasks = [by_task[scenario]]
+            else:
+                continue
             entry = stratified_bootstrap(tasks)
             entry["per_run"] = dict(zip(labels, by_task[scenario])) if scenario != "all" else None
             out[scenario][metric] = entry

@@ -201,10 +201,15 @@ def make_model(cfg: RLConfig, venv):
                batch_size=cfg.batch_size or 256, tau=cfg.tau, **common)
 
 
-def _latest_checkpoint(out: Path) -> Path | None:
-    """The checkpoint with the most timesteps in ``out/checkpoints`` (``{name}_{steps}_steps.zip``), if any."""
+def _latest_checkpoint(out: Path) -> tuple[int, Path | None]:
+    """``(timesteps, path)`` of the checkpoint with the most timesteps in ``out/checkpoints``
+    (``{name}_{steps}_steps.zip``); ``(0, None)`` when there is none."""
     found = sorted((int(p.stem.split("_")[-2]), p) for p in (out / "checkpoints").glob("*_steps.zip"))
-    return found[-1][1] if found else None
+    return found[-1] if found else (0, None)
+
+
+# Settings that change how a run is computed, not what it computes: a resume may change them.
+_RESUMABLE_CHANGES = ("vec_env", "checkpoint_every")
 
 
 def _check_same_run(cfg: RLConfig, out: Path) -> None:
@@ -214,10 +219,31 @@ def _check_same_run(cfg: RLConfig, out: Path) -> None:
         return
     before = json.loads(path.read_text())
     now = json.loads(json.dumps(asdict(cfg)))  # tuples as lists, as they were written
-    differ = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
+    differ = sorted(k for k in set(before) | set(now)
+                    if before.get(k) != now.get(k) and k not in _RESUMABLE_CHANGES)
     if differ:
         changes = ", ".join(f"{k}: {before.get(k)!r} there, {now.get(k)!r} here" for k in differ)
         raise ValueError(f"{out} holds a run with other settings ({changes}); choose another --out")
+
+
+def _monitor_files(out: Path) -> list[Path]:
+    return sorted(out.glob("*.monitor.csv"), key=lambda p: int(p.name.split(".")[0]))
+
+
+def _drop_replayed_episodes(out: Path, n_envs: int, segment_start: int, resume_at: int) -> None:
+    """Cut the interrupted segment's monitor logs back to the checkpoint a run resumes from: the steps after it
+    are played again by the resumed run, and would otherwise count twice in the curve. The envs step in lockstep,
+    so at the checkpoint each env had played ``(resume_at - segment_start) / n_envs`` of the segment's steps."""
+    budget = (resume_at - segment_start) / n_envs
+    for log in _monitor_files(out)[-n_envs:]:
+        lines = log.read_text().splitlines(keepends=True)
+        kept, steps = lines[:2], 0  # the JSON header and the column names (r,l,t)
+        for row in lines[2:]:
+            steps += int(row.split(",")[1])
+            if steps > budget:
+                break
+            kept.append(row)
+        log.write_text("".join(kept))
 
 
 def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
@@ -225,10 +251,12 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     ``out``. Returns the model's path.
 
     Resumes: when ``out`` holds checkpoints of the same config, training continues from the latest one for the
-    remaining timesteps (its envs take the next seeds, ``seed + rank``, and its monitor logs the next file
-    numbers, so the curve keeps every episode); when the final model is there, nothing is trained. A resumed run
-    is reproducible for a given checkpoint, not identical to an uninterrupted one. ``out`` holding another
-    config's run is an error."""
+    remaining timesteps. The interrupted segment's monitor logs are cut back to that checkpoint (its later
+    episodes are played again), the new segment's logs take the next file numbers, so the curve counts every
+    timestep once, and the algorithm and envs are reseeded from ``seed`` and the checkpoint's timesteps. SAC's
+    checkpoints carry its replay buffer. When the final model is there, nothing is trained. A resumed run is
+    reproducible for a given checkpoint, not identical to an uninterrupted one. ``out`` holding another config's
+    run is an error naming the settings that differ."""
     import torch
     from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.env_util import make_vec_env
@@ -242,16 +270,26 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
-    segment = len(list(out.glob("*.monitor.csv"))) // cfg.n_envs
+    segments_file = out / "segments.json"  # the timesteps each segment (run, or resume) started from
+    segments = json.loads(segments_file.read_text()) if segments_file.is_file() else [0]
+    resume_at, checkpoint = _latest_checkpoint(out)
+    if _monitor_files(out):
+        _drop_replayed_episodes(out, cfg.n_envs, segments[-1], resume_at)
+        segments.append(resume_at)
+    segments_file.write_text(json.dumps(segments) + "\n")
+    segment = len(_monitor_files(out)) // cfg.n_envs
     venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, start_index=segment * cfg.n_envs,
                         monitor_dir=str(out), wrapper_class=PlanningWrapper,
                         vec_env_cls=SubprocVecEnv if cfg.vec_env == "subproc" else DummyVecEnv)
-    checkpoint = _latest_checkpoint(out)
     if checkpoint is None:
         model = make_model(cfg, venv)
     else:
         model = _algo_class(cfg.algo).load(checkpoint, env=venv, device="cpu")
-        model.set_random_seed(cfg.seed + model.num_timesteps)
+        model.set_random_seed(cfg.seed + model.num_timesteps)  # the algorithm's draws and the envs' seeds
+        if cfg.algo == "sac":
+            buffer = checkpoint.with_name(checkpoint.name.replace(f"_{resume_at}_steps.zip",
+                                                                  f"_replay_buffer_{resume_at}_steps.pkl"))
+            model.load_replay_buffer(buffer)  # without it SAC would learn from an empty buffer
     # Saved with the model (SB3 pickles its attributes): a model is refused on another scenario's env, whose
     # features may have the same length and mean other things.
     model.bimp = {"scenario": cfg.scenario, "algo": cfg.algo, "n_features": venv.observation_space.shape[0]}
@@ -260,7 +298,8 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     if cfg.checkpoint_every:
         callbacks.append(CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1),
                                             save_path=str(out / "checkpoints"),
-                                            name_prefix=cfg.model_name.removesuffix(".zip")))
+                                            name_prefix=cfg.model_name.removesuffix(".zip"),
+                                            save_replay_buffer=cfg.algo == "sac"))
     if progress:
         callbacks.append(_progress_callback(cfg.timesteps))
     start = time.perf_counter()
@@ -310,6 +349,8 @@ def plot_seed_curves(run_dirs: list[Path], path: Path, title: str = "", bin_step
     curves = []
     for run in run_dirs:
         df = load_results(str(run))
+        if df.empty:
+            raise ValueError(f"{run} has no finished episode to draw")
         steps, returns = np.cumsum(df["l"].to_numpy()), df["r"].to_numpy()
         bins = steps // bin_steps
         curves.append(np.array([returns[bins == b].mean() if np.any(bins == b) else np.nan

@@ -55,7 +55,24 @@ def test_aggregate_averages_each_runs_mean_and_lists_the_runs():
 
 def test_runs_on_different_seeds_are_refused():
     per_run = {**_runs({"s1": [1, 1]}), **_runs({"s2": [1, 1]}, seeds=(1000, 1002))}
-    with pytest.raises(ValueError, match="'s2' and 's1' ran different episodes"):
+    with pytest.raises(ValueError, match="'s2' and 's1' have results on different episodes"):
         aggregate(per_run)
     with pytest.raises(ValueError, match="at least 2 runs"):
         aggregate(_runs({"s1": [1, 1]}))
+
+
+def test_progress_is_not_averaged_over_scenarios_and_a_partly_missing_metric_is_an_error():
+    per_run = _runs({"s1": [1, 1], "s2": [1, 0]})
+    brake = _runs({"s1": [1, 1], "s2": [0, 1]}, scenario="emergency-brake")
+    for label in per_run:
+        per_run[label].update(brake[label])
+        for key in per_run[label]:
+            if key[0] == "emergency-brake":
+                per_run[label][key]["overtake_rate"] = None  # the emergency brake has no OV1 to pass
+    out = aggregate(per_run)
+    assert "overtake_rate" not in out["emergency-brake"] and "overtake_rate" in out["overtaking"]
+    assert "progress_m" in out["overtaking"] and "progress_m" not in out["all"]
+    assert out["all"]["success_rate"]["mean"] == pytest.approx((0.75 + 0.75) / 2)
+    per_run["s1"][("overtaking", 1000)]["progress_m"] = None
+    with pytest.raises(ValueError, match="progress_m is missing in 1 episode record"):
+        aggregate(per_run)

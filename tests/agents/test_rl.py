@@ -165,22 +165,34 @@ def test_a_model_is_refused_on_another_scenario_and_without_its_record(tmp_path)
     assert isinstance(make_policy("ppo", gym.make(envs.env_id("overtaking")), model=path), Policy)
 
 
+def _logged_steps(out) -> int:
+    """Timesteps of the finished episodes in ``out``'s monitor logs."""
+    from stable_baselines3.common.monitor import load_results
+
+    return int(load_results(str(out))["l"].sum())
+
+
 def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_path):
-    cfg = rl.RLConfig(scenario="emergency-brake", timesteps=256, n_steps=64, checkpoint_every=128, seed=3)
+    cfg = rl.RLConfig(scenario="emergency-brake", timesteps=1024, n_steps=64, checkpoint_every=256, seed=3)
     out = tmp_path / "run"
     path = rl.train(cfg, out, progress=False)
-    # an interruption after the first checkpoint: the model, the time and the later checkpoint never written
+    assert _logged_steps(out) <= 1024
+    # an interruption after the first checkpoint: the model, the time and the later checkpoints never written
     path.unlink()
     (out / "train_time.json").unlink()
-    for late in (out / "checkpoints").glob("*_256_steps.zip"):
-        late.unlink()
-    assert rl._latest_checkpoint(out).name.endswith("_128_steps.zip")
-    rl.train(cfg, out, progress=False)
+    for late in (out / "checkpoints").glob("*.zip"):
+        if not late.name.endswith("_256_steps.zip"):
+            late.unlink()
+    assert rl._latest_checkpoint(out)[0] == 256
+    rl.train(dataclasses.replace(cfg, vec_env="subproc"), out, progress=False)  # how it runs may change
     model = rl._algo_class("ppo").load(path, device="cpu")
-    assert model.num_timesteps == 256  # 128 more, not 256 again
-    assert json.loads((out / "train_time.json").read_text())["resumed_at"] == 128
+    assert model.num_timesteps == 1024  # 768 more, not 1024 again
+    assert json.loads((out / "train_time.json").read_text())["resumed_at"] == 256
+    assert json.loads((out / "segments.json").read_text()) == [0, 256]
     assert sorted(p.name for p in out.glob("*.monitor.csv")) == [f"{i}.monitor.csv" for i in range(4)]
-    rl.plot_seed_curves([out, out], tmp_path / "curves.png", bin_steps=64)  # resumed logs read as one run
+    # the episodes the first segment played after its checkpoint are cut: every timestep is counted once
+    assert _logged_steps(out) <= 1024
+    rl.plot_seed_curves([out, out], tmp_path / "curves.png", bin_steps=128)
     assert (tmp_path / "curves.png").stat().st_size > 0
     with pytest.raises(ValueError, match="gamma: 0.99 there, 0.9 here"):
         rl.train(dataclasses.replace(cfg, gamma=0.9), out, progress=False)
