@@ -460,7 +460,7 @@ def make_ppo(env: gym.Env, *, model: str | Path | None = None, training_seed: in
 
 
 def make_sac(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None) -> SB3Policy:
-    """The SAC baseline for ``env``, as :func:`make_ppo` (no SAC model ships: docs/rl.md)."""
+    """The SAC baseline for ``env``, as :func:`make_ppo`."""
     return SB3Policy(env, model or _shipped_model(env, "sac", training_seed), "sac")
 
 
