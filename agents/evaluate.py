@@ -546,9 +546,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=max(1, min(2, os.cpu_count() or 1)))
     parser.add_argument("--traces", type=int, default=2, help="episodes per arm that keep their per-step trace")
     parser.add_argument("--video", type=int, default=0, metavar="K", help="MP4 of the first K episodes per arm")
-    parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="POLICY.KEY=VALUE",
+    # extend: a repeated flag adds to the earlier ones instead of silently replacing them
+    parser.add_argument("--set", dest="overrides", nargs="*", action="extend", default=[],
+                        metavar="POLICY.KEY=VALUE",
                         help="config override for one policy, e.g. enkts.n_particles=100")
-    parser.add_argument("--label", nargs="*", default=[], metavar="[POLICY=]NAME",
+    parser.add_argument("--label", nargs="*", action="extend", default=[], metavar="[POLICY=]NAME",
                         help="the row name of a policy's config (default: the policy name)")
     parser.add_argument("--batch", type=int, default=1, metavar="B",
                         help="plan B episodes of an arm in one batched call (enkts, enks)")

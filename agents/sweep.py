@@ -200,7 +200,9 @@ def _common(parser: argparse.ArgumentParser, seed: int) -> None:
     parser.add_argument("--scenario", nargs="+", default=["overtaking", "emergency-brake"])
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=seed, help="first episode seed (seeds by role: docs/evaluation.md)")
-    parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="POLICY.KEY=VALUE",
+    # extend: a repeated flag adds to the earlier ones instead of silently replacing them
+    parser.add_argument("--set", dest="overrides", nargs="*", action="extend", default=[],
+                        metavar="POLICY.KEY=VALUE",
                         help="overrides under every point (as bimp evaluate --set)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--out", required=True)
@@ -210,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp sweep", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     _common(parser, seed=0)
-    parser.add_argument("--param", nargs="*", default=[], metavar="POLICY.KEY=V1,V2,...")
+    parser.add_argument("--param", nargs="*", action="extend", default=[], metavar="POLICY.KEY=V1,V2,...")
     parser.add_argument("--policy", nargs="+", default=["enkts", "enks"], help="the policies --n sweeps")
     parser.add_argument("--n", nargs="*", type=int, default=[], help="sweep n_particles of every --policy")
     parser.add_argument("--batch", type=int, default=1)

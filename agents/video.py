@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenario", default="overtaking")
     parser.add_argument("--policy", default="enkts")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="POLICY.KEY=VALUE")
+    parser.add_argument("--set", dest="overrides", nargs="*", action="extend", default=[], metavar="POLICY.KEY=VALUE")
     parser.add_argument("--out", default="runs/render")
     args = parser.parse_args(argv)
     try:

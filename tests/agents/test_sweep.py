@@ -68,3 +68,17 @@ def test_axis_points_label_each_value_and_keep_a_policy_without_an_axis_whole():
     assert [(p.label, p.overrides) for p in points] == [
         ("enkts N=10", {"horizon": 5, "n_particles": 10}), ("enkts N=20", {"horizon": 5, "n_particles": 20}),
         ("ppo", {})]
+
+
+def test_repeated_param_and_set_flags_add_up_instead_of_replacing_each_other(tmp_path):
+    # argparse's plain `nargs="*"` keeps only the last of repeated flags: a sweep of two policies, each its own
+    # --param, silently ran only the second.
+    out = tmp_path / "two"
+    assert main(["sweep", "--param", "lane-keep.k_lat=0.01,0.02", "--param", "mppi.n_particles=2,3",
+                 "--set", "mppi.horizon=3", "--set", "lane-keep.k_head=0.1", *EB, "--episodes", "1",
+                 "--out", str(out)]) == 0
+    records = read_records(out)
+    assert {r["label"] for r in records} == {"lane-keep k_lat=0.01", "lane-keep k_lat=0.02", "mppi n_particles=2",
+                                             "mppi n_particles=3"}
+    assert all('"horizon": 3' in json.dumps(r["config"]) for r in records if r["policy"] == "mppi")
+    assert all('"k_head": 0.1' in json.dumps(r["config"]) for r in records if r["policy"] == "lane-keep")
