@@ -6,7 +6,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= runs/demo
 
-.PHONY: install demo test test-slow bench clean
+.PHONY: install install-ray demo test test-slow test-ray bench clean
 
 install: $(STAMP)
 
@@ -17,6 +17,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
+# Optional: Ray, for --backend ray (docs/scaling.md); demo and test never need it.
+install-ray: $(STAMP)
+	$(PY) -m pip install -q -e ".[ray]"
+
 demo: $(STAMP)
 	$(VENV)/bin/bimp demo --out $(DEMO_OUT)
 
@@ -25,6 +29,9 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
+
+test-ray: install-ray
+	$(PY) -m pytest -q -m slow tests/agents/test_backends.py
 
 bench: $(STAMP)
 	$(VENV)/bin/bimp bench

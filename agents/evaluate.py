@@ -15,6 +15,8 @@ refuse (give ``--label``), never reuse them. An episode that raises is recorded 
 the ``errors`` column and retried by the next run. A worker process that dies is detected and its episode
 retried alone, then recorded as an error if it dies again; the run never hangs. One run at a time per folder
 (a lock). ``OUT/summary.{json,csv,md}`` cover the episodes this command asked for (``--all``: the folder).
+Episodes run on a local process pool (``--workers``) or, with ``--backend ray [--address ADDR]``, on a Ray
+cluster (:mod:`agents.backends`, ``docs/scaling.md``); this process writes the records either way.
 """
 
 from __future__ import annotations
@@ -25,14 +27,11 @@ import dataclasses
 import fcntl
 import json
 import math
-import multiprocessing as mp
 import os
 import sys
 import time
 import traceback
-from collections import Counter, deque
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
+from collections import Counter
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from agents.backends import BackendError, run_groups, start_backend
 from agents.metrics import BINARY, METRICS, episode_metrics, summarize
 from agents.provenance import code_version, config_diff, config_hash, resolved_config
 from agents.rollout import SEEDING, rollout, rollout_batch
@@ -243,10 +243,11 @@ def step_info_summary(infos: list[dict]) -> dict:
     return summary
 
 
-def _crash_record(job: Job) -> dict:
-    return {**_base_record(job), "status": "error", "traceback": None,
-            "error": "WorkerDied: the worker process running this episode died twice, the second time running it "
-                     "alone; a crash in native code or the out-of-memory killer are the usual causes"}
+def _crashed(group: tuple[Job, ...], why: str) -> list[dict]:
+    """Error records of a group whose worker process died on every try (``why``: how the backend saw it)."""
+    return [{**_base_record(job), "status": "error", "traceback": None,
+             "error": f"WorkerDied: {why}; a crash in native code or the out-of-memory killer are the usual causes"}
+            for job in group]
 
 
 def _finite(value):
@@ -310,73 +311,27 @@ def folder_lock(out: Path):
 
 
 # --- running many episodes ------------------------------------------------------------------------------
-def _init_worker() -> None:
-    import torch
-
-    torch.set_num_threads(1)  # workers are the parallelism; oversubscribed threads only slow them down
-
-
-def _run_pool(todo: list[tuple[Job, ...]], workers: int, write) -> None:
-    """Run the groups of episodes ``todo`` on ``workers`` spawned processes, at most ``workers`` groups in flight.
-    When a worker dies, every group then in flight is a suspect: each is rerun alone on a fresh pool, and one that
-    kills its worker alone is recorded as an error (never retried forever, never lost, never a hang)."""
-    # Spawned workers import numpy afresh: one BLAS thread each, or they fight over the cores.
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-    os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
-    make = lambda: ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),  # noqa: E731
-                                       initializer=_init_worker)
-    queue, suspects = deque(todo), deque()
-    in_flight: dict = {}
-    pool, broken = make(), False
-    try:
-        while queue or suspects or in_flight:
-            if broken and not in_flight:
-                pool.shutdown(wait=True, cancel_futures=True)
-                pool, broken = make(), False
-            try:
-                if not broken and not any(alone for _, alone in in_flight.values()):
-                    if suspects and not in_flight:
-                        future = pool.submit(run_group, suspects[0])  # raises before the group leaves its queue
-                        in_flight[future] = (suspects.popleft(), True)
-                    while not suspects and queue and len(in_flight) < workers:
-                        future = pool.submit(run_group, queue[0])
-                        in_flight[future] = (queue.popleft(), False)
-            except BrokenProcessPool:  # it broke since the last look: the group stays queued
-                broken = True
-                if not in_flight:
-                    continue
-            done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
-            for future in done:
-                group, alone = in_flight.pop(future)
-                try:
-                    for record in future.result():
-                        write(record)
-                except BrokenProcessPool:  # a group's first crash is always in company: alone is its second
-                    broken = True
-                    if alone:
-                        for job in group:
-                            write(_crash_record(job))
-                    else:
-                        suspects.append(group)
-    finally:
-        pool.shutdown(wait=False, cancel_futures=True)
-
-
 def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed: int = 0, workers: int = 1,
              out: str | Path = "runs/eval", traces: int = 2, overrides: dict | None = None,
              progress: bool = True, *, seeds: list[int] | None = None, labels: dict | None = None,
-             video: int = 0, all_records: bool = False, batch: int = 1) -> dict:
+             video: int = 0, all_records: bool = False, batch: int = 1, backend: str = "local",
+             address: str | None = None, ray_cpus: int | None = None) -> dict:
     """Run the missing episodes, append them to ``out/episodes.jsonl``, write and return the summary.
 
     Episodes: ``seeds`` if given, else ``seed, seed + 1, ..., seed + episodes - 1``. ``overrides``:
     ``{policy: {key: value}}`` for ``make_policy``; ``labels``: ``{policy: label}``; ``traces`` / ``video``:
     how many of the first seeds per arm keep their per-step trace / get an MP4 in ``out/videos``;
     ``all_records``: summarize the whole folder instead of this request; ``batch``: plan up to this many episodes
-    of an arm in one batched call (policies with ``batched = True``; episodes with video run alone). Raises
-    :class:`EvaluationError`
-    before anything is written when the request is invalid or conflicts with the folder's records.
+    of an arm in one batched call (policies with ``batched = True``; episodes with video run alone);
+    ``backend``: where the episodes run (:mod:`agents.backends`): ``"local"``, a pool of ``workers`` processes,
+    or ``"ray"``, the Ray cluster at ``address`` (default: a new local instance of ``ray_cpus`` CPUs). Raises
+    :class:`EvaluationError` before anything is written when the request is invalid, conflicts with the folder's
+    records, or names a backend that cannot run.
     """
+    try:
+        start_backend(backend, address, ray_cpus)
+    except BackendError as err:
+        raise EvaluationError(str(err)) from None
     seeds = list(range(seed, seed + episodes)) if seeds is None else [int(s) for s in seeds]
     if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
         raise EvaluationError(f"seeds must be distinct ints >= 0, at least one; got {seeds}")
@@ -414,13 +369,8 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
                     bar.write(f"episode {record['label']}/{record['scenario']}/seed {record['seed']} failed: "
                               f"{record['error']}")
 
-            groups = _groups(todo, batch)
-            if workers > 1 and len(groups) > 1:
-                _run_pool(groups, workers, write)
-            else:
-                for group in groups:
-                    for record in run_group(group):
-                        write(record)
+            run_groups(_groups(todo, batch), run_group, _crashed, write, backend=backend, workers=workers,
+                       address=address, cpus=ray_cpus)
         wanted = {j.key for j in jobs}
         records = latest_records(read_records(out))
         summary = summarize(records if all_records else [r for r in records if record_key(r) in wanted])
@@ -557,6 +507,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--all", dest="all_records", action="store_true",
                         help="summarize every episode in the folder, not only this request's")
     parser.add_argument("--out", default="runs/eval")
+    add_backend_arguments(parser)
+
+
+def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--backend", default="local", help="where the episodes run: local (a process pool of "
+                        "--workers) or ray (a Ray cluster: docs/scaling.md)")
+    parser.add_argument("--address", default=None, help="with --backend ray: the cluster's head HOST:PORT, "
+                        "ray://HOST:PORT or auto (default: a new local Ray instance)")
+    parser.add_argument("--ray-cpus", type=int, default=None, metavar="N",
+                        help="with --backend ray and no --address: CPUs of the new local instance (default: all)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -570,7 +530,8 @@ def main(argv: list[str] | None = None) -> int:
         summary = evaluate(args.scenario, args.policy, args.episodes, args.seed, args.workers, args.out,
                            args.traces, parse_overrides(args.overrides), seeds=args.seeds,
                            labels=parse_labels(args.label, args.policy), video=args.video,
-                           all_records=args.all_records, batch=args.batch)
+                           all_records=args.all_records, batch=args.batch, backend=args.backend,
+                           address=args.address, ray_cpus=args.ray_cpus)
     except EvaluationError as err:
         print(f"bimp evaluate: error: {err}", file=sys.stderr)
         return 2

@@ -7,9 +7,9 @@
 
 A sweep is a list of *points* (a policy under one set of overrides, shown as a label such as ``enkts N=50``), each
 an ordinary evaluation (:func:`agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
-provenance, one ``episodes.jsonl``. ``--param POLICY.KEY=V1,V2,...`` sweeps any config key (``KEY`` as in ``bimp
-tune``'s search spaces: ``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` sweep
-together, value by value (the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles`` of every ``--policy``.
+provenance, one ``episodes.jsonl``, and the same ``--backend ray [--address ADDR]`` (``docs/scaling.md``).
+``--param POLICY.KEY=V1,V2,...`` sweeps any config key (``KEY`` as in ``bimp tune``'s search spaces:
+``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` sweep together, value by value (the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles`` of every ``--policy``.
 
 The frontier puts quality against compute: each policy along its compute axis (``FRONTIER_AXES``: the particles N
 of EnKTS, EnKS and MPPI, the iteration cap of NMPC; one point for a policy without one, such as PPO), success
@@ -28,7 +28,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from agents.evaluate import EvaluationError, _fmt, evaluate, parse_overrides, write_summary
+from agents.evaluate import (EvaluationError, _fmt, add_backend_arguments, evaluate, parse_overrides,
+                             write_summary)
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 # The config key that buys a policy quality with compute, and its default values for the frontier.
@@ -110,15 +111,18 @@ def axis_points(policies: list[str], axis: dict[str, tuple[str, list]], base: di
 
 
 def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: int, out: str | Path, *,
-               workers: int = 1, batch: int = 1, progress: bool = True) -> list[dict]:
-    """Evaluate every point into ``out``; ``[{label, policy, param, value, scenario, **summary entry}]``."""
+               workers: int = 1, batch: int = 1, progress: bool = True, backend: str = "local",
+               address: str | None = None, ray_cpus: int | None = None) -> list[dict]:
+    """Evaluate every point into ``out``; ``[{label, policy, param, value, scenario, **summary entry}]``.
+    ``backend``, ``address``, ``ray_cpus``: where the episodes run, as for :func:`agents.evaluate.evaluate`."""
     labels = [p.label for p in points]
     if not points or len(set(labels)) != len(labels):
         raise EvaluationError(f"the points need distinct labels, got {labels}")
     rows, combined = [], {}
     for p in points:
         summary = evaluate(scenarios, [p.policy], episodes, seed, workers, out, traces=0, progress=progress,
-                           overrides={p.policy: p.overrides}, labels={p.policy: p.label}, batch=batch)
+                           overrides={p.policy: p.overrides}, labels={p.policy: p.label}, batch=batch,
+                           backend=backend, address=address, ray_cpus=ray_cpus)
         combined.update(summary)
         rows += [{**entry, "label": p.label, "policy": p.policy, "param": p.param, "value": p.value}
                  for entry in summary.values()]
@@ -206,6 +210,11 @@ def _common(parser: argparse.ArgumentParser, seed: int) -> None:
                         help="overrides under every point (as bimp evaluate --set)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--out", required=True)
+    add_backend_arguments(parser)
+
+
+def _backend(args) -> dict:
+    return {"backend": args.backend, "address": args.address, "ray_cpus": args.ray_cpus}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -223,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     points = (param_points(args.param, base) if args.param
               else axis_points(args.policy, {p: ("n_particles", args.n) for p in args.policy}, base))
     rows = run_points(points, args.scenario, args.episodes, args.seed, args.out, workers=args.workers,
-                      batch=args.batch)
+                      batch=args.batch, **_backend(args))
     for path in write(rows, Path(args.out), "sweep"):
         print(path)
     print(table(rows))
@@ -241,7 +250,7 @@ def frontier_main(argv: list[str] | None = None) -> int:
     values = {"n_particles": args.n, "max_iter": args.iters}
     axis = {p: (FRONTIER_AXES[p], values[FRONTIER_AXES[p]]) for p in args.policies if p in FRONTIER_AXES}
     rows = run_points(axis_points(args.policies, axis, parse_overrides(args.overrides)), args.scenario,
-                      args.episodes, args.seed, args.out, workers=args.workers)
+                      args.episodes, args.seed, args.out, workers=args.workers, **_backend(args))
     for path in write(rows, Path(args.out), "frontier"):
         print(path)
     print(table(rows))

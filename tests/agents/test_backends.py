@@ -1,0 +1,98 @@
+"""Where episodes run (``agents.backends``): the local pool and Ray run the same groups with the same records.
+
+The Ray tests are slow (``-m slow``) and need the extra (``pip install -e ".[ray]"``); the fast ones check that a
+bad backend request fails before anything runs, with Ray or without it."""
+
+import sys
+
+import pytest
+
+from agents import evaluate as ev
+from agents.backends import BackendError, connect_ray
+from agents.evaluate import EvaluationError, evaluate, read_records
+from tests.agents.test_evaluate import ARGS, FAULTY, deadline
+
+TIMING = {"plan_time_ms_p50", "plan_time_ms_p95"}  # wall-clock: the only metrics allowed to differ
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--backend", "dask"], "unknown backend 'dask'"),
+    (["--address", "10.0.0.1:6379"], "not 'local'"),
+    (["--backend", "ray", "--address", "localhost:6379", "--ray-cpus", "2"], "not with --address"),
+])
+def test_a_bad_backend_request_exits_before_anything_runs(tmp_path, capsys, argv, message):
+    out = tmp_path / "out"
+    assert ev.main(["--policy", "lane-keep", "--episodes", "1", *argv, "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_ray_without_the_extra_names_the_install(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError, as without the extra
+    with pytest.raises(EvaluationError, match=r'pip install -e "\.\[ray\]"'):
+        evaluate(out=tmp_path / "out", backend="ray", **ARGS)
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_address_where_no_cluster_answers_is_named_at_once(tmp_path):
+    ray = pytest.importorskip("ray")
+    if ray.is_initialized():
+        pytest.skip("this process is already connected to a Ray instance")
+    for address, message in (("127.0.0.1:1", "no Ray cluster answers"), ("headnode", "expected HOST:PORT")):
+        with deadline(30), pytest.raises(BackendError, match=f"'{address}'.*{message}"):
+            connect_ray(address)
+    with pytest.raises(EvaluationError, match="127.0.0.1:1"):
+        evaluate(out=tmp_path / "out", backend="ray", address="127.0.0.1:1", **ARGS)
+    assert not (tmp_path / "out").exists() and not ray.is_initialized()
+
+
+# --- on a local Ray instance ------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ray_local():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.mark.slow
+def test_ray_gives_the_process_pools_per_seed_metrics(tmp_path, ray_local):
+    args = {**ARGS, "policies": ["enkts", "lane-keep"], "episodes": 4, "traces": 0,
+            "overrides": {"enkts": {"n_particles": 16, "horizon": 8}}}
+    with deadline(600):
+        evaluate(out=tmp_path / "pool", **{**args, "workers": 2})
+        evaluate(out=tmp_path / "ray", backend="ray", **args)
+    per_seed = {}
+    for name in ("pool", "ray"):
+        records = read_records(tmp_path / name)
+        assert len(records) == 8 and all(r["status"] == "ok" for r in records), [r.get("error") for r in records]
+        per_seed[name] = {(r["label"], r["seed"]): (r["config_hash"], r["env_seed"], r["policy_seed"], r["steps"],
+                                                    r["scenario_params"],
+                                                    {k: v for k, v in r["metrics"].items() if k not in TIMING})
+                          for r in records}
+    assert per_seed["ray"] == per_seed["pool"]
+
+
+@pytest.mark.slow
+def test_a_killed_ray_worker_is_retried_not_lost(tmp_path, ray_local):
+    flag = tmp_path / "died-once"
+    with deadline(300):
+        summary = evaluate(out=tmp_path / "once", backend="ray", **{
+            **ARGS, "policies": [FAULTY], "overrides": {FAULTY: {"flag": str(flag), "mode": "die", "once": True}}})
+    assert flag.exists()  # a worker did die
+    e = summary[f"{FAULTY}/emergency-brake"]
+    assert e["episodes"] == 3 and e["errors"] == 0  # retried, not lost
+    assert sorted(r["seed"] for r in read_records(tmp_path / "once")) == [5, 6, 7]  # each recorded once
+
+
+@pytest.mark.slow
+def test_a_ray_worker_that_always_dies_is_recorded_and_the_rest_runs(tmp_path, ray_local):
+    with deadline(300):
+        summary = evaluate(out=tmp_path, backend="ray", **{
+            **ARGS, "policies": ["lane-keep", FAULTY], "episodes": 2,
+            "overrides": {FAULTY: {"flag": str(tmp_path / "never"), "mode": "die"}}})
+    assert summary["lane-keep/emergency-brake"]["episodes"] == 2
+    e = summary[f"{FAULTY}/emergency-brake"]
+    assert e["errors"] == 2 and e["episodes"] == 0
+    errors = [r["error"] for r in read_records(tmp_path) if r["status"] == "error"]
+    assert len(errors) == 2 and all(err.startswith("WorkerDied: WorkerCrashedError") for err in errors)
