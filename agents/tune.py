@@ -29,21 +29,29 @@ Storage and resume. ``--storage`` is any Optuna RDB URL (default ``sqlite:///OUT
 share one study through PostgreSQL or MySQL. The study's name holds the policy, scenarios, seeds and episodes, so a
 different budget never mixes into it. ``--trials`` is the study's total: a rerun continues where it stopped;
 a trial left running by a killed process is failed after its heartbeat lapses and retried with the same values.
+
+Parallel trials. ``--backend ray [--address ADDR] [--parallel N]`` runs N trial workers on a Ray cluster, each
+loading the study from the one storage and running its share of the remaining trials (their episodes in that
+worker); the total stays ``--trials``. A cluster of several machines needs a shared storage (PostgreSQL, MySQL)
+and ``--out`` on a disk every node sees (``docs/scaling.md``).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import re
+import sys
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from agents.evaluate import EvaluationError, evaluate, read_records
+from agents.evaluate import EvaluationError, add_backend_arguments, evaluate, read_records
 from agents.provenance import config_hash
 
 RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
@@ -205,80 +213,169 @@ def _storage(url: str):
     import optuna
     from optuna.storages import RetryHeartbeatStaleTrialCallback
 
+    # Several processes may share a SQLite study (--backend ray on one machine): wait for a lock, do not fail.
+    engine = {"connect_args": {"timeout": 60}} if url.startswith("sqlite") else None
     # The heartbeat lets a rerun (or another machine) fail a trial whose process died, and retry its values once.
     # Optuna flags the heartbeat as experimental (since 2.8); the warning says nothing to a user of bimp.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        return optuna.storages.RDBStorage(url, heartbeat_interval=30, grace_period=90,
+        return optuna.storages.RDBStorage(url, engine_kwargs=engine, heartbeat_interval=30, grace_period=90,
                                           heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(1))
+
+
+@dataclass(frozen=True)
+class Study:
+    """What a process needs to run trials of one study, wherever it runs (picklable: Ray sends it to workers)."""
+
+    policy: str
+    scenarios: tuple
+    space: dict
+    base: dict
+    out: str  # absolute: the trials' evaluation folders, OUT/trials/<config hash>
+    url: str
+    name: str
+    trials: int  # the study's total
+    seeds: tuple
+    rung: int
+    batch: int
+    workers: int
+    startup_trials: int
+
+    def load(self, sampler_seed: int):
+        """The study from its storage (created the first time), with a TPE sampler seeded ``sampler_seed``."""
+        import optuna
+
+        return optuna.create_study(
+            storage=_storage(self.url), study_name=self.name, load_if_exists=True, direction="maximize",
+            sampler=optuna.samplers.TPESampler(seed=sampler_seed, n_startup_trials=self.startup_trials),
+            pruner=optuna.pruners.MedianPruner(n_startup_trials=self.startup_trials))
+
+
+FINISHED = ("COMPLETE", "PRUNED", "FAIL")
+
+
+def _finished():
+    import optuna
+
+    return tuple(getattr(optuna.trial.TrialState, state) for state in FINISHED)
+
+
+def objective(spec: Study, trial) -> float:
+    """One trial: the sampled config evaluated on the study's seeds, in rungs (see the module docstring)."""
+    import optuna
+
+    params = {key: _suggest(trial, key, dist) for key, dist in spec.space.items()}
+    overrides = with_params(spec.base, params)  # complete: no default of the day (a tuned config) leaks in
+    folder = Path(spec.out) / "trials" / config_hash(spec.policy, overrides)
+    trial.set_user_attr("folder", str(folder))
+    value, episodes = math.nan, len(spec.seeds)
+    for done in range(spec.rung, episodes + spec.rung, spec.rung):
+        try:
+            summary = evaluate(list(spec.scenarios), [spec.policy], seeds=list(spec.seeds[:done]), out=folder,
+                               traces=0, batch=spec.batch, workers=spec.workers,
+                               overrides={spec.policy: overrides}, progress=False)
+        except EvaluationError as err:
+            trial.set_user_attr("error", str(err))
+            raise TrialError(str(err)) from None
+        if any(a["errors"] for a in summary.values()):
+            message = _trial_error(folder)
+            trial.set_user_attr("error", message)
+            raise TrialError(message)
+        value = objective_value(summary)
+        trial.report(value, step=min(done, episodes))
+        if done < episodes and trial.should_prune():
+            raise optuna.TrialPruned()
+    for name in ("success_rate", "collision_rate", "offroad_rate"):
+        trial.set_user_attr(name, {key: a[name]["mean"] for key, a in summary.items()})
+    return value
+
+
+def run_trials(spec: Study, n_trials: int, sampler_seed: int, progress: bool = False) -> None:
+    """Run up to ``n_trials`` trials of the study in this process; none once it holds ``spec.trials`` finished."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    spec.load(sampler_seed).optimize(
+        functools.partial(objective, spec), n_trials=n_trials, catch=(TrialError,), show_progress_bar=progress,
+        callbacks=[optuna.study.MaxTrialsCallback(spec.trials, states=_finished())])
+
+
+def run_trials_on_ray(spec: Study, n_trials: int, sampler_seed: int, parallel: int | None = None,
+                      address: str | None = None, ray_cpus: int | None = None) -> None:
+    """``n_trials`` trials over a Ray cluster: ``parallel`` tasks (default: the cluster's CPUs // ``workers``),
+    each a :func:`run_trials` on its share of the trials against the one storage, with its own sampler seed.
+    A task whose worker dies is rerun once by Ray; its trial left running is failed and retried by the
+    heartbeat, and :class:`optuna.study.MaxTrialsCallback` keeps the study's total."""
+    import numpy as np
+
+    from agents.backends import _ray_call, connect_ray, ray_options
+
+    ray = connect_ray(address, ray_cpus)
+    n = parallel or max(1, int(ray.cluster_resources().get("CPU", 1)) // spec.workers)
+    n = min(n, n_trials)
+    shares = [n_trials // n + (i < n_trials % n) for i in range(n)]
+    # Task 0 keeps the local run's seed; the others get independent ones (the same seed would draw the same trials).
+    seeds = [sampler_seed] + [int(s) for s in np.random.SeedSequence(sampler_seed).generate_state(n - 1)]
+    task = ray.remote(_ray_call).options(**{**ray_options(), "num_cpus": spec.workers})
+    pending = [task.remote(run_trials, spec, share, s) for share, s in zip(shares, seeds)]
+    try:
+        while pending:
+            (ref,), pending = ray.wait(pending, num_returns=1)
+            ray.get(ref)  # a worker's failure ends the run (the study keeps its finished trials; rerun to go on)
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
 
 
 def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: int = 100, *,
          out: str | Path = "runs/tune", storage: str | None = None, yaml_path: str | Path | None = None,
          rung: int | None = None, batch: int = 1, workers: int = 1, sampler_seed: int = 0,
-         startup_trials: int = 5, progress: bool = True):
+         startup_trials: int = 5, progress: bool = True, backend: str = "local", address: str | None = None,
+         ray_cpus: int | None = None, parallel: int | None = None):
     """Run the study until it holds ``trials`` finished trials; write the best config to ``yaml_path`` (default
-    ``OUT/best.yaml``; ``configs/tuned/<policy>.yaml`` ships it as the policy's default) and return the study. Raises :class:`TuneError` before any trial for an
-    invalid request."""
+    ``OUT/best.yaml``; ``configs/tuned/<policy>.yaml`` ships it as the policy's default) and return the study.
+    ``backend="ray"``: the trials run in parallel on the Ray cluster at ``address`` (default: a new local instance
+    of ``ray_cpus`` CPUs), ``parallel`` at a time (default: its CPUs // ``workers``), against the one storage
+    (a real cluster needs a PostgreSQL or MySQL URL and ``out`` on a shared disk: ``docs/scaling.md``).
+    Raises :class:`TuneError` before any trial for an invalid request."""
     import optuna
+
+    from agents.backends import BackendError, start_backend
 
     if not scenarios:
         raise TuneError("give at least one scenario")
-    if trials < 1 or episodes < 1:
-        raise TuneError(f"trials and episodes must be >= 1, got {trials} and {episodes}")
+    if trials < 1 or episodes < 1 or workers < 1:
+        raise TuneError(f"trials, episodes and workers must be >= 1, got {trials}, {episodes} and {workers}")
     if seed < 0 or seed + episodes > RESULTS_SEEDS:
         raise TuneError(f"tuning seeds {seed}..{seed + episodes - 1} must lie in 0..{RESULTS_SEEDS - 1}: seeds "
                         f"from {RESULTS_SEEDS} on are the safety, results and claims seeds, never tuned on")
+    if parallel is not None and (backend != "ray" or parallel < 1):
+        raise TuneError(f"--parallel {parallel}: the number of trials at once on Ray (>= 1, with --backend ray)")
+    try:
+        start_backend(backend, address, ray_cpus)
+    except BackendError as err:
+        raise TuneError(str(err)) from None
     rung = episodes if rung is None else max(1, min(rung, episodes))
     space = search_space(policy)
     base = check_space(policy, scenarios, space)
-    out = Path(out)
+    out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    url = storage or f"sqlite:///{out.resolve() / 'study.db'}"
+    url = storage or f"sqlite:///{out / 'study.db'}"
     # The name holds what the trials mean: a changed space or base config is another study, never a resumed one.
     meaning = config_hash(policy, {"base": base, "space": {k: repr(v) for k, v in space.items()}})[:8]
-    name, storage_ = f"{study_name(policy, scenarios, episodes, seed)}:{meaning}", _storage(url)
+    spec = Study(policy, tuple(scenarios), space, base, str(out), url,
+                 f"{study_name(policy, scenarios, episodes, seed)}:{meaning}", trials,
+                 tuple(range(seed, seed + episodes)), rung, batch, workers, startup_trials)
     # A resumed study's sampler is seeded past the trials it holds: the same seed again would redraw the values of
     # its first (random) trials.
-    held = sum(s.n_trials for s in optuna.get_all_study_summaries(storage_) if s.study_name == name)
-    study = optuna.create_study(
-        storage=storage_, study_name=name, load_if_exists=True, direction="maximize",
-        sampler=optuna.samplers.TPESampler(seed=sampler_seed + held, n_startup_trials=startup_trials),
-        pruner=optuna.pruners.MedianPruner(n_startup_trials=startup_trials))
+    held = sum(s.n_trials for s in optuna.get_all_study_summaries(_storage(url)) if s.study_name == spec.name)
+    study = spec.load(sampler_seed + held)
     study.set_user_attr("request", {"policy": policy, "scenarios": scenarios, "episodes": episodes, "seed": seed})
-    seeds = list(range(seed, seed + episodes))
-
-    def objective(trial) -> float:
-        params = {key: _suggest(trial, key, dist) for key, dist in space.items()}
-        overrides = with_params(base, params)  # complete: no default of the day (a tuned config) leaks in
-        folder = out / "trials" / config_hash(policy, overrides)
-        trial.set_user_attr("folder", str(folder))
-        value = math.nan
-        for done in range(rung, episodes + rung, rung):
-            try:
-                summary = evaluate(scenarios, [policy], seeds=seeds[:done], out=folder, traces=0, batch=batch,
-                                   workers=workers, overrides={policy: overrides}, progress=False)
-            except EvaluationError as err:
-                trial.set_user_attr("error", str(err))
-                raise TrialError(str(err)) from None
-            if any(a["errors"] for a in summary.values()):
-                message = _trial_error(folder)
-                trial.set_user_attr("error", message)
-                raise TrialError(message)
-            value = objective_value(summary)
-            trial.report(value, step=min(done, episodes))
-            if done < episodes and trial.should_prune():
-                raise optuna.TrialPruned()
-        for name in ("success_rate", "collision_rate", "offroad_rate"):
-            trial.set_user_attr(name, {key: a[name]["mean"] for key, a in summary.items()})
-        return value
-
-    finished = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED, optuna.trial.TrialState.FAIL)
-    remaining = trials - len(study.get_trials(deepcopy=False, states=finished))
-    if remaining > 0:
-        optuna.logging.set_verbosity(optuna.logging.WARNING)
-        study.optimize(objective, n_trials=remaining, catch=(TrialError,), show_progress_bar=progress,
-                       callbacks=[optuna.study.MaxTrialsCallback(trials, states=finished)])
+    remaining = trials - len(study.get_trials(deepcopy=False, states=_finished()))
+    if remaining > 0 and backend == "ray":
+        run_trials_on_ray(spec, remaining, sampler_seed + held, parallel, address, ray_cpus)
+    elif remaining > 0:
+        run_trials(spec, remaining, sampler_seed + held, progress)
     if any(t.state == optuna.trial.TrialState.COMPLETE for t in study.get_trials(deepcopy=False)):
         write_best(study, policy, base, space, Path(yaml_path) if yaml_path else out / "best.yaml")
     return study
@@ -341,14 +438,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--sampler-seed", type=int, default=0)
+    add_backend_arguments(parser)
+    parser.add_argument("--parallel", type=int, default=None, metavar="N", help="with --backend ray: trials at "
+                        "once, each on its own worker (default: the cluster's CPUs // --workers)")
     args = parser.parse_args(argv)
-    study = tune(args.policy, args.scenario, args.trials, args.episodes, args.seed, out=args.out,
-                 storage=args.storage, yaml_path=args.yaml, rung=args.rung, batch=args.batch, workers=args.workers,
-                 sampler_seed=args.sampler_seed)
+    try:
+        study = tune(args.policy, args.scenario, args.trials, args.episodes, args.seed, out=args.out,
+                     storage=args.storage, yaml_path=args.yaml, rung=args.rung, batch=args.batch,
+                     workers=args.workers, sampler_seed=args.sampler_seed, backend=args.backend,
+                     address=args.address, ray_cpus=args.ray_cpus, parallel=args.parallel)
+    except TuneError as err:
+        print(f"bimp tune: error: {err}", file=sys.stderr)
+        return 2
     for t in study.get_trials(deepcopy=False):
         shown = "-" if t.value is None else f"{t.value:.4f}"
         print(f"trial {t.number:>3} {t.state.name:<8} {shown:>8} {t.params} {t.user_attrs.get('error', '')}")
     return 0
 
 
-__all__ = ["TrialError", "TuneError", "check_space", "load_tuned", "objective_value", "search_space", "tune"]
+__all__ = ["Study", "TrialError", "TuneError", "check_space", "load_tuned", "objective_value", "search_space", "tune"]

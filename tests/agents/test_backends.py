@@ -46,6 +46,19 @@ def test_an_address_where_no_cluster_answers_is_named_at_once(tmp_path):
     assert not (tmp_path / "out").exists() and not ray.is_initialized()
 
 
+def test_tune_refuses_a_bad_backend_request_before_any_trial(tmp_path, monkeypatch, capsys):
+    from agents import tune
+
+    argv = ["--policy", "lane-keep", "--scenario", "emergency-brake", "--trials", "1", "--episodes", "1"]
+    for extra, message in ((["--parallel", "2"], "with --backend ray"), (["--backend", "dask"], "'dask'")):
+        assert tune.main([*argv, *extra, "--out", str(tmp_path / "out")]) == 2
+        assert message in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "ray", None)
+    with pytest.raises(tune.TuneError, match=r'pip install -e "\.\[ray\]"'):
+        tune.tune("lane-keep", ["emergency-brake"], 1, 1, out=tmp_path / "out", backend="ray", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
 # --- on a local Ray instance ------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def ray_local():
@@ -96,3 +109,23 @@ def test_a_ray_worker_that_always_dies_is_recorded_and_the_rest_runs(tmp_path, r
     assert e["errors"] == 2 and e["episodes"] == 0
     errors = [r["error"] for r in read_records(tmp_path) if r["status"] == "error"]
     assert len(errors) == 2 and all(err.startswith("WorkerDied: WorkerCrashedError") for err in errors)
+
+
+@pytest.mark.slow
+def test_tune_on_ray_runs_the_trials_in_parallel_against_one_study(tmp_path, ray_local):
+    import optuna
+
+    from agents.tune import tune
+
+    args = dict(scenarios=["emergency-brake"], episodes=2, out=tmp_path / "study", progress=False, backend="ray")
+    with deadline(600):
+        study = tune("lane-keep", trials=5, parallel=2, **args)
+    trials = study.get_trials(deepcopy=False)
+    assert len(trials) == 5 and {t.state for t in trials} == {optuna.trial.TrialState.COMPLETE}  # the exact budget
+    assert len({t.params["k_speed"] for t in trials}) == 5  # two workers, two sampler seeds: no repeated draws
+    assert (tmp_path / "study" / "best.yaml").is_file()
+    starts = sorted((t.datetime_start, t.datetime_complete) for t in trials)
+    assert any(b[0] < a[1] for a, b in zip(starts, starts[1:]))  # some trials overlapped: in parallel
+    with deadline(600):
+        assert len(tune("lane-keep", trials=5, **args).trials) == 5  # a finished study runs nothing more
+        assert len(tune("lane-keep", trials=6, parallel=2, **args).trials) == 6  # one more, not two
