@@ -170,7 +170,8 @@ def ray_options() -> dict:
     return {"num_cpus": 1, "max_retries": 1, "runtime_env": {"env_vars": dict(THREADS)}}
 
 
-def _ray_call(function: Callable, *args):
+def in_worker(function: Callable, *args):
+    """``function(*args)`` in a Ray worker, after :func:`init_worker` (the body of every bimp task on Ray)."""
     init_worker()
     return function(*args)
 
@@ -182,7 +183,7 @@ def run_ray(groups: list, run: Callable, crashed: Callable, write: Callable, *, 
     any other way Ray reports, is written as ``crashed(group, why)``. At most twice the cluster's CPUs are in
     flight: the rest wait in the driver, so a study of 10^4 groups does not hold 10^4 results in memory."""
     ray = connect_ray(address, cpus)
-    task = ray.remote(_ray_call).options(**ray_options())
+    task = ray.remote(in_worker).options(**ray_options())
     window = max(1, 2 * int(ray.cluster_resources().get("CPU", 1)))
     queue, in_flight = deque(groups), {}
     try:

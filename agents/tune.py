@@ -308,7 +308,7 @@ def run_trials_on_ray(spec: Study, n_trials: int, sampler_seed: int, parallel: i
     heartbeat, and :class:`optuna.study.MaxTrialsCallback` keeps the study's total."""
     import numpy as np
 
-    from agents.backends import _ray_call, connect_ray, ray_options
+    from agents.backends import connect_ray, in_worker, ray_options
 
     ray = connect_ray(address, ray_cpus)
     n = parallel or max(1, int(ray.cluster_resources().get("CPU", 1)) // spec.workers)
@@ -316,7 +316,7 @@ def run_trials_on_ray(spec: Study, n_trials: int, sampler_seed: int, parallel: i
     shares = [n_trials // n + (i < n_trials % n) for i in range(n)]
     # Task 0 keeps the local run's seed; the others get independent ones (the same seed would draw the same trials).
     seeds = [sampler_seed] + [int(s) for s in np.random.SeedSequence(sampler_seed).generate_state(n - 1)]
-    task = ray.remote(_ray_call).options(**{**ray_options(), "num_cpus": spec.workers})
+    task = ray.remote(in_worker).options(**{**ray_options(), "num_cpus": spec.workers})
     pending = [task.remote(run_trials, spec, share, s) for share, s in zip(shares, seeds)]
     try:
         while pending:
