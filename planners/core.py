@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from planners import model as vehicle
-from planners.problem import ACTIVE, N_TRACK, Problem, measure, predict_obstacles, reference_profile
+from planners.problem import ACTIVE, N_FIRST_CONTROL, N_TRACK, Problem, measure, predict_obstacles, reference_profile
 
 # Relative Tikhonov regularization of P_y: a barrier that reads 0 for every particle leaves only the (sampled)
 # noise in its row, and a near-singular P_y would turn into huge gains.
@@ -45,8 +45,9 @@ class Settings(NamedTuple):
     """The static part of a planner's config: shapes and switches (one compiled program per value).
 
     n_particles N, horizon H, iterations (smoothing passes; 1 = the paper's single pass), n_obstacles K,
-    adapt_spread, grow_nu; nu, max_spread, max_innovation, relaxation and sigma_du are numbers the program is
-    specialized on too (they are few and fixed per config)."""
+    adapt_spread, grow_nu, gate_barriers, first_control_barriers, update (the reading of eq. 16: one of
+    ``READINGS``); nu, max_spread, max_innovation, relaxation and sigma_du are numbers the program is specialized on
+    too (they are few and fixed per config)."""
 
     n_particles: int
     horizon: int
@@ -59,6 +60,13 @@ class Settings(NamedTuple):
     relaxation: float
     iterations: int
     sigma_du: tuple[float, float]
+    gate_barriers: bool = True
+    first_control_barriers: bool = True
+    update: str = "perturbed"
+
+
+# The readings of the printed update (eq. 16), ``X^j + K (ybar^j - yhat)``: see :func:`student_t_update`.
+READINGS = ("perturbed", "deterministic", "literal")
 
 
 class Carry(NamedTuple):
@@ -118,20 +126,28 @@ def spread_factor(nu, delta, m):
     return (nu + delta) * (nu - 2.0) / (nu * (nu + m - 2.0))
 
 
-def student_t_update(X, Y, y, nu, active, adapt_spread: bool = True, max_spread: float = math.inf):
+def student_t_update(X, Y, y, nu, active, adapt_spread: bool = True, max_spread: float = math.inf, *,
+                     reading: str = "perturbed", V=None, R=None):
     """One Student's-t ensemble Kalman update (paper eq. 16-19, read as in ``docs/design.md``).
 
-    X: ensemble ``(N, D)``; Y: predicted measurement samples ``(N, m)``, noise included (eq. 14); y: the observation
-    ``(m,)``; nu: degrees of freedom (> 2; ``inf`` = Gaussian); active: bool ``(m,)``, the rows that take part
-    (an inactive row is masked out exactly as if dropped: zero anomalies, unit variance, no innovation).
+    X: ensemble ``(N, D)``; Y: predicted measurement samples ``(N, m)``; y: the observation ``(m,)``; nu: degrees
+    of freedom (> 2; ``inf`` = Gaussian); active: bool ``(m,)``, the rows that take part (an inactive row is masked
+    out exactly as if dropped: zero anomalies, unit variance, no innovation).
 
     - gain ``K = P_xy P_y^-1`` from ensemble (co)variances (eq. 18; the (nu-2)/nu factors cancel);
-    - perturbed-observation update ``X^j + K (y - Y^j)`` (eq. 16; the printed eq. subtracts the predicted mean,
-      which ignores the observation: a typo);
+    - the shift of particle j, by ``reading`` of the printed eq. 16 (``X^j + K (ybar^j - yhat)``):
+      ``"perturbed"`` (ours, the default): ``Y = h + v`` noise included (eq. 14), ``X^j + K (y - Y^j)``, the
+      perturbed-observation ensemble update; ``"deterministic"`` (the form of the authors' public EnKS code):
+      ``Y = h`` without noise, the noise covariance ``R (m,)`` added to ``P_y``, ``X^j + K (y - Y^j)``, whose
+      posterior spread is too narrow by the missing ``K R K^T``; ``"literal"`` (the print): ``Y = h + v``, every
+      particle moved by ``K (y + v^j - mean(Y))`` with ``V = v (N, m)``, so the regression never removes the
+      anomalies it explains and the spread only grows;
     - ``delta``: Mahalanobis distance of the mean innovation under the scale ``P_y (nu-2)/nu`` (eq. 17);
     - if ``adapt_spread``: anomalies rescaled by ``sqrt(spread_factor)``, capped at ``max_spread``;
     - returns ``(X_post (N, D), nu + m_active)`` (eq. 19).
     """
+    if reading not in READINGS:
+        raise ValueError(f"reading must be one of {READINGS}, got {reading!r}")
     n, m = Y.shape
     mask = active.astype(Y.dtype)
     A = X - X.mean(axis=0)
@@ -139,13 +155,16 @@ def student_t_update(X, Y, y, nu, active, adapt_spread: bool = True, max_spread:
     B = (Y - y_mean) * mask
     P_xy = A.T @ B / (n - 1)
     P_y = B.T @ B / (n - 1)
+    if reading == "deterministic":
+        P_y = P_y + jnp.diag(R * mask)
     m_active = mask.sum()
     ridge = RIDGE * jnp.trace(P_y) / jnp.maximum(m_active, 1.0) + 1e-12
     P_y = P_y + jnp.diag(jnp.where(active, ridge, 1.0))
     innov = (y - y_mean) * mask
     # One solve gives both the gain and the whitened mean innovation (P_y is SPD after the ridge).
     sol = jnp.linalg.solve(P_y, jnp.concatenate([P_xy.T, innov[:, None]], axis=1))
-    X_post = X + ((y - Y) * mask) @ sol[:, :-1]
+    shifts = (innov + V * mask) if reading == "literal" else (y - Y) * mask
+    X_post = X + shifts @ sol[:, :-1]
     nu_post = nu + m_active
     gaussian = isinstance(nu, (int, float)) and math.isinf(nu)  # traced nu: the caller decides (Settings)
     if adapt_spread and not gaussian:
@@ -161,11 +180,15 @@ def _mean_std(A):
     return mean, jnp.sqrt(((A - mean) ** 2).mean(axis=0))
 
 
-def _active(h):
+def _active(h, gate: bool = True, first_control: bool = True):
     """Rows ``(m,)`` of the measurement ``h (N, m)`` that take part in the update: the tracking rows, and the barriers
     some particle touches. A barrier that reads ~0 for every particle is flat there and carries no information, yet
-    with N = 50 its noise regresses spuriously on the plan and collapses the ensemble within a few steps."""
-    return (jnp.arange(h.shape[1]) < N_TRACK) | (h.max(axis=0) > ACTIVE)
+    with N = 50 its noise regresses spuriously on the plan and collapses the ensemble within a few steps.
+    ``gate=False`` keeps every row (the ablation's "no gating"); ``first_control=False`` drops the last four rows,
+    the first control's bounds (:data:`planners.problem.BARRIERS`)."""
+    rows = jnp.arange(h.shape[1])
+    active = (rows < N_TRACK) | (h.max(axis=0) > ACTIVE) if gate else jnp.ones(h.shape[1], bool)
+    return active if first_control else active & (rows < h.shape[1] - N_FIRST_CONTROL)
 
 
 def _target(Y, max_innovation):
@@ -217,10 +240,12 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
         Z = jax.lax.dynamic_update_slice(Z, u, (0, 6 + 2 * t))
         h = measure(problem, x_next, u, du, Z[:, 6:8], u_prev, lane, vr, ar, (*obs_t, present))
         Y = h + v_y
-        active = _active(h)
+        active = _active(h, cfg.gate_barriers, cfg.first_control_barriers)
         prior_std = _mean_std(Z)[1]
-        Z, nu_post = student_t_update(Z, Y, _target(Y, cfg.max_innovation), nu, active,
-                                      cfg.adapt_spread, cfg.max_spread)
+        # The deterministic reading regresses on h and adds the noise covariance: St(0, R, nu) has R nu / (nu - 2).
+        R = problem.noise**2 * (1.0 if math.isinf(cfg.nu) else nu / (nu - 2.0))
+        Z, nu_post = student_t_update(Z, h if cfg.update == "deterministic" else Y, _target(Y, cfg.max_innovation),
+                                      nu, active, cfg.adapt_spread, cfg.max_spread, reading=cfg.update, V=v_y, R=R)
         if cfg.relaxation > 0:
             Z = _relax(Z, prior_std, cfg.relaxation)
         if cfg.grow_nu:
@@ -287,5 +312,5 @@ def plan_batch(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, 
     return jax.vmap(_plan, in_axes=(_BATCH_AXES, None, 0, 0, 0))(problem, cfg, carry, obs, keys)
 
 
-__all__ = ["Carry", "PlanOut", "Settings", "chi_square", "initial_carry", "plan_batch", "plan_step", "roll_out",
+__all__ = ["Carry", "PlanOut", "READINGS", "Settings", "chi_square", "initial_carry", "plan_batch", "plan_step", "roll_out",
            "spread_factor", "student_t", "student_t_update"]

@@ -35,7 +35,12 @@ class EnKTSConfig(ProblemConfig):
     anomalies by the Student's-t factor; grow_nu: ``nu <- nu + m`` after each update (eq. 19); max_spread: cap on
     that factor (``inf``: none); max_innovation: how many predicted standard deviations the virtual observation may
     lie from the predicted mean, per row and step; relaxation: share of the spread an update removed that is given
-    back (0 = none); iterations: smoothing passes per step (1 = the paper's single pass); seed: default seed of the planner's key. Values are checked by
+    back (0 = none); iterations: smoothing passes per step (1 = the paper's single pass); gate_barriers: a barrier
+    that no particle touches sits out the update (``planners.core._active``); first_control_barriers: the applied
+    control's bounds are measured at every step; update: the reading of the printed eq. 16, ``"perturbed"`` (ours),
+    ``"deterministic"`` (the authors' public EnKS code) or ``"literal"`` (:func:`planners.core.student_t_update`);
+    seed: default seed of the planner's key. The switches exist for the ablation and the readings study
+    (``docs/reproduction.md``); the defaults are what that study supports. Values are checked by
     :func:`configs.check_fields` (types, lengths) and then for range: a bad one raises
     :class:`configs.ConfigError` naming the key and the value.
     """
@@ -47,6 +52,9 @@ class EnKTSConfig(ProblemConfig):
     max_innovation: float = 2.0
     relaxation: float = 0.5
     iterations: int = 1
+    gate_barriers: bool = True
+    first_control_barriers: bool = True
+    update: str = "perturbed"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -63,6 +71,8 @@ class EnKTSConfig(ProblemConfig):
             raise ConfigError("relaxation", "in [0, 1)", self.relaxation)
         if self.seed < 0:
             raise ConfigError("seed", "an int >= 0", self.seed)
+        if self.update not in core.READINGS:
+            raise ConfigError("update", f"one of {', '.join(core.READINGS)}", self.update)
         self._check_problem()
 
     def settings(self, n_obstacles: int) -> core.Settings:
@@ -70,7 +80,8 @@ class EnKTSConfig(ProblemConfig):
         return core.Settings(self.n_particles, self.horizon, n_obstacles, float(self.nu),
                              self.adapt_spread and not math.isinf(self.nu), self.grow_nu, float(self.max_spread),
                              float(self.max_innovation), float(self.relaxation), self.iterations,
-                             tuple(float(s) for s in self.sigma_du))
+                             tuple(float(s) for s in self.sigma_du), self.gate_barriers,
+                             self.first_control_barriers, self.update)
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ from envs.scene import Scene
 
 N_TRACK = 5  # r (3) + s (2)
 N_BOUND_BARRIERS = 9  # road edge, accel, steer, accel rate, steer rate, and the four of the first control
+N_FIRST_CONTROL = 4  # the last rows of y: the first control's bounds
 BARRIERS = ("ov (one per OV)", "road_edge", "accel", "steer", "accel_rate", "steer_rate",
             "first accel", "first steer", "first accel_rate", "first steer_rate")
 ACTIVE = 1e-3  # a barrier below this for every particle carries no information (see planners.core)
@@ -355,6 +356,6 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     return xp.concatenate([tracking, xp.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness], axis=1)
 
 
-__all__ = ["ACTIVE", "BARRIERS", "PROBLEM_FILE", "load_problem", "Barrier", "BarrierShape", "Limits", "N_TRACK", "Problem", "ProblemConfig", "Road",
+__all__ = ["ACTIVE", "BARRIERS", "N_FIRST_CONTROL", "PROBLEM_FILE", "load_problem", "Barrier", "BarrierShape", "Limits", "N_TRACK", "Problem", "ProblemConfig", "Road",
            "edge_distance", "edge_distance_local", "frenet", "input_constraints", "rate_constraints", "make_problem", "measure", "measurement_noise", "n_measurements",
            "predict_obstacles", "reference_profile"]

@@ -68,6 +68,55 @@ def test_student_t_update_matches_the_closed_form_conditional(adapt):
         assert np.trace(scale_of_ensemble) < 0.6 * np.trace(cond_scale)
 
 
+def _linear_toy(n, seed=0):
+    """A linear-Gaussian toy (prior, H, R, y) and its ensemble ``X``, noise-free ``h`` and noise ``v``."""
+    rng = np.random.default_rng(seed)
+    mu, P = np.array([1.0, -2.0, 0.5]), np.array([[2.0, 0.3, 0.0], [0.3, 1.0, 0.2], [0.0, 0.2, 0.5]])
+    H, R = np.array([[1.0, 0.0, 1.0], [0.0, 2.0, 0.0]]), np.diag([0.4, 0.3])
+    X = rng.multivariate_normal(mu, P, size=n)
+    v = rng.multivariate_normal(np.zeros(2), R, size=n)
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    return mu, P, H, R, K, np.array([2.5, -3.0]), X, X @ H.T, v
+
+
+def test_deterministic_reading_has_the_kalman_mean_and_misses_the_noise_in_the_spread():
+    """Reading (b) of eq. 16 (the authors' public EnKS code): no perturbation, R added to P_y. The mean is the
+    Kalman mean; the anomalies are (I - KH) A, so the spread lacks K R K^T."""
+    mu, P, H, R, K, y, X, h, v = _linear_toy(40_000)
+    X_post, _ = update(X, h, y, math.inf, reading="deterministic", R=jnp.asarray(np.diag(R)))
+    np.testing.assert_allclose(X_post.mean(0), mu + K @ (y - H @ mu), atol=0.03)
+    I_KH = np.eye(3) - K @ H
+    np.testing.assert_allclose(np.cov(X_post.T), I_KH @ P @ I_KH.T, atol=0.03)
+    assert np.trace(np.cov(X_post.T)) < np.trace(I_KH @ P) - 0.5 * np.trace(K @ R @ K.T)
+
+
+def test_literal_reading_moves_the_mean_but_only_widens_the_spread():
+    """Reading (c), the print taken literally: every particle moves by K (y + v^j - mean(Y)). The mean is the Kalman
+    mean, but no anomaly is regressed away: the spread grows to P + K R K^T instead of shrinking."""
+    mu, P, H, R, K, y, X, h, v = _linear_toy(40_000, seed=1)
+    X_post, _ = update(X, h + v, y, math.inf, reading="literal", V=jnp.asarray(v))
+    np.testing.assert_allclose(X_post.mean(0), mu + K @ (y - H @ mu), atol=0.03)
+    np.testing.assert_allclose(np.cov(X_post.T), P + K @ R @ K.T, atol=0.04)
+
+
+def test_an_unknown_reading_is_refused():
+    with pytest.raises(ValueError, match="reading"):
+        update(np.zeros((4, 2)), np.zeros((4, 1)), np.zeros(1), math.inf, reading="printed")
+
+
+@pytest.mark.parametrize("reading", core.READINGS)
+@pytest.mark.parametrize("nu", [4.0, math.inf])
+def test_every_reading_plans_a_finite_action_and_the_readings_differ(reading, nu):
+    env, obs = episode("bimp/Overtaking-v0", seed=1)
+    actions = {}
+    for r in core.READINGS:
+        planner = EnKTSPlanner(env.unwrapped.scene, small(update=r, nu=nu))
+        actions[r] = np.stack([planner.act(obs) for _ in range(3)])
+    assert np.all(np.isfinite(actions[reading])) and np.all(np.abs(actions[reading]) <= 1)
+    others = [r for r in core.READINGS if r != reading]
+    assert all(not np.allclose(actions[reading], actions[r], atol=1e-6) for r in others)
+
+
 def test_huge_nu_gives_the_gaussian_result():
     rng = np.random.default_rng(2)
     X = rng.standard_normal((500, 3))
@@ -238,6 +287,18 @@ def test_barrier_gating_keeps_tracking_rows_and_touched_barriers():
     h[:, 6] = 1e-4  # barrier 6 flat below the threshold for every particle
     h[:, 7] = 2.0   # barrier 7 violated by all
     np.testing.assert_array_equal(np.asarray(core._active(jnp.asarray(h))), [1, 1, 1, 1, 1, 1, 0, 1])
+
+
+def test_gating_and_first_control_barriers_can_be_switched_off():
+    h = np.zeros((50, 5 + 2 + 9))  # tracking (5), two OVs, the nine bound barriers
+    h[3, 5] = 0.01  # one particle touches OV 1's barrier; every other barrier is flat
+    gated = np.asarray(core._active(jnp.asarray(h)))
+    np.testing.assert_array_equal(gated, [1] * 6 + [0] * 10)
+    assert np.asarray(core._active(jnp.asarray(h), gate=False)).all()
+    h[:, -4:] = 1.0  # the first control breaks its bounds in every particle
+    assert np.asarray(core._active(jnp.asarray(h)))[-4:].all()
+    np.testing.assert_array_equal(np.asarray(core._active(jnp.asarray(h), first_control=False)),
+                                  [1] * 6 + [0] * 10)
 
 
 def test_the_spread_cap_bounds_the_widening():

@@ -19,7 +19,8 @@ def env_at(env_id="bimp/EmergencyBrake-v0", seed=0, **config):
 
 
 @pytest.mark.parametrize("bad", [dict(n_particles=1), dict(horizon=0), dict(nu=2.0), dict(nu=1.5),
-                                 dict(sigma_du=(0.5, 0.0)), dict(relaxation=1.0), dict(dynamics="magic")])
+                                 dict(sigma_du=(0.5, 0.0)), dict(relaxation=1.0), dict(dynamics="magic"),
+                                 dict(update="printed")])
 def test_invalid_config_raises_at_construction(bad):
     with pytest.raises(ValueError):
         EnKTSConfig(**bad)
