@@ -714,6 +714,14 @@ class OvertakingEnv(BimpEnv):
         self.reference_speed = float(v_lead) if follow else cruise
 
 
+class OvertakingKeepLaneEnv(OvertakingEnv):
+    """:class:`OvertakingEnv` with ``reference: keep-lane`` as its default (``bimp/OvertakingKeepLane-v0``): the
+    reference holds the right lane at the EV's initial speed, so a pass must be discovered by the planner, pushed
+    off the reference by the constraints (the paper's V-A setting; the claims study's exploration test)."""
+
+    OPTIONS = {"reference": ("keep-lane", "behaviour")}
+
+
 class EmergencyBrakeEnv(BimpEnv):
     """Paper V-B: straight two-lane road; an OV ahead in each lane brakes hard (``brake_decel`` m/s^2, a
     magnitude: the OVs accelerate by ``-brake_decel``) to a full stop from ``brake_onset`` s (sudden traffic

@@ -7,7 +7,7 @@ import envs
 from agents.baselines import LaneKeeping
 from envs.scenarios import REFERENCE_COLOUR
 
-IDS = list(envs.ENV_IDS.values())
+IDS = list(envs.ENV_IDS.values()) + list(envs.VARIANT_IDS.values())
 
 
 def rollout(env, actions, seed):
@@ -204,3 +204,18 @@ def test_braking_hard_at_the_onset_is_enough_on_every_seed():
             obs, _, term, trunc, info = env.step(policy.act(obs))
             done = term or trunc
         assert not info["collision"] and not info["offroad"] and obs[3] == 0.0
+
+
+def test_keep_lane_variant_is_overtaking_with_the_lane_kept_as_reference():
+    variant = gym.make(envs.env_id("overtaking-keep-lane"))
+    base = gym.make("bimp/Overtaking-v0", config={"reference": "keep-lane"})
+    behaviour = gym.make("bimp/Overtaking-v0")
+    (obs_v, _), (obs_b, _), (obs_p, _) = (e.reset(seed=2000) for e in (variant, base, behaviour))
+    np.testing.assert_array_equal(obs_v, obs_b)  # the same draws, the same reference
+    road = variant.unwrapped.scene.road
+    assert obs_v[-1] == pytest.approx(road.lane_offset(1))  # the EV's own (right) lane
+    assert obs_p[-1] != obs_v[-1]  # here the behaviour layer asks for the pass at once
+    switched = gym.make(envs.env_id("overtaking-keep-lane"), config={"reference": "behaviour"})
+    np.testing.assert_array_equal(switched.reset(seed=2000)[0], obs_p)
+    with pytest.raises(ValueError, match="unknown scenario"):
+        envs.env_id("overtaking-keep-left")
