@@ -242,10 +242,11 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
         Y = h + v_y
         active = _active(h, cfg.gate_barriers, cfg.first_control_barriers)
         prior_std = _mean_std(Z)[1]
-        # The deterministic reading regresses on h and adds the noise covariance: St(0, R, nu) has R nu / (nu - 2).
-        R = problem.noise**2 * (1.0 if math.isinf(cfg.nu) else nu / (nu - 2.0))
-        Z, nu_post = student_t_update(Z, h if cfg.update == "deterministic" else Y, _target(Y, cfg.max_innovation),
-                                      nu, active, cfg.adapt_spread, cfg.max_spread, reading=cfg.update, V=v_y, R=R)
+        R = None
+        if cfg.update == "deterministic":  # regresses on h and adds the noise covariance: St(0, R, nu) has R nu/(nu-2)
+            R = problem.noise**2 * (1.0 if math.isinf(cfg.nu) else nu / (nu - 2.0))
+        Z, nu_post = student_t_update(Z, Y if R is None else h, _target(Y, cfg.max_innovation), nu, active,
+                                      cfg.adapt_spread, cfg.max_spread, reading=cfg.update, V=v_y, R=R)
         if cfg.relaxation > 0:
             Z = _relax(Z, prior_std, cfg.relaxation)
         if cfg.grow_nu:
