@@ -519,6 +519,11 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --backend ray and no --address: CPUs of the new local instance (default: all)")
 
 
+def backend_options(args: argparse.Namespace) -> dict:
+    """The keyword arguments of :func:`evaluate` (and of what calls it) that :func:`add_backend_arguments` parsed."""
+    return {"backend": args.backend, "address": args.address, "ray_cpus": args.ray_cpus}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp evaluate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -530,8 +535,7 @@ def main(argv: list[str] | None = None) -> int:
         summary = evaluate(args.scenario, args.policy, args.episodes, args.seed, args.workers, args.out,
                            args.traces, parse_overrides(args.overrides), seeds=args.seeds,
                            labels=parse_labels(args.label, args.policy), video=args.video,
-                           all_records=args.all_records, batch=args.batch, backend=args.backend,
-                           address=args.address, ray_cpus=args.ray_cpus)
+                           all_records=args.all_records, batch=args.batch, **backend_options(args))
     except EvaluationError as err:
         print(f"bimp evaluate: error: {err}", file=sys.stderr)
         return 2

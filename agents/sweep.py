@@ -28,8 +28,8 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from agents.evaluate import (EvaluationError, _fmt, add_backend_arguments, evaluate, parse_overrides,
-                             write_summary)
+from agents.evaluate import (EvaluationError, _fmt, add_backend_arguments, backend_options, evaluate,
+                             parse_overrides, write_summary)
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 # The config key that buys a policy quality with compute, and its default values for the frontier.
@@ -213,10 +213,6 @@ def _common(parser: argparse.ArgumentParser, seed: int) -> None:
     add_backend_arguments(parser)
 
 
-def _backend(args) -> dict:
-    return {"backend": args.backend, "address": args.address, "ray_cpus": args.ray_cpus}
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp sweep", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -232,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     points = (param_points(args.param, base) if args.param
               else axis_points(args.policy, {p: ("n_particles", args.n) for p in args.policy}, base))
     rows = run_points(points, args.scenario, args.episodes, args.seed, args.out, workers=args.workers,
-                      batch=args.batch, **_backend(args))
+                      batch=args.batch, **backend_options(args))
     for path in write(rows, Path(args.out), "sweep"):
         print(path)
     print(table(rows))
@@ -250,7 +246,7 @@ def frontier_main(argv: list[str] | None = None) -> int:
     values = {"n_particles": args.n, "max_iter": args.iters}
     axis = {p: (FRONTIER_AXES[p], values[FRONTIER_AXES[p]]) for p in args.policies if p in FRONTIER_AXES}
     rows = run_points(axis_points(args.policies, axis, parse_overrides(args.overrides)), args.scenario,
-                      args.episodes, args.seed, args.out, workers=args.workers, **_backend(args))
+                      args.episodes, args.seed, args.out, workers=args.workers, **backend_options(args))
     for path in write(rows, Path(args.out), "frontier"):
         print(path)
     print(table(rows))

@@ -51,7 +51,7 @@ from typing import Any
 
 import yaml
 
-from agents.evaluate import EvaluationError, add_backend_arguments, evaluate, read_records
+from agents.evaluate import EvaluationError, add_backend_arguments, backend_options, evaluate, read_records
 from agents.provenance import config_hash
 
 RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
@@ -445,8 +445,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         study = tune(args.policy, args.scenario, args.trials, args.episodes, args.seed, out=args.out,
                      storage=args.storage, yaml_path=args.yaml, rung=args.rung, batch=args.batch,
-                     workers=args.workers, sampler_seed=args.sampler_seed, backend=args.backend,
-                     address=args.address, ray_cpus=args.ray_cpus, parallel=args.parallel)
+                     workers=args.workers, sampler_seed=args.sampler_seed, parallel=args.parallel,
+                     **backend_options(args))
     except TuneError as err:
         print(f"bimp tune: error: {err}", file=sys.stderr)
         return 2
