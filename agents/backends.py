@@ -93,7 +93,9 @@ def run_local(groups: list, workers: int, run: Callable, crashed: Callable, writ
         os.environ.setdefault(var, value)
     make = lambda: ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),  # noqa: E731
                                        initializer=init_worker)
-    queue, suspects = deque(groups), deque()
+    # Groups travel with their place in the list: suspects rerun in that order, whatever order the broken pool's
+    # futures were failed in.
+    queue, suspects = deque(enumerate(groups)), []
     in_flight: dict = {}
     pool, broken = make(), False
     try:
@@ -102,20 +104,22 @@ def run_local(groups: list, workers: int, run: Callable, crashed: Callable, writ
                 pool.shutdown(wait=True, cancel_futures=True)
                 pool, broken = make(), False
             try:
-                if not broken and not any(alone for _, alone in in_flight.values()):
-                    if suspects and not in_flight:
-                        future = pool.submit(run, suspects[0])  # raises before the group leaves its queue
-                        in_flight[future] = (suspects.popleft(), True)
-                    while not suspects and queue and len(in_flight) < workers:
-                        future = pool.submit(run, queue[0])
-                        in_flight[future] = (queue.popleft(), False)
+                if not broken and not any(alone for _, _, alone in in_flight.values()):
+                    if suspects:  # a suspect runs alone: nothing else starts beside it, nor while others finish
+                        if not in_flight:
+                            future = pool.submit(run, suspects[0][1])  # raises before the group leaves its queue
+                            in_flight[future] = (*suspects.pop(0), True)
+                    else:
+                        while queue and len(in_flight) < workers:
+                            future = pool.submit(run, queue[0][1])
+                            in_flight[future] = (*queue.popleft(), False)
             except BrokenProcessPool:  # it broke since the last look: the group stays queued
                 broken = True
                 if not in_flight:
                     continue
             done, _ = wait(in_flight, return_when=FIRST_COMPLETED)
-            for future in done:
-                group, alone = in_flight.pop(future)
+            for future in [f for f in in_flight if f in done]:  # in the order submitted, not the set's
+                index, group, alone = in_flight.pop(future)
                 try:
                     for record in future.result():
                         write(record)
@@ -126,7 +130,8 @@ def run_local(groups: list, workers: int, run: Callable, crashed: Callable, writ
                                                      "running it alone"):
                             write(record)
                     else:
-                        suspects.append(group)
+                        suspects.append((index, group))
+                        suspects.sort(key=lambda suspect: suspect[0])
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
 

@@ -129,3 +129,61 @@ def test_tune_on_ray_runs_the_trials_in_parallel_against_one_study(tmp_path, ray
     with deadline(600):
         assert len(tune("lane-keep", trials=5, **args).trials) == 5  # a finished study runs nothing more
         assert len(tune("lane-keep", trials=6, parallel=2, **args).trials) == 6  # one more, not two
+
+
+
+class ScriptedPool:
+    """A stand-in for the process pool, with no processes and no timing race: a group ``("die",)`` breaks the
+    pool 10 ms after it is submitted, failing everything in flight in it as a dead worker does; ``("ok",)`` returns
+    ``[group]`` after 100 ms. Records how many groups were in flight beside each one submitted."""
+
+    log: list = []
+
+    def __init__(self, workers, **_):
+        self.pending, self.broken = [], False
+
+    def submit(self, run, group):
+        import threading
+        from concurrent.futures import Future
+        from concurrent.futures.process import BrokenProcessPool
+
+        if self.broken:
+            raise BrokenProcessPool("broken")
+        future = Future()
+        self.log.append((group, sum(not f.done() for f in self.pending)))
+        self.pending.append(future)
+        threading.Timer(0.01 if group[0] == "die" else 0.1, self._finish, (future, group)).start()
+        return future
+
+    def _finish(self, future, group):
+        from concurrent.futures.process import BrokenProcessPool
+
+        if future.done():
+            return
+        if group[0] == "ok":
+            future.set_result([group])
+            return
+        self.broken = True
+        for f in self.pending:
+            if not f.done():
+                f.set_exception(BrokenProcessPool("a worker died"))
+
+    def shutdown(self, wait=True, cancel_futures=False):
+        pass
+
+
+def test_a_suspect_rerun_alone_has_no_company_that_could_kill_it(monkeypatch):
+    """After a crash each group then in flight reruns alone. The last of them once had the next queued group
+    started beside it, and a group that dies then took the innocent one down, recorded as dying twice."""
+    from agents import backends
+
+    monkeypatch.setattr(backends, "ProcessPoolExecutor", ScriptedPool)
+    monkeypatch.setattr(ScriptedPool, "log", [])
+    die, innocent, die_later = ("die", 0), ("ok",), ("die", 2)
+    written = []
+    with deadline(60):
+        backends.run_local([die, innocent, die_later], 2, None, lambda group, why: [("crashed", group)],
+                           written.append)
+    assert written == [("crashed", die), innocent, ("crashed", die_later)]
+    # the first two ran together; after the crash each ran alone, in the order given, then die_later alone
+    assert ScriptedPool.log == [(die, 0), (innocent, 1), (die, 0), (innocent, 0), (die_later, 0), (die_later, 0)]
