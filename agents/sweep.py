@@ -25,11 +25,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from agents.evaluate import (EvaluationError, _fmt, add_backend_arguments, backend_options, evaluate,
-                             parse_overrides, write_summary)
+from agents.evaluate import (EvaluationError, _fmt, add_backend_arguments, backend_options, check_conflicts,
+                             evaluate, parse_overrides, read_records, resolve_arms, write_summary)
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 # The config key that buys a policy quality with compute, and its default values for the frontier.
@@ -118,6 +119,14 @@ def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: i
     labels = [p.label for p in points]
     if not points or len(set(labels)) != len(labels):
         raise EvaluationError(f"the points need distinct labels, got {labels}")
+    if episodes < 1 or seed < 0 or workers < 1:
+        raise EvaluationError(f"--episodes and --workers must be >= 1 and --seed >= 0, got {episodes}, {workers} "
+                              f"and {seed}")
+    # Every point checked, and against the folder, before the first runs: a bad last point must not cost the others'
+    # hours first.
+    arms = [arm for p in points
+            for arm in resolve_arms(scenarios, [p.policy], {p.policy: p.overrides}, {p.policy: p.label})]
+    check_conflicts(arms, read_records(out))
     rows, combined = [], {}
     for p in points:
         summary = evaluate(scenarios, [p.policy], episodes, seed, workers, out, traces=0, progress=progress,
@@ -222,17 +231,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n", nargs="*", type=int, default=[], help="sweep n_particles of every --policy")
     parser.add_argument("--batch", type=int, default=1)
     args = parser.parse_args(argv)
-    base = parse_overrides(args.overrides)
     if bool(args.param) == bool(args.n):
         parser.error("give either --param or --n")
-    points = (param_points(args.param, base) if args.param
-              else axis_points(args.policy, {p: ("n_particles", args.n) for p in args.policy}, base))
-    rows = run_points(points, args.scenario, args.episodes, args.seed, args.out, workers=args.workers,
-                      batch=args.batch, **backend_options(args))
-    for path in write(rows, Path(args.out), "sweep"):
-        print(path)
-    print(table(rows))
-    return 0
+    return _run("sweep", args, lambda base: param_points(args.param, base) if args.param
+                else axis_points(args.policy, {p: ("n_particles", args.n) for p in args.policy}, base), args.batch)
 
 
 def frontier_main(argv: list[str] | None = None) -> int:
@@ -245,9 +247,24 @@ def frontier_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     values = {"n_particles": args.n, "max_iter": args.iters}
     axis = {p: (FRONTIER_AXES[p], values[FRONTIER_AXES[p]]) for p in args.policies if p in FRONTIER_AXES}
-    rows = run_points(axis_points(args.policies, axis, parse_overrides(args.overrides)), args.scenario,
-                      args.episodes, args.seed, args.out, workers=args.workers, **backend_options(args))
-    for path in write(rows, Path(args.out), "frontier"):
+    return _run("frontier", args, lambda base: axis_points(args.policies, axis, base))
+
+
+def _run(name: str, args: argparse.Namespace, points_of, batch: int = 1) -> int:
+    """The points ``points_of(--set overrides)`` run into ``--out`` and reported; exit status 2 with the reason,
+    before any episode, for a request that cannot run."""
+    try:
+        base = parse_overrides(args.overrides)
+        points = points_of(base)
+        stray = sorted(set(base) - {p.policy for p in points})
+        if stray:
+            raise EvaluationError(f"--set names {stray}, which no point evaluates")
+        rows = run_points(points, args.scenario, args.episodes, args.seed, args.out, workers=args.workers,
+                          batch=batch, **backend_options(args))
+    except EvaluationError as err:
+        print(f"bimp {name}: error: {err}", file=sys.stderr)
+        return 2
+    for path in write(rows, Path(args.out), name):
         print(path)
     print(table(rows))
     return 0

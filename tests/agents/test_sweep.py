@@ -82,3 +82,31 @@ def test_repeated_param_and_set_flags_add_up_instead_of_replacing_each_other(tmp
                                              "mppi n_particles=3"}
     assert all('"horizon": 3' in json.dumps(r["config"]) for r in records if r["policy"] == "mppi")
     assert all('"k_head": 0.1' in json.dumps(r["config"]) for r in records if r["policy"] == "lane-keep")
+
+
+@pytest.mark.parametrize("command, match", [
+    (["sweep", "--param", "lane-keep.k_nope=1,2"], "k_nope"),
+    (["sweep", "--param", "bogus"], "POLICY.KEY=V1"),
+    (["frontier", "--policies", "nope"], "unknown policy"),
+    (["frontier", "--policies", "lane-keep", "--set", "mppi.horizon=3"], "no point evaluates"),
+    (["frontier", "--policies", "lane-keep", "--episodes", "0"], "--episodes"),
+])
+def test_a_bad_request_exits_2_naming_it_and_writes_nothing(tmp_path, capsys, command, match):
+    out = tmp_path / "out"
+    assert main([*command, "--scenario", "emergency-brake", "--out", str(out)]) == 2
+    assert match in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_every_point_is_checked_before_the_first_runs(tmp_path, capsys):
+    out = tmp_path / "frontier"
+    # N = 4 is fine, N = 1 is not: no episode of N = 4 may run before the refusal.
+    assert main(["frontier", "--policies", "mppi", "--n", "4", "1", "--set", "mppi.horizon=3", *EB,
+                 "--out", str(out)]) == 2
+    assert "n_particles" in capsys.readouterr().err and read_records(out) == []
+    assert main(["sweep", "--param", "lane-keep.k_speed=0.2", *EB, "--out", str(out)]) == 0
+    # k_speed=0.2 under another k_lat is the folder's label with another config: refused before k_speed=0.3 runs
+    assert main(["sweep", "--param", "lane-keep.k_speed=0.3,0.2", "--set", "lane-keep.k_lat=0.5", *EB,
+                 "--out", str(out)]) == 2
+    assert "another config" in capsys.readouterr().err
+    assert len(read_records(out)) == 2
