@@ -8,6 +8,8 @@
 A sweep is a list of *points* (a policy under one set of overrides, shown as a label such as ``enkts N=50``), each
 an ordinary evaluation (:func:`agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
 provenance, one ``episodes.jsonl``, and the same ``--backend ray [--address ADDR]`` (``docs/scaling.md``).
+Every point is checked (its config, and against the folder's records) before the first episode runs: a bad
+request exits with status 2 and names the point, never after hours of the others.
 ``--param POLICY.KEY=V1,V2,...`` sweeps any config key (``KEY`` as in ``bimp tune``'s search spaces:
 ``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` sweep together, value by value (the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles`` of every ``--policy``.
 
