@@ -45,4 +45,3 @@ class Fragile(LaneKeeping):
         if self.k_speed > 1.0:
             raise RuntimeError("injected failure: gain too high")
         return super().act(obs)
-

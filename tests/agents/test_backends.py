@@ -131,7 +131,6 @@ def test_tune_on_ray_runs_the_trials_in_parallel_against_one_study(tmp_path, ray
         assert len(tune("lane-keep", trials=6, parallel=2, **args).trials) == 6  # one more, not two
 
 
-
 class ScriptedPool:
     """A stand-in for the process pool, with no processes and no timing race: a group ``("die",)`` breaks the
     pool 10 ms after it is submitted, failing everything in flight in it as a dead worker does; ``("ok",)`` returns
