@@ -17,9 +17,14 @@ worker runs one BLAS / torch / XLA thread: the workers are the parallelism. See 
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing as mp
 import os
+import signal
 import socket
+import sys
+import threading
+import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -83,6 +88,43 @@ def init_worker() -> None:
     torch.set_num_threads(1)  # workers are the parallelism; oversubscribed threads only slow them down
 
 
+def init_pool_worker(parent: int) -> None:
+    """The local pool's initializer: the worker dies with ``parent`` (:func:`die_with`), then :func:`init_worker`."""
+    die_with(parent)
+    init_worker()
+
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def die_with(parent: int) -> None:
+    """End this process as soon as its parent process ``parent`` dies, however it dies (a pool worker outliving a
+    SIGKILLed ``bimp evaluate`` would otherwise hold its memory under PID 1 until its group ends, or forever when
+    idle: it holds both ends of its own call queue, so no EOF ever comes).
+
+    Linux: the kernel sends SIGKILL when the parent *thread* that started this process exits
+    (``PR_SET_PDEATHSIG``). That is safe for the pool: with the spawn context ``ProcessPoolExecutor`` starts its
+    workers in ``submit``, i.e. in the thread running :func:`run_local`, which holds the pool until it shuts it down
+    (only with ``max_tasks_per_child``, unused here, would its management thread start replacements). Elsewhere a
+    daemon thread looks at ``os.getppid()`` every second: a process whose parent died is re-parented."""
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            armed = ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        except (OSError, AttributeError):  # no prctl in this libc: fall back to looking
+            pass
+    if os.getppid() != parent:  # it died before prctl ran, or before this look: no signal will come
+        os._exit(1)
+    if not armed:
+        threading.Thread(target=_exit_when_orphaned, args=(parent,), name="die-with-parent", daemon=True).start()
+
+
+def _exit_when_orphaned(parent: int) -> None:
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os._exit(1)
+
+
 # --- the local process pool ------------------------------------------------------------------------------------
 def run_local(groups: list, workers: int, run: Callable, crashed: Callable, write: Callable) -> None:
     """Run ``run(group)`` for every group on ``workers`` spawned processes, at most ``workers`` groups in flight,
@@ -92,7 +134,9 @@ def run_local(groups: list, workers: int, run: Callable, crashed: Callable, writ
     for var, value in THREADS.items():
         os.environ.setdefault(var, value)
     make = lambda: ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),  # noqa: E731
-                                       initializer=init_worker)
+                                       initializer=init_pool_worker, initargs=(os.getpid(),))
+    # The workers die with this process however it ends (die_with), and multiprocessing's resource tracker, whose
+    # pipe this process and the workers hold, then exits on its EOF: a killed `bimp evaluate` leaves nothing behind.
     # Groups travel with their place in the list: suspects rerun in that order, whatever order the broken pool's
     # futures were failed in.
     queue, suspects = deque(enumerate(groups)), []

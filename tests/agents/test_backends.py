@@ -3,7 +3,12 @@
 The Ray tests are slow (``-m slow``) and need the extra (``pip install -e ".[ray]"``); the fast ones check that a
 bad backend request fails before anything runs, with Ray or without it."""
 
+import os
+import signal
+import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -186,3 +191,113 @@ def test_a_suspect_rerun_alone_has_no_company_that_could_kill_it(monkeypatch):
     assert written == [("crashed", die), innocent, ("crashed", die_later)]
     # the first two ran together; after the crash each ran alone, in the order given, then die_later alone
     assert ScriptedPool.log == [(die, 0), (innocent, 1), (die, 0), (innocent, 0), (die_later, 0), (die_later, 0)]
+
+
+# --- the local pool's workers die with their parent ----------------------------------------------------------------
+DRIVER = """import os, sys, time
+from pathlib import Path
+
+
+def nap(started):
+    (Path(started) / str(os.getpid())).touch()  # this worker is up, past its initializer, running a group
+    time.sleep(60)
+    return []
+
+
+if __name__ == "__main__":
+    from agents.backends import run_groups
+
+    run_groups([sys.argv[1]] * 4, nap, None, print, workers=2)
+"""
+
+
+def _stat(pid: int) -> list[str]:
+    """``/proc/PID/stat`` after the command name: state, parent pid, ...; empty once the process is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return []
+
+
+def _alive(pid: int) -> bool:
+    return _stat(pid)[:1] not in ([], ["Z"])  # a zombie is dead, only not yet reaped by its new parent
+
+
+def _children(pid: int) -> set[int]:
+    return {int(d.name) for d in Path("/proc").iterdir() if d.name.isdigit() and _stat(int(d.name))[1:2] == [str(pid)]}
+
+
+def _within(seconds: float, condition) -> bool:
+    end = time.monotonic() + seconds
+    while not condition():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.1)
+    return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the workers through /proc")
+def test_the_pool_workers_die_with_their_parent(tmp_path):
+    """A SIGKILLed ``bimp evaluate --workers 2`` left both workers (about 860 MB each) and multiprocessing's
+    resource tracker running under PID 1. Here the parent is a driver of ``run_groups`` whose groups sleep a
+    minute: once both workers run one, it is killed, and every child it had must be gone within 10 s."""
+    (tmp_path / "driver.py").write_text(DRIVER)
+    started = tmp_path / "started"
+    started.mkdir()
+    root = Path(__file__).resolve().parents[2]
+    parent = subprocess.Popen([sys.executable, str(tmp_path / "driver.py"), str(started)],
+                              env={**os.environ, "PYTHONPATH": str(root)})
+    children: set[int] = set()
+    try:
+        assert _within(60, lambda: len(list(started.iterdir())) == 2), "the two workers never started"
+        children = _children(parent.pid)  # the two workers and the resource tracker
+        assert {int(p.name) for p in started.iterdir()} <= children
+        parent.kill()
+        parent.wait()
+        assert _within(10, lambda: not any(map(_alive, children))), [
+            Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode() for pid in children
+            if _alive(pid)]
+    finally:
+        parent.kill()
+        parent.wait()
+        for pid in filter(_alive, children):  # never leave a failed run's workers behind
+            os.kill(pid, signal.SIGKILL)
+
+
+ORPHAN = """import os, sys, time
+from pathlib import Path
+
+from agents import backends
+
+if os.fork() == 0:
+    sys.platform = "other"  # as where there is no prctl: the fallback looks at its parent pid every second
+    backends.die_with(os.getppid())
+    Path(sys.argv[1]).write_text(str(os.getpid()))
+    time.sleep(60)
+    os._exit(0)
+time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "fork") or not Path("/proc/self/stat").exists(), reason="forks, reads /proc")
+def test_without_prctl_a_worker_sees_its_parent_die_and_exits(tmp_path):
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    # a parent already gone when the worker starts (no process is its own parent): exit at once, quietly
+    code = "import os; from agents.backends import die_with; die_with(os.getpid()); print('alive')"
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert (run.returncode, run.stdout) == (1, "")
+    child = tmp_path / "child"
+    parent = subprocess.Popen([sys.executable, "-c", ORPHAN, str(child)], env=env)
+    pid = None
+    try:
+        assert _within(60, lambda: child.exists() and child.read_text()), "the child never started"
+        pid = int(child.read_text())
+        parent.kill()
+        parent.wait()
+        assert _within(5, lambda: not _alive(pid))
+    finally:
+        parent.kill()
+        parent.wait()
+        if pid and _alive(pid):
+            os.kill(pid, signal.SIGKILL)
