@@ -15,6 +15,10 @@ Inference: ``make_policy("ppo", env)`` loads the default training seed's model o
 taken from ``env.spec.id``; ``training_seed=S`` picks another shipped seed, ``model=PATH`` any file. A model
 records the scenario it was trained on and is refused on another's env. Over training seeds: ``bimp aggregate``.
 
+Model files, checkpoints and replay buffers are read without unpickling (:func:`read_model_file`), so a file
+from anywhere runs no code; ``trust_model=True`` falls back to SB3's own ``load``, which does unpickle
+(docs/security.md).
+
 Observation and action go through fixed transforms, the same at training (:class:`envs.PlanningWrapper`) and
 at inference (:class:`SB3Policy`): ego-relative scaled features and actions on the planning bounds, rate-limited
 (:mod:`envs.wrappers` says why).
@@ -30,14 +34,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import time
+import zipfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.sac.policies import SACPolicy
 
 import envs
@@ -159,6 +165,199 @@ class SACFeaturePolicy(_FeaturesOnly, SACPolicy):
 FEATURE_POLICIES = {"ppo": PPOFeaturePolicy, "sac": SACFeaturePolicy}
 
 
+# --- model files, read without unpickling --------------------------------------------------------------
+# An SB3 zip holds a JSON ``data`` entry (attributes that are not plain JSON are cloudpickled into it, base64 under
+# ``:serialized:``) and ``.pth`` state dicts. SB3's ``load`` unpickles every ``:serialized:`` entry, so a crafted
+# file runs any code. Everything bimp needs is plain: the ``bimp`` record, ``policy_kwargs`` and the counters are
+# plain JSON, the weights are tensors (read with ``weights_only=True``), and the spaces are bimp's own
+# (:class:`PlanningWrapper`'s). docs/security.md.
+_HOW = ("retrain it with `bimp train-rl`, or, only if you trust its source, pass trust_model=True "
+        "(`--set ppo.trust_model=true`, or sac.), which loads it with SB3's own load: that unpickles it, and a "
+        "crafted file then runs any code")
+
+
+def _brief(err: Exception) -> str:
+    """``err`` on one line, cut at 200 characters (torch's and numpy's messages run over several lines)."""
+    return f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
+
+
+def read_model_file(path: str | Path, how: str = _HOW) -> tuple[dict[str, Any], dict[str, dict], dict[str, Any]]:
+    """``(data, state_dicts, variables)`` of an SB3 zip without unpickling anything: ``data`` its plain-JSON
+    attributes (the pickled ``:serialized:`` ones are dropped unread), ``state_dicts`` ``{"policy": ...,
+    "policy.optimizer": ...}`` (one per ``.pth`` entry) and ``variables`` ``pytorch_variables.pth`` (SAC's
+    ``log_ent_coef``; ``{}`` when absent), both read by ``torch.load(weights_only=True)``.
+    ``ValueError`` naming the file when it is not such a zip, and ending in ``how`` (what to do instead)."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json.loads(archive.read("data"))
+        # SB3's reader with load_data=False touches only the .pth entries, each read with weights_only=True.
+        _, state_dicts, variables = load_from_zip_file(path, load_data=False, device="cpu")
+    except FileNotFoundError:
+        raise
+    except pickle.UnpicklingError:
+        raise ValueError(f"{path} is not a model file bimp can read without unpickling (a .pth entry holds more "
+                         f"than weights: torch.load(weights_only=True) refused it); {how}") from None
+    except Exception as err:  # any other failure to parse an untrusted file: not a zip, no JSON data
+        raise ValueError(f"{path} is not a model file bimp can read without unpickling "
+                         f"({_brief(err)}); {how}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: its data entry is not a JSON object; {how}")
+    plain = {k: v for k, v in data.items() if not (isinstance(v, dict) and ":serialized:" in v)}
+    return plain, state_dicts, variables or {}
+
+
+def _check_record(path: Path, meta: Any, algo: str, env: gym.Env) -> None:
+    """Refuse a model whose ``bimp`` record (written by :func:`train`) is missing or names another algorithm,
+    scenario or feature count than ``env``'s."""
+    if not isinstance(meta, dict) or not {"scenario", "algo", "n_features"} <= set(meta):
+        raise ValueError(f"{path} was not written by `bimp train-rl` (it records no scenario); retrain it")
+    if meta["algo"] != algo:
+        raise ValueError(f"{path} is a {str(meta['algo']).upper()} model, not {algo.upper()}")
+    scenario = _scenario_of(env)
+    if scenario is not None and meta["scenario"] != scenario:
+        raise ValueError(f"{path} was trained on {meta['scenario']}, not {scenario}: its features mean other "
+                         f"things there")
+    n = n_features(env.unwrapped.scene)
+    if meta["n_features"] != n:
+        raise ValueError(f"{path} expects {meta['n_features']} features; this feature set gives {n}")
+
+
+def _load_safe(path: Path, algo: str, env: gym.Env) -> BasePolicy:
+    """The deterministic SB3 policy of the model file ``path`` rebuilt from plain data, nothing unpickled:
+    ``FEATURE_POLICIES[algo]`` on ``env``'s :class:`PlanningWrapper` spaces (features ``(n,)``, action ``(2,)``
+    in [-1, 1]), the file's ``policy_kwargs`` (``net_arch``) and its ``policy`` state dict, loaded strict."""
+    data, state_dicts, _ = read_model_file(path)
+    _check_record(path, data.get("bimp"), algo, env)
+    kwargs = data.get("policy_kwargs")
+    if not isinstance(kwargs, dict) or "net_arch" not in kwargs:
+        raise ValueError(f"{path} records no plain policy_kwargs with net_arch; {_HOW}")
+    spaces = PlanningWrapper(env)
+    try:
+        # Only JSON values reach the constructor: a class given by name is a string here, and refused.
+        policy = FEATURE_POLICIES[algo](spaces.observation_space, spaces.action_space, lambda _: 0.0,
+                                        **{"use_sde": bool(data.get("use_sde", False)), **kwargs})
+        policy.load_state_dict(state_dicts["policy"], strict=True)
+    except (TypeError, ValueError, KeyError, RuntimeError) as err:
+        raise ValueError(f"{path} does not fit a {algo.upper()} policy on {spaces.observation_space.shape} "
+                         f"features ({_brief(err)}); {_HOW}") from None
+    policy.set_training_mode(False)
+    return policy
+
+
+def _load_trusted(path: Path, algo: str, env: gym.Env) -> BasePolicy:
+    """The policy of ``path`` by SB3's own ``load``, which unpickles the file: whatever code it holds runs.
+    Only behind ``trust_model=True``."""
+    # Schedules are pickled closures; replacing them keeps loading independent of the training Python.
+    custom = {"learning_rate": 0.0, "lr_schedule": lambda _: 0.0, "clip_range": lambda _: 0.0}
+    model = _algo_class(algo).load(path, device="cpu", custom_objects=custom)
+    _check_record(path, getattr(model, "bimp", None), algo, env)
+    if model.observation_space.shape != (n_features(env.unwrapped.scene),) or model.action_space.shape != (2,):
+        raise ValueError(f"{path} expects observations {model.observation_space.shape} and actions "
+                         f"{model.action_space.shape}; this feature set gives "
+                         f"({n_features(env.unwrapped.scene)},) and (2,)")
+    return model.policy
+
+
+_EARLIER = "delete it to resume from an earlier checkpoint (or train into a new --out)"
+
+
+def _resume(cfg: RLConfig, venv, checkpoint: Path):
+    """The model of ``cfg`` on ``venv`` in the state of ``checkpoint`` (a ``CheckpointCallback`` zip), read
+    without unpickling: a fresh :func:`make_model`, then the checkpoint's state dicts (policy and optimizers),
+    variables (SAC's ``log_ent_coef``) and counters. What SB3's ``load`` restores beyond that is logging
+    (the recent episodes' returns) or settings ``cfg`` gives anyway. SAC: its replay buffer, :func:`load_buffer`."""
+    import torch
+    from stable_baselines3.common.save_util import recursive_getattr
+
+    data, state_dicts, variables = read_model_file(checkpoint, how=_EARLIER)
+    model = make_model(cfg, venv)
+    names, variable_names = model._get_torch_save_params()
+    if set(state_dicts) != set(names) or set(variables) != set(variable_names):
+        raise ValueError(f"{checkpoint} holds {sorted(state_dicts)} and {sorted(variables)}, not the "
+                         f"{cfg.algo.upper()} state {names} and {variable_names}; {_EARLIER}")
+    try:
+        model.set_parameters(state_dicts, exact_match=True, device="cpu")
+        with torch.no_grad():
+            for name in variable_names:  # in place: the entropy optimizer holds this very tensor
+                recursive_getattr(model, name).copy_(variables[name])
+        for counter in ("num_timesteps", "_n_updates", "_episode_num"):
+            setattr(model, counter, int(data[counter]))
+    except (ValueError, KeyError, RuntimeError, TypeError) as err:
+        raise ValueError(f"{checkpoint} does not fit this run ({_brief(err)}); {_EARLIER}") from None
+    if cfg.algo == "sac":
+        load_buffer(model.replay_buffer, _buffer_path(checkpoint))  # without it SAC learns from an empty buffer
+    return model
+
+
+# SB3's ReplayBuffer arrays, each (buffer_size // n_envs, n_envs, ...); next_observations is None when
+# optimize_memory_usage.
+_BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+def _buffer_path(checkpoint: Path) -> Path:
+    """``{name}_replay_buffer_{steps}_steps.npz`` beside the checkpoint ``{name}_{steps}_steps.zip``."""
+    name, steps = checkpoint.name.removesuffix("_steps.zip").rsplit("_", 1)
+    return checkpoint.with_name(f"{name}_replay_buffer_{steps}_steps.npz")
+
+
+def save_buffer(buffer, path: Path) -> None:
+    """Write SB3's ``ReplayBuffer`` as ``.npz`` of plain arrays (its filled rows) with ``pos`` and ``full``, in
+    place of SB3's pickle; written whole or not at all (a temporary file, then renamed)."""
+    rows = buffer.buffer_size if buffer.full else buffer.pos
+    arrays = {k: getattr(buffer, k)[:rows] for k in _BUFFER_ARRAYS if getattr(buffer, k) is not None}
+    part = path.with_name(path.name + ".part")
+    with open(part, "wb") as file:
+        np.savez(file, pos=buffer.pos, full=buffer.full, **arrays)
+    part.replace(path)
+
+
+def load_buffer(buffer, path: Path) -> None:
+    """Fill SB3's ``ReplayBuffer`` from :func:`save_buffer`'s file, read with ``allow_pickle=False``.
+    ``ValueError`` naming the file when it is missing (an older bimp's pickled ``.pkl`` is not read) or does
+    not fit ``buffer``."""
+    if not path.is_file():
+        old = path.with_suffix(".pkl")
+        raise ValueError(f"no replay buffer {path}" + (
+            f"; {old.name} is a pickled one (an older bimp), not read because unpickling a file can run code"
+            if old.is_file() else "") + ": train into a new --out, or delete checkpoints/ to start over")
+    try:
+        with np.load(path, allow_pickle=False) as saved:
+            pos, full = int(saved["pos"]), bool(saved["full"])
+            rows = buffer.buffer_size if full else pos
+            if not 0 <= pos < buffer.buffer_size:
+                raise ValueError(f"pos {pos} outside [0, {buffer.buffer_size})")
+            for key in _BUFFER_ARRAYS:
+                target = getattr(buffer, key)
+                if target is None:
+                    continue
+                value = saved[key]
+                if value.shape != (rows, *target.shape[1:]):
+                    raise ValueError(f"{key} has shape {value.shape}, this run's buffer {(rows, *target.shape[1:])}")
+                target[:rows] = value
+    except (ValueError, KeyError, OSError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{path} is not a replay buffer of this run ({_brief(err)}); train into "
+                         f"a new --out, or delete checkpoints/ to start over") from None
+    buffer.pos, buffer.full = pos, full
+
+
+def _checkpoint_callback(cfg: RLConfig, out: Path):
+    """SB3's ``CheckpointCallback`` every ``cfg.checkpoint_every`` timesteps, SAC's replay buffer written by
+    :func:`save_buffer` (no pickle) and before its checkpoint: a checkpoint on disk always has its buffer."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    class Checkpoints(CheckpointCallback):
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq == 0 and getattr(self.model, "replay_buffer", None) is not None:
+                checkpoint = Path(self._checkpoint_path(extension="zip"))
+                save_buffer(self.model.replay_buffer, _buffer_path(checkpoint))
+            return super()._on_step()
+
+    return Checkpoints(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1), save_path=str(out / "checkpoints"),
+                       name_prefix=cfg.model_name.removesuffix(".zip"))
+
+
 # --- training ------------------------------------------------------------------------------------------
 def _progress_callback(total: int):
     """A tqdm bar over timesteps with the mean return of the last episodes (SB3's own bar needs ``rich``)."""
@@ -254,11 +453,10 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     remaining timesteps. The interrupted segment's monitor logs are cut back to that checkpoint (its later
     episodes are played again), the new segment's logs take the next file numbers, so the curve counts every
     timestep once, and the algorithm and envs are reseeded from ``seed`` and the checkpoint's timesteps. SAC's
-    checkpoints carry its replay buffer. When the final model is there, nothing is trained. A resumed run is
-    reproducible for a given checkpoint, not identical to an uninterrupted one. ``out`` holding another config's
-    run is an error naming the settings that differ."""
+    checkpoints have its replay buffer beside them (``.npz``). Nothing is unpickled (:func:`_resume`). When the
+    final model is there, nothing is trained. A resumed run is reproducible for a given checkpoint, not identical
+    to an uninterrupted one. ``out`` holding another config's run is an error naming the settings that differ."""
     import torch
-    from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
@@ -284,22 +482,17 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     if checkpoint is None:
         model = make_model(cfg, venv)
     else:
-        model = _algo_class(cfg.algo).load(checkpoint, env=venv, device="cpu")
+        try:
+            model = _resume(cfg, venv, checkpoint)  # reads it without unpickling
+        except ValueError:
+            venv.close()  # subproc envs are processes
+            raise
         model.set_random_seed(cfg.seed + model.num_timesteps)  # the algorithm's draws and the envs' seeds
-        if cfg.algo == "sac":
-            buffer = checkpoint.with_name(checkpoint.name.replace(f"_{resume_at}_steps.zip",
-                                                                  f"_replay_buffer_{resume_at}_steps.pkl"))
-            model.load_replay_buffer(buffer)  # without it SAC would learn from an empty buffer
-    # Saved with the model (SB3 pickles its attributes): a model is refused on another scenario's env, whose
+    # Saved with the model as plain JSON in its data entry: a model is refused on another scenario's env, whose
     # features may have the same length and mean other things.
     model.bimp = {"scenario": cfg.scenario, "algo": cfg.algo, "n_features": venv.observation_space.shape[0]}
     done = model.num_timesteps
-    callbacks = []
-    if cfg.checkpoint_every:
-        callbacks.append(CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1),
-                                            save_path=str(out / "checkpoints"),
-                                            name_prefix=cfg.model_name.removesuffix(".zip"),
-                                            save_replay_buffer=cfg.algo == "sac"))
+    callbacks = [_checkpoint_callback(cfg, out)] if cfg.checkpoint_every else []
     if progress:
         callbacks.append(_progress_callback(cfg.timesteps))
     start = time.perf_counter()
@@ -376,30 +569,28 @@ class SB3Policy:
     """A trained SB3 model as a :class:`Policy`: the deterministic prediction on :func:`features` of the raw
     observation, mapped back to the env's normalized action by :func:`to_env_action`.
 
+    The model file is read without unpickling (:func:`read_model_file`): a file from anywhere runs no code.
+    ``trust_model=True`` loads it with SB3's own ``load`` instead, which unpickles it: only for a file whose
+    source you trust, as it runs whatever code the file holds (docs/security.md).
+
     It reads ``env.unwrapped.scene`` at every ``act`` (the env rebuilds it at every reset). Deterministic:
     ``reset`` has nothing to seed.
     """
 
-    def __init__(self, env: gym.Env, model_path: str | Path, algo: str):
+    def __init__(self, env: gym.Env, model_path: str | Path, algo: str, trust_model: bool = False):
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"no {algo.upper()} model at {path}")
+        if not isinstance(trust_model, bool):
+            raise ValueError(f"trust_model must be true or false, got {trust_model!r}")
         self.env, self.algo, self.model_path = env, algo, path
+        # trust_model enters the config only when set: the default config (and the records' hashes) are as
+        # they were before it existed.
         self.config = {"algo": algo, "model_path": str(path), "model_sha256": _sha256(path)}
-        # Schedules are pickled closures; replacing them keeps loading independent of the training Python.
-        custom = {"learning_rate": 0.0, "lr_schedule": lambda _: 0.0, "clip_range": lambda _: 0.0}
-        self.model = _algo_class(algo).load(path, device="cpu", custom_objects=custom)
-        meta = getattr(self.model, "bimp", None)
-        if meta is None:
-            raise ValueError(f"{path} was not written by `bimp train-rl` (it records no scenario); retrain it")
-        scenario = _scenario_of(env)
-        if scenario is not None and meta["scenario"] != scenario:
-            raise ValueError(f"{path} was trained on {meta['scenario']}, not {scenario}: its features mean other "
-                             f"things there")
-        n = n_features(env.unwrapped.scene)
-        if self.model.observation_space.shape != (n,) or self.model.action_space.shape != (2,):
-            raise ValueError(f"{path} expects observations {self.model.observation_space.shape} and actions "
-                             f"{self.model.action_space.shape}; this feature set gives ({n},) and (2,)")
+        if trust_model:
+            self.config["trust_model"] = True
+        # The SB3 policy (an ActorCriticPolicy or SACPolicy); its predict is the algorithm's.
+        self.model = _load_trusted(path, algo, env) if trust_model else _load_safe(path, algo, env)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         scene = self.env.unwrapped.scene
@@ -453,15 +644,19 @@ def _shipped_model(env: gym.Env, algo: str, training_seed: int | None) -> Path:
     return path
 
 
-def make_ppo(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None) -> SB3Policy:
+def make_ppo(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None,
+             trust_model: bool = False) -> SB3Policy:
     """The PPO baseline for ``env``: the shipped model of its scenario trained with ``training_seed`` (default:
-    the shipped default, :func:`default_training_seeds`), or the file ``model``."""
-    return SB3Policy(env, model or _shipped_model(env, "ppo", training_seed), "ppo")
+    the shipped default, :func:`default_training_seeds`), or the file ``model``. ``trust_model=True`` loads it
+    with SB3's ``load``, which unpickles it and so runs any code it holds: only for a file you trust (by default
+    it is read without unpickling, docs/security.md)."""
+    return SB3Policy(env, model or _shipped_model(env, "ppo", training_seed), "ppo", trust_model)
 
 
-def make_sac(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None) -> SB3Policy:
+def make_sac(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None,
+             trust_model: bool = False) -> SB3Policy:
     """The SAC baseline for ``env``, as :func:`make_ppo`."""
-    return SB3Policy(env, model or _shipped_model(env, "sac", training_seed), "sac")
+    return SB3Policy(env, model or _shipped_model(env, "sac", training_seed), "sac", trust_model)
 
 
 def quick_check(env: gym.Env, policy, seed: int) -> dict[str, float]:
@@ -513,7 +708,10 @@ def main(argv: list[str] | None = None) -> int:
     except (TypeError, ValueError) as err:
         parser.error(str(err))
     out = args.out or Path("runs/rl") / f"{cfg.algo}_{cfg.scenario}_s{cfg.seed}"
-    path = train(cfg, out, progress=not args.no_progress)
+    try:
+        path = train(cfg, out, progress=not args.no_progress)
+    except ValueError as err:  # another run's folder, or a checkpoint or replay buffer that does not fit
+        parser.exit(2, f"bimp train-rl: error: {err}\n")
     print(f"model: {path}\ncurve: {out / 'curve.png'}\n"
           f"train wall time: {json.loads((out / 'train_time.json').read_text())['wall_s']} s")
     if args.eval_seeds:
