@@ -11,6 +11,11 @@ is recorded as a ``WorkerDied`` error; never lost, never a hang. The local pool 
 its pool breaks, each alone; on Ray each group is a task in its own worker, so a crash is the task's own and Ray
 retries it once (``max_retries``: a dead worker or node).
 
+Killed, even by SIGKILL, the driver leaves no worker running: a pool worker dies with its parent (:func:`die_with`),
+and multiprocessing's resource tracker exits once they are gone. On Ray (2.60, observed): a driver's tasks and
+their workers end within a few seconds of its death, on a cluster as on a local instance; a local instance's GCS
+and raylet go at once, the raylet's two agent processes about a minute later, on their own.
+
 Ray is an optional extra (``pip install -e ".[ray]"``); it is imported only here, and only when asked for. Every
 worker runs one BLAS / torch / XLA thread: the workers are the parallelism. See ``docs/scaling.md``.
 """
