@@ -13,7 +13,8 @@ plain ``reset()`` is back on the ``gym.make`` config. Both are validated before 
 error is a ``ValueError`` naming the key and the value: an unknown key; a value that is not a finite real number or
 a ``(lo, hi)`` pair of them with ``lo <= hi`` (bools, strings, NaN, inf, other lengths are refused); a value outside
 the parameter's interval (speeds in [0, 40] m/s, gaps >= one vehicle length + d_min = 6 m between centres so
-the vehicles start clear of each other and of the distance constraint, ``brake_decel`` a magnitude > 0, ...);
+the vehicles start clear of each other and of the distance constraint, and <= ``MAX_GAP`` = 1 km so every position
+stays inside the observation space, ``brake_decel`` a magnitude > 0, ...);
 and orders that must hold for the worst case of the ranges, not only for one draw (OV2 ahead of OV1, the
 reference's ``ref_zero_step`` after ``ref_hold``). highway-env's own keys (rendering, frequencies) pass through.
 
@@ -48,11 +49,13 @@ from __future__ import annotations
 
 import copy
 import numbers
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import ResetNeeded
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.envs.common.action import ContinuousAction
 from highway_env.envs.common.observation import ObservationType
@@ -76,6 +79,10 @@ ROAD_HALF_WIDTH = LANES * LANE_WIDTH / 2.0
 # (eq. 5) that the planners enforce; a smaller gap starts the episode in violation, or in a crash at 0.
 MIN_CENTRE_GAP = Vehicle.LENGTH + Bounds().d_min
 MAX_SPEED = Vehicle.MAX_SPEED  # highway-env's Vehicle.clip_actions pulls any faster vehicle back to this speed
+# Largest centre gap [m] an OV may start at: 25 s away at the top speed, beyond any episode (15 s) and horizon
+# (2 s), and small enough that every position stays inside the observation space (|x|, |y| <= OBS_BOUND): an OV
+# can travel at most MAX_SPEED * 15 s = 600 m past it in an episode.
+MAX_GAP = 1000.0
 
 REFERENCE_COLOUR = (255, 140, 0)  # orange: no road marking or vehicle of highway-env's is drawn in it
 
@@ -335,9 +342,20 @@ class GapAcceptance:
 class BimpEnv(AbstractEnv):
     """Common machinery of the two scenarios; subclasses define ``PARAMS`` (and ``ORDERS``), ``_scene_road`` and
     ``_populate``. The accepted values of every parameter are appended to each subclass's docstring from the
-    very table the checks read."""
+    very table the checks read.
+
+    Stepping a terminated episode (after a collision or leaving the road) without ``reset`` raises
+    ``gymnasium.error.ResetNeeded``, the error Gymnasium's ``OrderEnforcing`` raises for a step before the first
+    reset. Raised rather than warned: past the termination the simulation has no meaning (the footprints
+    overlap, nothing models the crash), and a warning, shown once, would leave every later number in a trace or
+    a sum of rewards silently wrong. The check is in the env itself, not a wrapper: ``gym.make`` adds
+    ``OrderEnforcing`` and ``PassiveEnvChecker``, neither of which looks at termination, and ``env.unwrapped``
+    has no wrapper at all. A truncated episode (the registration's ``TimeLimit``) is the wrapper's business and
+    may be stepped on, as Gymnasium allows.
+    """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
+    _ended = False
     PARAMS: dict[str, Param] = {}
     OPTIONS: dict[str, tuple[str, ...]] = {}  # non-numeric scenario keys: the first choice is the default
     OVERTAKE_METRIC = False  # info["ahead_of_ov1"]: whether the EV is ahead of OV1 (the overtaking scenario)
@@ -366,6 +384,9 @@ class BimpEnv(AbstractEnv):
     def _checked_config(self, base: dict, overrides: dict | None) -> dict:
         """``base`` updated with ``overrides``, every scenario parameter validated and normalized, the orders
         checked; raises ValueError (naming the key and the value) before anything is changed or simulated."""
+        if overrides is not None and not isinstance(overrides, Mapping):
+            raise ValueError(f"config must be a mapping of config keys to values (a dict), got "
+                             f"{type(overrides).__name__} {overrides!r}")
         overrides = dict(overrides or {})
         unknown = sorted(set(overrides) - set(self.PARAMS) - set(self.OPTIONS) - _HIGHWAY_KEYS)
         if unknown:
@@ -459,6 +480,7 @@ class BimpEnv(AbstractEnv):
         self.last_input = np.zeros(2)
         self.prev_input = np.zeros(2)
         self._safety_key = None
+        self._ended = False  # a step terminated the episode: the next step raises until a reset
 
     def _add_obstacle(self, lane: int, s: float, speed: float, **braking) -> None:
         road = self.scene.road
@@ -490,6 +512,11 @@ class BimpEnv(AbstractEnv):
         return self.viewer.get_image()
 
     def step(self, action):
+        """highway-env's step with the action checked (shape (2,), finite; clipped to [-1, 1]). After a step that
+        terminated the episode (collision, off the road) it raises ``gymnasium.error.ResetNeeded`` until the next
+        ``reset``; see the class docstring."""
+        if self._ended:
+            raise ResetNeeded("step() after the episode terminated (collision or off the road): call reset() first")
         action = np.asarray(action, dtype=float).reshape(-1)
         if action.shape != (2,):
             raise ValueError(f"action must have shape (2,), got {np.shape(action)}")
@@ -497,7 +524,9 @@ class BimpEnv(AbstractEnv):
             raise ValueError(f"action must be finite, got {action}")
         self.prev_input = self.last_input
         self.last_input = self.scene.to_physical(action)
-        return super().step(np.clip(action, -1.0, 1.0))
+        obs, reward, terminated, truncated, info = super().step(np.clip(action, -1.0, 1.0))
+        self._ended = bool(terminated)
+        return obs, reward, terminated, truncated, info
 
     def _simulate(self, action=None) -> None:
         """highway-env's ``_simulate`` (the action is applied at the first of the policy step's simulation steps),
@@ -622,9 +651,9 @@ class OvertakingEnv(BimpEnv):
 
     PARAMS = {
         "ev_speed": Param((23.0, 27.0), "EV initial and reference speed, m/s", 0.0, MAX_SPEED),
-        "ov1_gap": Param((25.0, 35.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP),
+        "ov1_gap": Param((25.0, 35.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP, MAX_GAP),
         "ov1_speed": Param((15.0, 17.0), "OV1 speed, m/s", 0.0, MAX_SPEED),
-        "ov2_gap": Param((100.0, 130.0), "centre gap of OV2 (left lane) ahead of the EV, m", MIN_CENTRE_GAP),
+        "ov2_gap": Param((100.0, 130.0), "centre gap of OV2 (left lane) ahead of the EV, m", MIN_CENTRE_GAP, MAX_GAP),
         "ov2_speed": Param((18.0, 20.0), "OV2 speed, m/s", 0.0, MAX_SPEED),
         "radius": Param((180.0, 220.0), "arc radius of the centreline, m, beyond the road's half width",
                         ROAD_HALF_WIDTH, low_open=True),
@@ -734,8 +763,8 @@ class EmergencyBrakeEnv(BimpEnv):
         # From 50 m: braking at the planning bounds (a_min, rate-limited) from the first observed deceleration
         # keeps >= d_min to OV1 on every instance of the ranges (worst corner 2.1 m; with 40 m it was -7.9 m:
         # tests/envs/test_feasibility.py).
-        "ov1_gap": Param((50.0, 60.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP),
-        "ov2_gap": Param((35.0, 55.0), "centre gap of OV2 (left lane) ahead of the EV, m", MIN_CENTRE_GAP),
+        "ov1_gap": Param((50.0, 60.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP, MAX_GAP),
+        "ov2_gap": Param((35.0, 55.0), "centre gap of OV2 (left lane) ahead of the EV, m", MIN_CENTRE_GAP, MAX_GAP),
         "ov_speed": Param((20.0, 24.0), "OV speed before braking (drawn per OV), m/s", 0.0, MAX_SPEED),
         "brake_onset": Param((0.8, 1.2), "time at which the OVs start braking, s", 0.0),
         "brake_decel": Param((5.0, 7.0), "a deceleration magnitude, m/s^2", 0.0, low_open=True),

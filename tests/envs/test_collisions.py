@@ -117,6 +117,7 @@ def test_crashed_vehicles_keep_their_dynamics_and_are_drawn_crashed():
     ov1, ev = env.obstacles[0], env.vehicle
     assert ev.crashed and ov1.crashed and not env.obstacles[1].crashed
     v_ev, v_ov = ev.speed, ov1.speed
+    env._ended = False  # step on past the termination (which the env refuses) to see the motion after contact
     env.step(np.array([0.5, 0.0]))  # highway-env would brake both to a stop and steer them straight
     assert ev.speed == pytest.approx(v_ev + 0.5) and ov1.speed == pytest.approx(v_ov)
 

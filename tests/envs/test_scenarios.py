@@ -1,11 +1,12 @@
 import gymnasium as gym
 import numpy as np
 import pytest
+from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
 
 import envs
 from agents.baselines import LaneKeeping
-from envs.scenarios import REFERENCE_COLOUR
+from envs.scenarios import MAX_GAP, MAX_SPEED, MIN_CENTRE_GAP, REFERENCE_COLOUR
 
 IDS = list(envs.ENV_IDS.values()) + list(envs.VARIANT_IDS.values())
 
@@ -36,7 +37,8 @@ def test_same_seed_same_observations_different_seed_differs(env_id):
 def test_constant_action_follows_kinematic_bicycle():
     env = gym.make("bimp/EmergencyBrake-v0", config={"ov1_gap": 300.0, "ov2_gap": 320.0})
     obs, _ = env.reset(seed=0)
-    action = np.array([-0.1, 0.02])
+    # Toward the left lane: on the road for all 40 steps (a terminated episode can no longer be stepped).
+    action = np.array([-0.1, -0.005])
     a, delta = env.unwrapped.scene.to_physical(action)
     x, y, h, v = obs[:4].astype(float)
     dt, half = 0.1, 2.5
@@ -219,3 +221,50 @@ def test_keep_lane_variant_is_overtaking_with_the_lane_kept_as_reference():
     np.testing.assert_array_equal(switched.reset(seed=2000)[0], obs_p)
     with pytest.raises(ValueError, match="unknown scenario"):
         envs.env_id("overtaking-keep-left")
+
+
+def test_stepping_a_terminated_episode_raises_until_reset():
+    """The env kept simulating after a collision, with no warning; the check is in the env, so env.unwrapped
+    (no gym.make wrappers) has it too."""
+    made = gym.make("bimp/Overtaking-v0")
+    for env in (made, made.unwrapped):
+        env.reset(seed=0)
+        term = False
+        for _ in range(100):
+            _, _, term, _, info = env.step(np.array([0.3, 0.0]))
+            if term:
+                break
+        assert term and info["collision"]
+        with pytest.raises(ResetNeeded, match="reset"):
+            env.step(np.array([0.0, 0.0]))
+        env.reset(seed=0)
+        env.step(np.array([0.0, 0.0]))  # a new episode steps again
+
+
+def test_the_largest_accepted_gaps_keep_the_observation_inside_its_space():
+    """ov2_gap = 1e9 was accepted and the observation left observation_space."""
+    with pytest.raises(ValueError, match="ov2_gap"):
+        gym.make("bimp/Overtaking-v0", config={"ov2_gap": 1e9})
+    with pytest.raises(ValueError, match="ov1_gap"):
+        gym.make("bimp/EmergencyBrake-v0", config={"ov1_gap": MAX_GAP + 1.0})
+    fastest = {"ev_speed": MAX_SPEED, "ov1_speed": MAX_SPEED - 1.0, "ov2_speed": MAX_SPEED,
+               "ov1_gap": MAX_GAP - MIN_CENTRE_GAP, "ov2_gap": MAX_GAP}
+    env = gym.make("bimp/Overtaking-v0", config=fastest)
+    obs, _ = env.reset(seed=0)
+    done, observations = False, [obs]
+    while not done:  # the whole episode: the OVs drive on at up to MAX_SPEED
+        obs, _, term, trunc, _ = env.step(np.array([0.0, 0.0]))
+        observations.append(obs)
+        done = term or trunc
+    assert all(env.observation_space.contains(o) for o in observations)
+    env = gym.make("bimp/EmergencyBrake-v0", config={"ov1_gap": MAX_GAP, "ov2_gap": MAX_GAP})
+    assert env.observation_space.contains(env.reset(seed=0)[0])
+
+
+@pytest.mark.parametrize("config", ["x", [("ov1_gap", 30.0)], 3])
+def test_a_config_that_is_not_a_mapping_is_named(config):
+    with pytest.raises(ValueError, match="config must be a mapping"):
+        gym.make("bimp/Overtaking-v0", config=config)
+    env = gym.make("bimp/Overtaking-v0")
+    with pytest.raises(ValueError, match="config must be a mapping"):
+        env.reset(options={"config": config})
