@@ -123,7 +123,9 @@ def rollout_batch(envs: list[gym.Env], policy, seeds: list[int]) -> list[Episode
 
     A list of envs rather than a gymnasium vector env: a vector env resets an ended env itself, and an episode
     here must end as the single-env loop ends it. Row ``i`` equals :func:`rollout` of ``seeds[i]`` (the planner's
-    rows are independent; a test pins it)."""
+    rows are independent; a test pins it). A batched policy's ``step_info`` holds one value per row for each key
+    (``{"fallback": (b_1, .., b_B)}``): episode ``i`` records row ``i``'s in ``trace["policy_info"]``, as
+    :func:`rollout` records a single policy's."""
     if len(envs) != len(seeds) or not envs:
         raise ValueError(f"one env per seed: got {len(envs)} envs and {len(seeds)} seeds")
     started = [_start(env, seed) for env, seed in zip(envs, seeds)]
@@ -140,6 +142,9 @@ def rollout_batch(envs: list[gym.Env], policy, seeds: list[int]) -> list[Episode
                 continue
             obs[i], reward, terminated, truncated, info = env.step(actions[i])
             _record(episodes[i], env.unwrapped.scene, obs[i], reward, terminated, truncated, info, plan_ms)
+            if hasattr(policy, "step_info"):  # one value per row: episode i records row i's
+                row_info = {key: value[i] for key, value in policy.step_info.items()}
+                episodes[i].trace.setdefault("policy_info", []).append(row_info)
             done[i] = terminated or truncated
     return episodes
 

@@ -18,6 +18,16 @@ OV_FIELDS = ("present", "x", "y", "heading", "speed", "acceleration")
 REF_FIELDS = ("speed", "acceleration", "lane_offset")
 
 
+def real_array(values, what: str = "array") -> np.ndarray:
+    """``values`` as a numpy array of real numbers (ints or floats, any shape); ``ValueError`` naming the dtype
+    otherwise. A float conversion would take a complex value without its imaginary part (numpy only warns), a
+    bool as 0/1 and a numeric string as its number: none of them is an observation."""
+    array = np.asarray(values)
+    if array.dtype.kind not in "iuf":
+        raise ValueError(f"{what} must hold real numbers (an int or float dtype), got dtype {array.dtype}")
+    return array
+
+
 @dataclass(frozen=True)
 class Bounds:
     """Planning constraints (paper eq. 2-5). The actuators reach further, so violations are measurable.
@@ -77,8 +87,9 @@ class Scene:
         return obs[:4], obs[4:6], obs[6:k].reshape(self.n_obstacles, len(OV_FIELDS)), obs[k:]
 
     def check_obs(self, obs: np.ndarray) -> np.ndarray:
-        """Validate an observation for a policy: right shape, finite. Returns it as float64."""
-        obs = np.asarray(obs, dtype=float)
+        """Validate an observation for a policy: real numbers (:func:`real_array`), right shape, finite. Returns it
+        as float64."""
+        obs = real_array(obs, "observation").astype(float)
         if obs.shape != (self.obs_dim,):
             raise ValueError(f"observation has shape {obs.shape}, expected ({self.obs_dim},)")
         if not np.all(np.isfinite(obs)):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Sequence
 
 import jax
@@ -18,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from configs import ConfigError, check_fields, load_config
-from envs.scene import Scene
+from envs.scene import Scene, real_array
 from planners import core
 from planners.model import model_params
 from planners.problem import PROBLEM_FILE, BarrierShape, Problem, ProblemConfig, Road, make_problem
@@ -106,6 +107,10 @@ class EnKTSPlanner:
 
     scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``: the road
     is redrawn at every env reset); for a batch, a callable returning one scene per row.
+
+    ``fallbacks`` counts plans (rows, for a batch) that came out non-finite and were replaced by holding the last
+    input; ``step_info`` says what the last ``act`` did: ``{"fallback": bool}``, for a batch one bool per row
+    (``{"fallback": (b_1, .., b_B)}``). The episode loops record it per step (:mod:`agents.rollout`).
     """
 
     batched = True  # reset(seed=[...]) and act(obs (B, d)) plan B episodes in one call
@@ -134,18 +139,19 @@ class EnKTSPlanner:
                                        core.initial_carry(self.config.horizon))
         self._step = 0
         self._last: tuple | None = None  # (current states, PlanOut)
+        self.step_info: dict = {}
 
     # --- Policy ---------------------------------------------------------------------------------------------
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Normalized action ``(2,)`` float32 in [-1, 1], the smoothed mean of the first control; for a batch,
-        ``obs (B, obs_dim)`` -> ``(B, 2)``. Raises ``ValueError`` on an observation of the wrong shape or with
-        non-finite entries."""
+        ``obs (B, obs_dim)`` -> ``(B, 2)``. Raises ``ValueError`` on an observation of the wrong shape or dtype
+        (real numbers only) or with non-finite entries."""
         scenes = self._scene()
         scenes = [scenes] if isinstance(scenes, Scene) else list(scenes)
         if (self.batch or 1) != len(scenes):
             raise ValueError(f"the planner was reset for {self.batch or 1} episode(s) but the scene callable gives "
                              f"{len(scenes)}")
-        obs = np.asarray(obs, dtype=float)
+        obs = real_array(obs, "observation").astype(float)
         rows = [obs] if self.batch is None else list(obs) if obs.ndim == 2 and len(obs) == self.batch else None
         if rows is None:
             raise ValueError(f"a batch of {self.batch} needs observations ({self.batch}, obs_dim), got {obs.shape}")
@@ -161,7 +167,10 @@ class EnKTSPlanner:
             action, self._carry, plan = core.plan_batch(problem, cfg, self._carry, obs, keys)
         self._step += 1
         self._last = (obs[0, :4] if self.batch is None else obs[:, :4], plan)  # states rolled out when asked
-        self.fallbacks += int(np.size(plan.ok) - np.count_nonzero(np.asarray(plan.ok)))
+        fell_back = ~np.asarray(plan.ok)  # () or (B,)
+        self.fallbacks += int(np.count_nonzero(fell_back))
+        # Plain bools: the episode loop records them and the records summarize bool flags as fallback_steps.
+        self.step_info = {"fallback": bool(fell_back) if self.batch is None else tuple(map(bool, fell_back))}
         return np.asarray(action, dtype=np.float32)
 
     @property
@@ -192,17 +201,20 @@ class EnKTSPlanner:
 CONFIG_FILE = "planner.yaml"
 
 
-def make_enkts(env, config: str | None = CONFIG_FILE, **overrides) -> EnKTSPlanner:
-    """EnKTS for ``env`` (or a list of envs: a batched planner, one row per env): the shared problem
-    (``configs/problem.yaml``), its settings (``config``, by default ``configs/planner.yaml``), then ``overrides``."""
-    sources = [PROBLEM_FILE] + ([config] if config else [])
+def make_enkts(env, config: str | Path | None = None, **overrides) -> EnKTSPlanner:
+    """EnKTS for ``env`` (or a list of envs: a batched planner, one row per env), configured in layers, each on top
+    of the one before: the shared problem (``configs/problem.yaml``), the shipped settings (``configs/planner.yaml``),
+    the YAML ``config`` if given (a file of overrides: a key it leaves out keeps its shipped value, so
+    ``horizon: 20`` alone keeps ``n_particles`` at the shipped 100), then ``overrides``."""
+    sources = [PROBLEM_FILE, CONFIG_FILE] + ([config] if config else [])
     scenes = (lambda: [e.unwrapped.scene for e in env]) if isinstance(env, (list, tuple)) else \
         (lambda: env.unwrapped.scene)
     return EnKTSPlanner(scenes, load_config(EnKTSConfig, sources, **overrides))
 
 
-def make_enks(env, config: str | None = CONFIG_FILE, **overrides) -> EnKTSPlanner:
-    """EnKS: the same tuning as EnKTS except ``nu = inf`` (paper: "all other parameters the same")."""
+def make_enks(env, config: str | Path | None = None, **overrides) -> EnKTSPlanner:
+    """EnKS: the same tuning as EnKTS except ``nu = inf`` (paper: "all other parameters the same"); ``config`` goes
+    on top of the shipped files as for :func:`make_enkts`."""
     return make_enkts(env, config, **{"nu": math.inf, **overrides})
 
 

@@ -59,7 +59,7 @@ import numpy as np
 from configs import ConfigError, check_fields, load_config
 from envs.road import RoadGeometry
 from envs.scene import Scene
-from planners.problem import (PROBLEM_FILE, BarrierShape, ProblemConfig, load_problem, make_problem,
+from planners.problem import (NU_MIN, PROBLEM_FILE, BarrierShape, ProblemConfig, load_problem, make_problem,
                               predict_obstacles, reference_profile)
 from planners.problem import search_space as problem_search_space
 
@@ -73,17 +73,18 @@ class NMPCConfig:
     """Solver settings; the cost weights, barrier margins and horizon come from the shared problem
     (:class:`planners.problem.ProblemConfig`).
 
-    horizon: H >= 1 steps (``None``: the shared tuning's); nu: degrees of freedom of the Student's-t log cost,
-    > 0 (``inf``: the quadratic cost of eq. 21); max_iter: IPOPT iteration cap per warm-started solve (>= 0);
-    max_cpu_time [s]: IPOPT CPU-time cap per warm-started solve; cold_max_iter, cold_max_cpu_time: the same for
-    the first solve of an episode; tol: IPOPT's convergence tolerance; hessian: ``"exact"`` (CasADi AD) or
-    ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin on the input and rate bounds, so that
-    IPOPT's tolerance and the float32 action never cross the env's bound; feasibility_tol: largest constraint
-    violation of a capped iterate that is still used; keep_out_power: even exponent p >= 2 of the keep-out
-    superellipse (2: an ellipse); slack_penalty: weight > 0 of the exact (L1) penalty on slack variables that soften
-    the keep-out and road-edge constraints (``inf``: hard constraints, the paper's eq. 21; with them a sudden
-    brake ahead makes the problem infeasible, IPOPT fails at every step and the fallback drives into the OV).
-    A bad value raises :class:`configs.ConfigError` naming the key and the value
+    horizon: H >= 1 steps (``None``: the shared tuning's); nu: degrees of freedom of the Student's-t log cost, >=
+    ``planners.problem.NU_MIN`` = 2.1 (``inf``: the quadratic cost of eq. 21): the shared problem's floor, as
+    ``nmpc-t`` takes that nu (one virtual system, one range of nu whichever planner solves it); max_iter: IPOPT
+    iteration cap per warm-started solve (>= 0); max_cpu_time [s]: IPOPT CPU-time cap per warm-started solve;
+    cold_max_iter, cold_max_cpu_time: the same for the first solve of an episode; tol: IPOPT's convergence
+    tolerance; hessian: ``"exact"`` (CasADi AD) or ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin
+    on the input and rate bounds, so that IPOPT's tolerance and the float32 action never cross the env's bound;
+    feasibility_tol: largest constraint violation of a capped iterate that is still used; keep_out_power: even
+    exponent p >= 2 of the keep-out superellipse (2: an ellipse); slack_penalty: weight > 0 of the exact (L1)
+    penalty on slack variables that soften the keep-out and road-edge constraints (``inf``: hard constraints, the
+    paper's eq. 21; with them a sudden brake ahead makes the problem infeasible, IPOPT fails at every step and the
+    fallback drives into the OV). A bad value raises :class:`configs.ConfigError` naming the key and the value
     (types by :func:`configs.check_fields`).
     """
 
@@ -104,8 +105,8 @@ class NMPCConfig:
         check_fields(self, allow_inf=("nu", "slack_penalty"))
         if self.horizon is not None and self.horizon < 1:
             raise ConfigError("horizon", "an int >= 1 or None", self.horizon)
-        if not self.nu > 0:
-            raise ConfigError("nu", "> 0 (inf for the quadratic cost)", self.nu)
+        if not self.nu >= NU_MIN:
+            raise ConfigError("nu", f">= {NU_MIN} (inf for the quadratic cost)", self.nu)
         for key in ("max_iter", "cold_max_iter"):
             if getattr(self, key) < 0:
                 raise ConfigError(key, "an int >= 0", getattr(self, key))
@@ -310,7 +311,8 @@ class NMPCPlanner:
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Normalized action ``(2,)`` float32 in [-1, 1]: the first control of the solution (or the fallback).
 
-        Raises ``ValueError`` on an observation of the wrong shape or with non-finite entries.
+        Raises ``ValueError`` on an observation of the wrong shape or dtype (real numbers only) or with non-finite
+        entries.
         """
         scene = self._scene()
         ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
@@ -496,16 +498,20 @@ class NMPCPlanner:
 
 def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
               **overrides) -> NMPCPlanner:
-    """NMPC with the quadratic cost of eq. 21 for ``env``: solver settings from ``config`` (YAML, optional) plus
-    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem plus
-    ``problem``, overrides of it for this planner alone (a tuned cost)."""
+    """NMPC with the quadratic cost of eq. 21 for ``env``: solver settings from :class:`NMPCConfig`'s defaults, the
+    YAML ``config`` on top if given (a file of overrides: a key it leaves out keeps its default), then
+    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem
+    (``tuning``, ``configs/problem.yaml``) plus ``problem``, overrides of it for this planner alone (a tuned
+    cost)."""
     return NMPCPlanner(lambda: env.unwrapped.scene, load_config(NMPCConfig, config, **overrides),
                        load_problem(tuning, **(problem or {})))
 
 
 def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
                 **overrides) -> NMPCPlanner:
-    """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared problem (EnKTS's)."""
+    """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared problem (EnKTS's); configured in
+    layers as :func:`make_nmpc`. ``agents.make_policy("nmpc-t", ...)`` starts from the shipped tuned config
+    (``configs/tuned/nmpc-t.yaml``) instead."""
     shared = load_problem(tuning, **(problem or {}))
     return NMPCPlanner(lambda: env.unwrapped.scene,
                        load_config(NMPCConfig, config, **{"nu": shared.nu, **overrides}), shared)

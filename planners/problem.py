@@ -45,6 +45,9 @@ N_FIRST_CONTROL = 4  # the last rows of y: the first control's bounds
 BARRIERS = ("ov (one per OV)", "road_edge", "accel", "steer", "accel_rate", "steer_rate",
             "first accel", "first steer", "first accel_rate", "first steer_rate")
 ACTIVE = 1e-3  # a barrier below this for every particle carries no information (see planners.core)
+# Least degrees of freedom a planner takes (see ProblemConfig): the planners work in float32, where a nu just
+# above 2 rounds to 2 and every plan is non-finite.
+NU_MIN = 2.1
 
 
 # --- configuration of the problem (the shared tuning of every planner) --------------------------------------
@@ -92,10 +95,15 @@ class ProblemConfig:
     """The planning problem's tuning, shared by every planner (``configs/problem.yaml``): the virtual system of
     eq. 7-8.
 
-    horizon: H >= 1 steps, the same for every planner; nu: degrees of freedom > 2 of the Student's-t process and
-    measurement noise (``inf``: Gaussian, as for EnKS); sigma_du: process noise scale of the control increments
-    ``[da m/s^2, ddelta rad]`` per step; sigma_ref: measurement noise of the reference state ``[lateral m, heading rad, speed m/s]``; sigma_input: of
-    the reference input ``[a m/s^2, delta rad]``; sigma_barrier: of each barrier value (the barriers' tightness);
+    horizon: H >= 1 steps, the same for every planner; nu: degrees of freedom >= ``NU_MIN`` = 2.1 of the
+    Student's-t process and measurement noise (``inf``: Gaussian, as for EnKS). The floor is where nu works in
+    float32, not where the distribution ends (> 2): ``nu = 2.000000000001`` rounds to 2, the noise's covariance
+    factor ``nu / (nu - 2)`` is infinite and every plan non-finite (each one fell back on a test episode); just
+    above, ``nu - 2`` keeps a bit or two of precision and the draws millions of times the nominal variance. From
+    2.1 the factor is at most 21 (``bimp tune`` searches from 2.5). sigma_du: process noise scale of the control
+    increments ``[da m/s^2, ddelta rad]`` per step; sigma_ref: measurement noise of the reference state
+    ``[lateral m, heading rad, speed m/s]``; sigma_input: of the reference input ``[a m/s^2, delta rad]``;
+    sigma_barrier: of each barrier value (the barriers' tightness);
     lane_change_rate [m/s]: the reference lane over the horizon leaves the EV's lateral offset toward the
     reference lane at most this fast, a lane-change path rather than a step (``inf``: the step);
     barrier: margins and widths (:class:`BarrierShape`); dynamics: ``"mlp"`` (the shipped model), ``"bicycle"``
@@ -122,8 +130,8 @@ class ProblemConfig:
     def _check_problem(self) -> None:
         if self.horizon < 1:
             raise ConfigError("horizon", "an int >= 1", self.horizon)
-        if not self.nu > 2:
-            raise ConfigError("nu", "> 2 (inf: Gaussian)", self.nu)
+        if not self.nu >= NU_MIN:
+            raise ConfigError("nu", f">= {NU_MIN} (inf: Gaussian; see ProblemConfig)", self.nu)
         if not self.lane_change_rate > 0:
             raise ConfigError("lane_change_rate", "> 0 m/s (inf: a step)", self.lane_change_rate)
         for key in ("sigma_du", "sigma_ref", "sigma_input", "sigma_barrier"):
@@ -356,6 +364,6 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     return xp.concatenate([tracking, xp.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness], axis=1)
 
 
-__all__ = ["ACTIVE", "BARRIERS", "N_FIRST_CONTROL", "PROBLEM_FILE", "load_problem", "Barrier", "BarrierShape", "Limits", "N_TRACK", "Problem", "ProblemConfig", "Road",
+__all__ = ["ACTIVE", "BARRIERS", "N_FIRST_CONTROL", "NU_MIN", "PROBLEM_FILE", "load_problem", "Barrier", "BarrierShape", "Limits", "N_TRACK", "Problem", "ProblemConfig", "Road",
            "edge_distance", "edge_distance_local", "frenet", "input_constraints", "rate_constraints", "make_problem", "measure", "measurement_noise", "n_measurements",
            "predict_obstacles", "reference_profile"]

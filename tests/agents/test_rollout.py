@@ -4,7 +4,7 @@ import pytest
 
 import envs
 from agents.baselines import LaneKeeping
-from agents.rollout import episode_seeds, rollout
+from agents.rollout import episode_seeds, rollout, rollout_batch
 
 
 class Recorder(LaneKeeping):
@@ -55,3 +55,23 @@ def test_on_step_sees_the_reset_and_every_step(env):
     seen = []
     episode = rollout(env, LaneKeeping(env), 1, max_steps=5, on_step=lambda e, o, i: seen.append(i["s"]))
     assert episode.steps == 5 and len(seen) == 6
+
+
+class RowFlags:
+    """A batched policy doing nothing whose ``step_info`` flags row 1 as a fallback on every step."""
+
+    batched = True
+
+    def reset(self, seed=None):
+        self.rows = len(seed)
+
+    def act(self, obs):
+        self.step_info = {"fallback": tuple(i == 1 for i in range(self.rows))}
+        return np.zeros((self.rows, 2), np.float32)
+
+
+def test_rollout_batch_records_each_rows_step_info():
+    envs_ = [gym.make(envs.env_id("emergency-brake")) for _ in range(2)]
+    episodes = rollout_batch(envs_, RowFlags(), [3, 4])
+    for i, episode in enumerate(episodes):
+        assert episode.trace["policy_info"] == [{"fallback": i == 1}] * episode.steps

@@ -1,12 +1,15 @@
 import math
 
 import gymnasium as gym
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import envs
 from agents import make_policy
-from configs import load_config
+from agents.rollout import rollout
+from configs import ConfigError, load_config
+from planners import core
 from planners.dynamics import BicycleModel, load_model, save_model
 from planners.enkts import EnKTSConfig, EnKTSPlanner, make_enks, make_enkts
 from planners.model import BicycleParams
@@ -181,3 +184,62 @@ def test_enkts_is_safe_on_twenty_tuning_seeds(scenario):
         if any(trace["collision"]) or any(trace["offroad"]):
             unsafe.append(seed)
     assert unsafe == []
+
+
+# --- no silent failure (issue 24) ------------------------------------------------------------------------------
+@pytest.mark.parametrize("nu", [2.000000000001, 2.05])
+def test_nu_below_the_float32_floor_is_refused_naming_nu(nu):
+    """nu = 2.000000000001 passed the old ``nu > 2`` and rounds to 2 in float32: every plan was non-finite."""
+    env, _ = env_at()
+    with pytest.raises(ConfigError, match="nu") as err:
+        make_enkts(env, nu=nu)
+    assert err.value.key == "nu"
+    with pytest.raises(ConfigError, match="nu"):
+        make_policy("enkts", env, nu=nu)
+    assert make_enkts(env, nu=2.1, n_particles=4, horizon=2).config.nu == 2.1
+
+
+def small_planner(env, **config):
+    return EnKTSPlanner(lambda: env.unwrapped.scene, EnKTSConfig(n_particles=8, horizon=4, **config))
+
+
+def test_a_fallback_is_reported_per_step_and_recorded_in_the_trace():
+    env, obs = env_at()
+    healthy = small_planner(env)
+    healthy.act(obs)
+    assert healthy.step_info == {"fallback": False}
+    broken = small_planner(env)
+    broken._model = broken._model._replace(w1=broken._model.w1.at[0, 0].set(np.nan))  # every plan non-finite
+    broken.act(obs)
+    assert broken.step_info["fallback"] is True and broken.fallbacks == 1
+    episode = rollout(env, broken, 3, max_steps=3)
+    assert episode.trace["policy_info"] == [{"fallback": True}] * 3
+
+
+def test_a_batch_reports_the_fallback_of_each_row(monkeypatch):
+    envs_ = [env_at(seed=s)[0] for s in (0, 1)]
+    planner = EnKTSPlanner(lambda: [e.unwrapped.scene for e in envs_], EnKTSConfig(n_particles=8, horizon=4))
+    plan_batch = core.plan_batch
+
+    def second_row_fails(*args):  # the core reports row 1's plan as non-finite
+        action, carry, plan = plan_batch(*args)
+        return action, carry, plan._replace(ok=jnp.array([True, False]))
+
+    monkeypatch.setattr(core, "plan_batch", second_row_fails)
+    planner.reset([3, 4])
+    planner.act(np.stack([e.unwrapped.observation_type.observe() for e in envs_]))
+    assert planner.step_info == {"fallback": (False, True)} and planner.fallbacks == 1
+
+
+def test_config_file_goes_on_top_of_the_shipped_settings(tmp_path):
+    """A YAML of ``horizon: 20`` alone replaced configs/planner.yaml: N fell from the shipped 100 to 50."""
+    env, _ = env_at()
+    shipped = make_enkts(env).config
+    path = tmp_path / "mine.yaml"
+    path.write_text("horizon: 20\n")
+    for name in ("enkts", "enks"):
+        assert make_policy(name, env, config=path).config.n_particles == shipped.n_particles == 100
+    path.write_text("horizon: 12\n")
+    mine = make_enkts(env, config=path, max_innovation=3.0).config
+    assert (mine.horizon, mine.n_particles, mine.max_innovation) == (12, 100, 3.0)
+    assert mine.sigma_du == shipped.sigma_du  # configs/problem.yaml still under it

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import envs
+from configs import ConfigError
 from envs.road import RoadGeometry
 from envs.scene import Bounds, Scene
 from planners.dynamics import BicycleModel, load_model, save_model
@@ -362,3 +363,12 @@ def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
     assert forced and record["policy_info"]["fallback_steps"] == [i for i, info in enumerate(infos) if info["fallback"]]
     assert record["policy_info"]["slack"]["max"] >= 0.0  # the largest slack of a solve, recorded
     assert sum(record["policy_info"]["status"].values()) == record["steps"]
+
+
+def test_nu_below_the_float32_floor_is_refused_naming_nu():
+    """The same floor as the shared problem's nu (planners.problem.NU_MIN), which nmpc-t takes."""
+    for nu in (2.000000000001, 1.0):
+        with pytest.raises(ConfigError, match="nu") as err:
+            NMPCConfig(nu=nu)
+        assert err.value.key == "nu"
+    assert NMPCConfig(nu=2.1).nu == 2.1

@@ -137,3 +137,33 @@ def test_a_lane_change_rate_must_be_positive(bad):
 
     with pytest.raises(ConfigError, match="lane_change_rate"):
         ProblemConfig(lane_change_rate=bad)
+
+
+# --- every planner: observations and default configs (issue 24) -----------------------------------------------
+@pytest.mark.parametrize("name", ["enkts", "enks", "mppi", "nmpc", "lane-keep"])
+def test_every_policy_refuses_observations_that_are_not_real_numbers(name):
+    """A complex observation was planned on without its imaginary part; bools, numeric strings and objects were
+    converted to floats."""
+    from agents import make_policy
+
+    env = gym.make("bimp/EmergencyBrake-v0")
+    obs, _ = env.reset(seed=0)
+    policy = make_policy(name, env)
+    bad = {"complex": obs + 1j, "bool": obs > 0, "<U": obs.astype(str), "object": obs.astype(object)}
+    for dtype, value in bad.items():
+        with pytest.raises(ValueError, match=f"dtype {dtype}"):
+            policy.act(value)
+    assert env.action_space.contains(policy.act(obs.astype(np.float64)))  # ints and floats of any width pass
+
+
+def test_default_resolved_configs_are_unchanged():
+    """Committed result records are keyed by the hash of each policy's resolved config: building a policy with no
+    config and no overrides must give the same one (the hashes of commit e3c9e7b)."""
+    from agents import make_policy
+    from agents.provenance import config_hash, resolved_config
+
+    env = gym.make("bimp/Overtaking-v0")
+    hashes = {name: config_hash(name, resolved_config(make_policy(name, env)))
+              for name in ("enkts", "enks", "mppi", "nmpc", "nmpc-t")}
+    assert hashes == {"enkts": "452cb0e9b751b750", "enks": "440c3a96dabbae13", "mppi": "06b6d1507cdd2bc7",
+                      "nmpc": "07581be74898a17d", "nmpc-t": "53e7c5ff166b5e46"}
