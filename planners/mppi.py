@@ -37,7 +37,8 @@ its default) it succeeded on every one of 200 episodes of each (``results/peers/
 
 Randomness: pytorch_mppi 0.9.1 draws its noise with the global torch RNG (``torch.randn`` in ``_sample_noise``);
 :class:`_SeededMPPI` overrides that one method to draw from a ``torch.Generator`` the planner owns, seeded in
-``reset(seed)``, so the global RNG is never touched and the same seed gives the same actions.
+``reset(seed)`` from the whole seed (:func:`generator_seed`), so the global RNG is never touched and the same seed
+gives the same actions.
 
 Cost per plan: H steps of O(N) model and cost work: linear in N and in H.
 """
@@ -100,6 +101,8 @@ class MPPIConfig:
             raise ConfigError("noise_gain", "a finite number > 0", self.noise_gain)
         if not self.control_cost >= 0:
             raise ConfigError("control_cost", "a finite number >= 0", self.control_cost)
+        if self.seed < 0:
+            raise ConfigError("seed", "an int >= 0", self.seed)
 
 
 class _SeededMPPI(MPPI):
@@ -123,6 +126,16 @@ class _SeededMPPI(MPPI):
         return z @ self._noise_sigma_chol.T + self.noise_mu
 
 
+def generator_seed(seed: int) -> int:
+    """The torch generator's seed for the planner seed ``seed`` (an int >= 0 of any size; ``ValueError``
+    otherwise, as :class:`planners.enkts.EnKTSPlanner` refuses it). torch's CPU generator keeps only the low 32
+    bits of what ``manual_seed`` gets (its Mersenne Twister takes a 32-bit seed), so seeds that differ only above
+    them would draw the same noise: the whole seed goes through ``numpy.random.SeedSequence`` into 32 bits."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    return int(np.random.SeedSequence(int(seed)).generate_state(1, np.uint32)[0])
+
+
 @dataclass(frozen=True)
 class _Context:
     """What the running cost of one plan needs beside the block: see :func:`planners.problem.measure`."""
@@ -143,7 +156,8 @@ class MPPIPlanner:
     any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the model ``tuning.dynamics`` names, as
     EnKTS: the shipped MLP, the bicycle model or a weights file).
 
-    ``fallbacks`` counts plans that came out non-finite and were replaced by holding the last input.
+    ``fallbacks`` counts plans that came out non-finite and were replaced by holding the last input;
+    ``step_info`` says what the last ``act`` did, ``{"fallback": bool}`` (the episode loop records it per step).
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: MPPIConfig = MPPIConfig(),
@@ -167,15 +181,18 @@ class MPPIPlanner:
         self.reset(config.seed)
 
     def reset(self, seed: int | None = None) -> None:
-        """Start a new episode: reseed the generator, forget the warm start."""
-        self.generator.manual_seed(self.config.seed if seed is None else seed)
+        """Start a new episode: reseed the generator from the whole ``seed`` (an int >= 0, as EnKTS takes; else
+        ``ValueError``), forget the warm start."""
+        self.generator.manual_seed(generator_seed(self.config.seed if seed is None else seed))
         self._warm = False
+        self.step_info: dict = {}
 
     # --- Policy ------------------------------------------------------------------------------------------
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Normalized action ``(2,)`` float32 in [-1, 1]: the first control of the updated nominal sequence.
 
-        Raises ``ValueError`` on an observation of the wrong shape or with non-finite entries.
+        Raises ``ValueError`` on an observation of the wrong shape or dtype (real numbers only) or with non-finite
+        entries.
         """
         scene = self._scene()
         ego, u_prev, ovs, ref = scene.split_obs(scene.check_obs(obs))
@@ -201,10 +218,12 @@ class MPPIPlanner:
         u = mppi.command(start, shift_nominal_trajectory=False).numpy().copy()
         if increments:
             u = u_prev + u
-        if not (np.all(np.isfinite(u)) and torch.isfinite(mppi.U).all()):
+        fallback = not (np.all(np.isfinite(u)) and torch.isfinite(mppi.U).all())
+        if fallback:
             self.fallbacks += 1
             u = u_prev
             mppi.U = hold
+        self.step_info = {"fallback": fallback}
         last = torch.zeros(1, 2, dtype=torch.float64) if increments else mppi.U[-1:]
         mppi.U = torch.cat([mppi.U[1:], last])
         self._warm = True
@@ -236,9 +255,11 @@ class MPPIPlanner:
 
 def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
               **overrides) -> MPPIPlanner:
-    """MPPI for ``env``: settings from ``config`` (YAML, optional) plus ``overrides`` (an unknown key raises naming
-    it); cost and horizon from the shared problem ``tuning`` (``configs/problem.yaml``) plus ``problem``, overrides
-    of it for this planner alone (a tuned cost)."""
+    """MPPI for ``env``: settings from :class:`MPPIConfig`'s defaults, the YAML ``config`` on top if given (a file
+    of overrides: a key it leaves out keeps its default), then ``overrides`` (an unknown key raises naming it); cost
+    and horizon from the shared problem ``tuning`` (``configs/problem.yaml``) plus ``problem``, overrides of it for
+    this planner alone (a tuned cost). ``agents.make_policy("mppi", ...)`` starts from the shipped tuned config
+    (``configs/tuned/mppi.yaml``) instead."""
     return MPPIPlanner(lambda: env.unwrapped.scene, load_config(MPPIConfig, config, **overrides),
                        load_problem(tuning, **(problem or {})))
 
@@ -262,4 +283,4 @@ def search_space() -> dict:
 make_mppi.search_space = search_space
 
 
-__all__ = ["MPPIConfig", "MPPIPlanner", "make_mppi"]
+__all__ = ["MPPIConfig", "MPPIPlanner", "generator_seed", "make_mppi"]

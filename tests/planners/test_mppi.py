@@ -172,3 +172,45 @@ def test_default_dynamics_follow_the_tuning_key(tmp_path):
     np.testing.assert_array_equal(planner.dynamics(x, u), load_model()(x, u))
     planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), ProblemConfig(dynamics="bicycle"))
     assert isinstance(planner.dynamics, BicycleModel)
+
+
+def small_mppi(**config) -> tuple[MPPIPlanner, np.ndarray]:
+    scene = straight_scene()
+    lane = float(scene.road.lane_offset(1))
+    obs = obs_of(scene, [0.0, lane, 0.0, 20.0], [0.0, 0.0], np.zeros((2, 6)), [25.0, 0.0, lane])
+    return MPPIPlanner(scene, MPPIConfig(n_particles=8, horizon=3, **config), dynamics=load_model()), obs
+
+
+def test_the_generator_is_seeded_from_the_whole_seed():
+    """torch's manual_seed keeps the low 32 bits: seeds 12345 and 2**40 + 12345 drew the same noise."""
+    planner, obs = small_mppi()
+    actions = []
+    for seed in (12345, 2**40 + 12345, 12345):
+        planner.reset(seed)
+        actions.append(planner.act(obs))
+    assert not np.array_equal(actions[0], actions[1])
+    np.testing.assert_array_equal(actions[0], actions[2])
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, True, "3"])
+def test_seeds_enkts_refuses_are_refused(seed):
+    planner, _ = small_mppi()
+    with pytest.raises(ValueError, match="seed"):
+        planner.reset(seed)
+
+
+def test_a_negative_config_seed_is_refused_naming_it():
+    with pytest.raises(ValueError, match="seed") as err:
+        MPPIConfig(seed=-1)
+    assert err.value.key == "seed"
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
+def test_a_fallback_is_reported_per_step_and_recorded_in_the_trace():
+    env = gym.make(envs.env_id("emergency-brake"))
+    planner = make_mppi(env, n_particles=8, horizon=3)
+    episode = rollout(env, planner, 3, max_steps=2)
+    assert episode.trace["policy_info"] == [{"fallback": False}] * 2
+    planner.dynamics = lambda x, u: np.full_like(x, np.nan)  # a model that has gone wrong
+    episode = rollout(env, planner, 3, max_steps=2)
+    assert episode.trace["policy_info"] == [{"fallback": True}] * 2 and planner.step_info["fallback"] is True
