@@ -49,10 +49,31 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def read_yaml(path: str | Path) -> Any:
+    """The YAML document in the file ``path``, read with ``safe_load`` (no tag builds an object). A file that cannot
+    be read, is not UTF-8 text or not YAML raises ``ValueError`` in one line naming the file and, for bad YAML, the
+    line and column (yaml's own message names a ``"<unicode string>"``)."""
+    try:
+        return yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text file, so not a YAML config") from None
+    except OSError as err:
+        raise ValueError(f"{path}: cannot be read ({err.strerror or err})") from None
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark or err.context_mark
+        where = f", line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ValueError(f"{path}{where}: not valid YAML: {err.problem or err.context}") from None
+    except yaml.reader.ReaderError as err:  # a control character: no mark, a position
+        raise ValueError(f"{path}, character {err.position + 1}: not valid YAML: {err.reason}") from None
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
+
+
 def load_config(cls: type[T], source: str | Path | Sequence[str | Path] | None = None, **overrides: Any) -> T:
     """Build ``cls`` from its defaults, then the YAML ``source`` (a path, or a file name under ``configs/``; or a
-    list of them, later ones overriding earlier ones), then ``overrides``. Raises ``ValueError`` naming any key that ``cls`` does not have, and whatever ``cls``
-    raises for a bad value (:class:`ConfigError` for the configs that call :func:`check_fields`).
+    list of them, later ones overriding earlier ones), then ``overrides``. Raises ``ValueError`` naming a file that is
+    not a YAML mapping (:func:`read_yaml`) and any key that ``cls`` does not have, and whatever ``cls`` raises for a
+    bad value (:class:`ConfigError` for the configs that call :func:`check_fields`).
 
     ``load_config(cls, None, **dataclasses.asdict(config))`` rebuilds ``config``; so does dumping that dict to
     YAML and loading the file (nested configs come back from their mappings)."""
@@ -62,7 +83,7 @@ def load_config(cls: type[T], source: str | Path | Sequence[str | Path] | None =
         path = Path(source)
         if not path.is_file():
             path = CONFIG_DIR / path
-        data = yaml.safe_load(path.read_text()) or {}
+        data = read_yaml(path) or {}
         if not isinstance(data, dict):
             raise ValueError(f"{path}: expected a mapping of overrides, got {type(data).__name__}")
         values.update({k: _plain(v) for k, v in data.items()})
@@ -203,4 +224,4 @@ def check_fields(config: Any, allow_inf: Iterable[str] = ()) -> None:
             object.__setattr__(config, f.name, checked)
 
 
-__all__ = ["CONFIG_DIR", "ConfigError", "check_fields", "load_config"]
+__all__ = ["CONFIG_DIR", "ConfigError", "check_fields", "load_config", "read_yaml"]

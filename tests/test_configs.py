@@ -225,3 +225,25 @@ def test_check_fields_misuse_is_a_type_error():
         check_fields(_Other)
     with pytest.raises(TypeError, match="nope"):
         check_fields(_Other(), allow_inf=("nope",))
+
+
+# --- a config file that is not a YAML mapping: one ValueError naming the file (issue 24) ------------------------
+@pytest.mark.parametrize("content, problem", [
+    (b"n_particles: [1\n", "line 2, column 1: not valid YAML"),
+    (b"!!python/object/apply:os.system ['echo pwned']\n", "line 1, column 1: not valid YAML: could not determine"),
+    (b"n_particles: 10\n\x00\n", "character 17: not valid YAML: special characters are not allowed"),
+    (bytes(range(256)), "not a UTF-8 text file"),
+])
+def test_a_config_file_that_is_not_yaml_text_is_a_value_error_naming_it(tmp_path, content, problem):
+    path = tmp_path / "odd.yaml"
+    path.write_bytes(content)
+    with pytest.raises(ValueError) as err:
+        load_config(EnKTSConfig, path)
+    message = str(err.value)
+    assert message.startswith(f"{path}") and problem in message and "\n" not in message
+    assert "<unicode string>" not in message
+
+
+def test_a_config_path_that_is_a_folder_is_a_value_error_naming_it(tmp_path):
+    with pytest.raises(ValueError, match=re.escape(str(tmp_path)) + ".*cannot be read"):
+        load_config(EnKTSConfig, tmp_path)
