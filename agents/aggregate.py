@@ -111,8 +111,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bimp aggregate: error: {err}", file=sys.stderr)
         return 2
     text = markdown(result, args.name, args.runs)
-    (folder / f"aggregate_{args.name}.json").write_text(json.dumps(result, indent=2) + "\n")
-    (folder / f"aggregate_{args.name}.md").write_text(text)
+    try:
+        (folder / f"aggregate_{args.name}.json").write_text(json.dumps(result, indent=2) + "\n")
+        (folder / f"aggregate_{args.name}.md").write_text(text)
+    except OSError as err:
+        print(f"bimp aggregate: error: cannot write into {folder}: {err.strerror or err}", file=sys.stderr)
+        return 2
     print(text)
     return 0
 

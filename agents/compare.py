@@ -53,7 +53,8 @@ def compare(a: dict, b: dict) -> dict[str, dict]:
                 entry[name] = {"a": sum(xa) / len(xa), "b": sum(xb) / len(xb), **mcnemar_exact(xa, xb),
                                "disagree": [s for s, p, q in both if p != q]}
             else:
-                both = [(m[name], n[name]) for m, n in zip(ma, mb) if m[name] is not None and n[name] is not None]
+                both = [(m[name], n[name]) for m, n in zip(ma, mb)  # older records may lack a newer metric
+                        if m.get(name) is not None and n.get(name) is not None]
                 entry[name] = paired_bootstrap([p for p, _ in both], [q for _, q in both])
         out[scenario] = entry
     return out
@@ -112,7 +113,11 @@ def main(argv: list[str] | None = None) -> int:
     result = compare(a, b)
     print(report(result, label_a, label_b))
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2))
+        try:
+            Path(args.json).write_text(json.dumps(result, indent=2))
+        except OSError as err:
+            print(f"bimp compare: error: cannot write --json {args.json}: {err.strerror or err}", file=sys.stderr)
+            return 2
     return 0 if result else 1
 
 

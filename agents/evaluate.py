@@ -11,10 +11,12 @@ label (the policy name unless ``--label`` says otherwise). ``OUT/episodes.jsonl`
 finished episode, fsynced at once, carrying the resolved config, its hash, the scenario's drawn parameters,
 the seeds and the code version (``docs/evaluation.md``). A rerun skips the episodes already recorded for the
 same ``(scenario, label, config_hash, seed)``; records made with another config under the same label make it
-refuse (give ``--label``), never reuse them. An episode that raises is recorded with its traceback, shown in
-the ``errors`` column and retried by the next run. A worker process that dies is detected and its episode
-retried alone, then recorded as an error if it dies again; the run never hangs. One run at a time per folder
-(a lock). ``OUT/summary.{json,csv,md}`` cover the episodes this command asked for (``--all``: the folder).
+refuse (give ``--label``), never reuse them, and so does a record whose own config does not hash to its
+``config_hash`` (naming its line). A line that is not a record is reported and skipped, never a traceback. An
+episode that raises is recorded with its traceback, shown in the ``errors`` column and retried by the next run.
+A worker process that dies is detected and its episode retried alone, then recorded as an error if it dies
+again; the run never hangs. One run at a time per folder (a lock). ``OUT/summary.{json,csv,md}`` cover the
+episodes this command asked for (``--all``: the folder).
 Episodes run on a local process pool (``--workers``) or, with ``--backend ray [--address ADDR]``, on a Ray
 cluster (:mod:`agents.backends`, ``docs/scaling.md``); this process writes the records either way.
 """
@@ -129,7 +131,7 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
             given = overrides.get(policy, {})
             try:
                 config = arm_config(make_policy(policy, env, **given), env)
-            except (ValueError, TypeError, FileNotFoundError, ImportError, AttributeError) as err:
+            except (ValueError, TypeError, OSError, ImportError, AttributeError) as err:  # OSError: a model path
                 raise EvaluationError(f"policy {policy!r} on {scenario} with overrides {given}: {err}") from None
             arms.append(Arm(scenario, labels.get(policy, policy), policy, tuple(sorted(given.items())),
                             json.dumps(config, sort_keys=True), config_hash(policy, config)))
@@ -150,19 +152,34 @@ def arm_config(policy, env) -> dict:
     return {**resolved_config(policy), "scenario": definition}
 
 
-def check_conflicts(arms: list[Arm], records: list[dict]) -> None:
-    """Refuse when ``records`` hold episodes of an arm's ``(scenario, label)`` made with another config."""
-    for arm in arms:
-        others = [r for r in records if r["scenario"] == arm.scenario
-                  and r.get("label", r["policy"]) == arm.label and r.get("config_hash") != arm.config_hash]
-        if others:
-            old = others[-1]
-            diff = config_diff(old.get("config") or {}, arm.resolved) or ["(the old records carry no config)"]
+def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str | Path = ".") -> None:
+    """Refuse (:class:`EvaluationError`) when ``records`` (``(line number, record)`` of ``out``'s records) hold
+    episodes of an arm's ``(scenario, label)`` made with another config, or a *foreign* record: one carrying the
+    arm's ``config_hash`` whose own config does not hash to it. Such a record was not made by this arm (edited, or
+    copied in from another config) and resume must not count its episode as done."""
+    by_row = {(arm.scenario, arm.label): arm for arm in arms}
+    written = {arm: config_hash(arm.policy, _finite(arm.resolved)) for arm in arms}  # infinities are null there
+    others: dict[Arm, list[dict]] = {}
+    for number, r in records:
+        arm = by_row.get((r["scenario"], r.get("label", r["policy"])))
+        if arm is None:
+            continue
+        if r.get("config_hash") != arm.config_hash:
+            others.setdefault(arm, []).append(r)
+        elif "config" in r and config_hash(r["policy"], r["config"]) != written[arm]:  # older records carry none
+            diff = config_diff(r["config"], _finite(arm.resolved)) or [f"policy: {r['policy']!r} -> {arm.policy!r}"]
             raise EvaluationError(
-                f"the folder already holds {len(others)} episode(s) of {arm.label!r} on {arm.scenario} made with "
-                f"another config (hash {old.get('config_hash')} here, {arm.config_hash} now):\n  "
-                + "\n  ".join(diff[:12])
-                + "\ngive --label NAME to add this config as a new row, or choose another --out")
+                f"{Path(out) / EPISODES_FILE} line {number}: a record of {arm.label!r} on {arm.scenario} carries "
+                f"config hash {arm.config_hash}, but its own config hashes otherwise ({'; '.join(diff[:4])}): it was "
+                "not made with that config; choose another --out (the folder's records are never rewritten)")
+    for arm, rs in others.items():
+        old = rs[-1]
+        diff = config_diff(old.get("config") or {}, arm.resolved) or ["(the old records carry no config)"]
+        raise EvaluationError(
+            f"the folder already holds {len(rs)} episode(s) of {arm.label!r} on {arm.scenario} made with "
+            f"another config (hash {old.get('config_hash')} here, {arm.config_hash} now):\n  "
+            + "\n  ".join(diff[:12])
+            + "\ngive --label NAME to add this config as a new row, or choose another --out")
 
 
 # --- running one episode -------------------------------------------------------------------------------
@@ -262,17 +279,73 @@ def _finite(value):
 
 
 # --- the folder: records, lock ---------------------------------------------------------------------------
-def read_records(out: str | Path) -> list[dict]:
-    """Every complete record in ``out/episodes.jsonl``, in file order (a line cut by an interruption is skipped)."""
+# What every reader relies on; a JSON line without them is not a record (and never a traceback).
+REQUIRED = {"scenario": str, "policy": str, "seed": int, "status": str}
+OUTCOMES = ("success_rate", "collision_rate", "offroad_rate")  # what every reader takes from an ok record's metrics
+_JSON_TYPES = {dict: "an object", list: "an array", str: "a string", int: "a number", float: "a number",
+               bool: "a bool", type(None): "null"}
+
+
+def record_problem(value: object) -> str | None:
+    """Why a parsed JSON line is not an episode record (``None`` when it is one)."""
+    if not isinstance(value, dict):
+        return f"{_JSON_TYPES.get(type(value), type(value).__name__)}, not a record"
+    missing = [k for k in REQUIRED if k not in value]
+    if missing:
+        return f"a record without {', '.join(missing)}"
+    wrong = [k for k, kind in REQUIRED.items() if not isinstance(value[k], kind) or isinstance(value[k], bool)]
+    wrong += [k for k in ("label", "config_hash") if not isinstance(value.get(k, ""), str)]
+    wrong += [k for k in ("config",) if not isinstance(value.get(k, {}), dict)]
+    if wrong:
+        return f"a record whose {', '.join(wrong)} {'is' if len(wrong) == 1 else 'are'} of the wrong type"
+    if value["status"] == "ok" and not (isinstance(value.get("metrics"), dict)
+                                        and all(k in value["metrics"] for k in OUTCOMES)):
+        return f"an ok record without metrics ({', '.join(OUTCOMES)})"
+    return None
+
+
+_reported: set[tuple[str, tuple[int, ...]]] = set()  # said once per process: evaluate reads a folder three times
+
+
+def numbered_records(out: str | Path) -> list[tuple[int, dict]]:
+    """``(line number, record)`` of every record in ``out/episodes.jsonl``, in file order. A line that is not a
+    record (not JSON, not an object, lacking a key every reader needs: :func:`record_problem`) is skipped and
+    reported on stderr with its number; the last line, when no newline ends it, is a record cut by an interruption
+    and skipped silently. :class:`EvaluationError` when the file cannot be read."""
     path = Path(out) / EPISODES_FILE
-    records = []
-    if path.exists():
-        for line in path.read_text().splitlines():
-            try:
-                records.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return []
+    except OSError as err:
+        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
+    lines = data.split(b"\n")
+    cut = lines.pop()  # b"" after a final newline, else the line an interruption cut
+    records, skipped = [], []
+    for number, line in enumerate(lines + [cut], start=1):
+        if not line.strip():
+            continue
+        try:
+            value = json.loads(line)
+        except ValueError:  # bad JSON or not UTF-8
+            value, problem = None, "not JSON"
+        else:
+            problem = record_problem(value)
+        if problem is None:
+            records.append((number, value))
+        elif number <= len(lines):
+            skipped.append(f"line {number} ({problem})")
+    if skipped and (str(path), tuple(skipped)) not in _reported:
+        _reported.add((str(path), tuple(skipped)))
+        shown = "; ".join(skipped[:5]) + ("; ..." if len(skipped) > 5 else "")
+        print(f"bimp: warning: {path}: skipped {len(skipped)} line(s) that are not episode records: {shown}",
+              file=sys.stderr)
     return records
+
+
+def read_records(out: str | Path) -> list[dict]:
+    """Every record in ``out/episodes.jsonl``, in file order (:func:`numbered_records` without the numbers)."""
+    return [record for _, record in numbered_records(out)]
 
 
 def latest_records(records: list[dict]) -> list[dict]:
@@ -284,6 +357,28 @@ def latest_records(records: list[dict]) -> list[dict]:
         if r["status"] == "ok" or chosen.get(key, {}).get("status") != "ok":
             chosen[key] = r
     return list(chosen.values())
+
+
+def check_out_dir(out: str | Path, create: bool = True, flag: str = "--out") -> Path:
+    """``out`` as a folder a command can write into (made, with its parents, when ``create``), or
+    :class:`EvaluationError` in one line naming it (as ``flag``): empty (``--out ""`` would write into the current
+    folder), an existing file, a path under a file, or a folder this user cannot write. ``create=False`` checks
+    without writing anything, so a command can refuse before its first episode."""
+    if not str(out).strip():
+        raise EvaluationError(f"{flag} is empty: name the folder to write into")
+    out = Path(out)
+    existing = next(p for p in (out, *out.parents) if p.exists() or p == Path(p.anchor or "."))
+    if not existing.is_dir():
+        where = "is a file" if existing == out else f"lies under {existing}, a file"
+        raise EvaluationError(f"{flag} {out} {where}, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise EvaluationError(f"{flag} {out}: {existing} is not writable")
+    if create:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:  # what the checks above cannot see (a full disk, a race)
+            raise EvaluationError(f"{flag} {out}: cannot create it ({err.strerror or err})") from None
+    return out
 
 
 @contextmanager
@@ -342,12 +437,13 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
         single = sorted({arm.policy for arm in arms if not _batched(arm.policy)})
         if single:
             raise EvaluationError(f"--batch needs policies that plan batches; {single} do not")
-    out = Path(out)
-    check_conflicts(arms, read_records(out))  # before anything is written: a refusal leaves no trace
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_out_dir(out, create=False)
+    check_conflicts(arms, numbered_records(out), out)  # before anything is written: a refusal leaves no trace
+    check_out_dir(out)
     with folder_lock(out):
-        records = read_records(out)
-        check_conflicts(arms, records)  # again under the lock: the folder may have changed meanwhile
+        numbered = numbered_records(out)
+        check_conflicts(arms, numbered, out)  # again under the lock: the folder may have changed meanwhile
+        records = [r for _, r in numbered]
         version = tuple(code_version().items())
         video_dir = str(out / VIDEO_DIR)
         jobs = [Job(arm, s, trace=i < traces, video_dir=video_dir if i < video else None, version=version)

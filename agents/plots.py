@@ -10,6 +10,7 @@ Per scenario, comparing the policies on the first traced seed they share:
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -18,7 +19,7 @@ matplotlib.use("Agg")  # headless: files only
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from agents.evaluate import read_records  # noqa: E402
+from agents.evaluate import EvaluationError, check_out_dir, read_records  # noqa: E402
 from envs.road import RoadGeometry  # noqa: E402
 from envs.scene import Bounds  # noqa: E402
 
@@ -167,12 +168,18 @@ def render_episode(scenario: str, policy: str, seed: int, path: str | Path, ever
 
 
 def plot_all(folder: str | Path, out: str | Path | None = None) -> list[Path]:
-    """Draw every figure for the evaluation in ``folder`` into ``out`` (default ``folder/figures``)."""
+    """Draw every figure for the evaluation in ``folder`` into ``out`` (default ``folder/figures``), made only when
+    there is something to draw. :class:`agents.evaluate.EvaluationError` for a folder or ``out`` that cannot be
+    read or written."""
     folder = Path(folder)
-    out = Path(out) if out else folder / "figures"
-    out.mkdir(parents=True, exist_ok=True)
+    flag = "--out" if out is not None else "the figures folder"
+    out = check_out_dir(folder / "figures" if out is None else out, create=False, flag=flag)
+    traced = traced_episodes(read_records(folder))
+    if not traced:
+        return []
+    check_out_dir(out, flag=flag)
     written = []
-    for scenario, runs in traced_episodes(read_records(folder)).items():
+    for scenario, runs in traced.items():
         written += [plot_trajectories(scenario, runs, out), plot_controls(scenario, runs, out),
                     plot_safety(scenario, runs, out)]
     return written
@@ -184,7 +191,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("folder", help="an evaluation folder (holding episodes.jsonl)")
     parser.add_argument("--out", default=None, help="where to write the PNGs (default FOLDER/figures)")
     args = parser.parse_args(argv)
-    written = plot_all(args.folder, args.out)
+    try:
+        written = plot_all(args.folder, args.out)
+    except EvaluationError as err:
+        print(f"bimp plot: error: {err}", file=sys.stderr)
+        return 2
     if not written:
         print(f"no traced episodes in {args.folder}: run `bimp evaluate --traces 1 ...` first")
         return 1

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from agents.evaluate import (EvaluationError, _fmt, add_backend_arguments, backend_options, check_conflicts,
-                             evaluate, parse_overrides, read_records, resolve_arms, write_summary)
+                             check_out_dir, evaluate, numbered_records, parse_overrides, resolve_arms, write_summary)
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 # The config key that buys a policy quality with compute, and its default values for the frontier.
@@ -95,7 +95,7 @@ def _factory_kwargs(policy: str, overrides: dict) -> dict:
 
     try:
         return factory_kwargs(make_policy(policy, gym.make(envs.env_id("overtaking")), **overrides))
-    except (TuneError, ValueError, TypeError) as err:
+    except (TuneError, ValueError, TypeError, OSError) as err:
         raise EvaluationError(f"policy {policy!r}: {err}") from None
 
 
@@ -126,9 +126,10 @@ def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: i
                               f"and {seed}")
     # Every point checked, and against the folder, before the first runs: a bad last point must not cost the others'
     # hours first.
+    out = check_out_dir(out, create=False)
     arms = [arm for p in points
             for arm in resolve_arms(scenarios, [p.policy], {p.policy: p.overrides}, {p.policy: p.label})]
-    check_conflicts(arms, read_records(out))
+    check_conflicts(arms, numbered_records(out), out)
     rows, combined = [], {}
     for p in points:
         summary = evaluate(scenarios, [p.policy], episodes, seed, workers, out, traces=0, progress=progress,
@@ -137,7 +138,7 @@ def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: i
         combined.update(summary)
         rows += [{**entry, "label": p.label, "policy": p.policy, "param": p.param, "value": p.value}
                  for entry in summary.values()]
-    write_summary(combined, Path(out))  # each evaluation wrote its own point's; the folder's files hold them all
+    write_summary(combined, out)  # each evaluation wrote its own point's; the folder's files hold them all
     return rows
 
 

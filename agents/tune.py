@@ -51,8 +51,10 @@ from typing import Any
 
 import yaml
 
-from agents.evaluate import EvaluationError, add_backend_arguments, backend_options, evaluate, read_records
+from agents.evaluate import (EvaluationError, add_backend_arguments, backend_options, check_out_dir, evaluate,
+                             read_records)
 from agents.provenance import config_hash
+from configs import read_yaml
 
 RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
 _PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
@@ -351,6 +353,14 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
                         f"from {RESULTS_SEEDS} on are the safety, results and claims seeds, never tuned on")
     if parallel is not None and (backend != "ray" or parallel < 1):
         raise TuneError(f"--parallel {parallel}: the number of trials at once on Ray (>= 1, with --backend ray)")
+    try:  # the folder and the best config's file are checked before any trial, not after the last
+        check_out_dir(out, create=False)
+        if yaml_path is not None:
+            check_out_dir(Path(yaml_path).parent, create=False, flag=f"--yaml {yaml_path}: its folder")
+            if Path(yaml_path).is_dir():
+                raise EvaluationError(f"--yaml {yaml_path} is a folder, not a file")
+    except EvaluationError as err:
+        raise TuneError(str(err)) from None
     try:
         start_backend(backend, address, ray_cpus)
     except BackendError as err:
@@ -358,8 +368,10 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
     rung = episodes if rung is None else max(1, min(rung, episodes))
     space = search_space(policy)
     base = check_space(policy, scenarios, space)
-    out = Path(out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out = check_out_dir(out).resolve()
+    except EvaluationError as err:
+        raise TuneError(str(err)) from None
     url = storage or f"sqlite:///{out / 'study.db'}"
     # The name holds what the trials mean: a changed space or base config is another study, never a resumed one.
     meaning = config_hash(policy, {"base": base, "space": {k: repr(v) for k, v in space.items()}})[:8]
@@ -413,7 +425,7 @@ def load_tuned(policy: str, path: str | Path) -> dict | None:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no config file at {path}")
-    doc = yaml.safe_load(path.read_text())
+    doc = read_yaml(path)  # ValueError naming the file for one that is not YAML text
     if not (isinstance(doc, dict) and {"policy", "config"} <= set(doc) and isinstance(doc["config"], dict)):
         return None
     if doc["policy"] != policy:

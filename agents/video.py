@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import warnings
 from pathlib import Path
 
@@ -26,16 +27,26 @@ def with_video(env: gym.Env, folder: str | Path, name: str) -> gym.Env:
 
 
 def render_video(scenario: str, policy: str, seed: int, out: str | Path, overrides: dict | None = None) -> Path:
-    """One episode of ``policy`` on ``scenario`` from episode ``seed`` as an MP4 in ``out``; returns its path."""
+    """One episode of ``policy`` on ``scenario`` from episode ``seed`` as an MP4 in ``out``; returns its path.
+    :class:`agents.evaluate.EvaluationError` in one line, before anything is written, for a request that cannot run
+    (a bad seed, scenario, policy, override or ``out``)."""
     import envs
+    from agents.evaluate import EvaluationError, check_out_dir, resolve_arms
     from agents.registry import make_policy
-    from agents.rollout import rollout
+    from agents.rollout import episode_seeds, rollout
 
+    try:
+        episode_seeds(seed)  # the check every episode makes, here before anything is built
+    except ValueError as err:
+        raise EvaluationError(str(err)) from None
+    check_out_dir(out, create=False)
+    resolve_arms([scenario], [policy], {policy: overrides or {}})  # the request checked as bimp evaluate checks it
+    out = check_out_dir(out)
     name = f"{policy}_{scenario}_seed{seed}"
     env = with_video(gym.make(envs.env_id(scenario), render_mode="rgb_array"), out, name)
     rollout(env, make_policy(policy, env, **(overrides or {})), seed)
     env.close()  # writes the file
-    return Path(out) / f"{name}-episode-0.mp4"
+    return out / f"{name}-episode-0.mp4"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,7 +65,9 @@ def main(argv: list[str] | None = None) -> int:
         stray = sorted(set(overrides) - {args.policy})
         if stray:
             raise EvaluationError(f"--set names {stray}, not the policy {args.policy!r}")
+        path = render_video(args.scenario, args.policy, args.seed, args.out, overrides.get(args.policy))
     except EvaluationError as err:
-        parser.error(str(err))
-    print(render_video(args.scenario, args.policy, args.seed, args.out, overrides.get(args.policy)))
+        print(f"bimp render: error: {err}", file=sys.stderr)
+        return 2
+    print(path)
     return 0

@@ -1,0 +1,86 @@
+"""Records are checked, not trusted (issue 24, item 3): a record whose own config does not hash to its
+``config_hash`` is refused by a resume, naming its line; a line that is not a record is reported with its number and
+skipped by every reader, never a traceback, and nothing already recorded is lost."""
+
+import json
+import math
+import shutil
+
+import pytest
+
+from agents import aggregate, compare, plots
+from agents import evaluate as ev
+from agents.evaluate import EPISODES_FILE, EvaluationError, evaluate, read_records, resolve_arms
+
+ARGS = dict(scenarios=["emergency-brake"], episodes=2, seed=5, workers=1, traces=1, progress=False)
+CLI = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5", "--workers", "1"]
+
+
+def test_a_record_whose_config_does_not_hash_to_its_config_hash_is_refused_naming_its_line(tmp_path, capsys):
+    """The issue's case: episodes made under another config, given the default arm's hash, were taken as done."""
+    evaluate(out=tmp_path / "other", policies=["lane-keep"], overrides={"lane-keep": {"k_lat": 0.01}}, **ARGS)
+    (arm,) = resolve_arms(["emergency-brake"], ["lane-keep"])
+    out = tmp_path / "out"
+    out.mkdir()
+    forged = [{**r, "config_hash": arm.config_hash} for r in read_records(tmp_path / "other")]
+    (out / EPISODES_FILE).write_text("".join(json.dumps(r) + "\n" for r in forged))
+    before = (out / EPISODES_FILE).read_bytes()
+    with pytest.raises(EvaluationError, match=r"episodes\.jsonl line 1: .*k_lat: 0\.01 -> 0\.004"):
+        evaluate(out=out, policies=["lane-keep"], **ARGS)
+    assert ev.main(["--policy", "lane-keep", *CLI, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "line 1" in err and "k_lat" in err and "Traceback" not in err
+    assert (out / EPISODES_FILE).read_bytes() == before  # refused: nothing ran, nothing written
+
+
+def test_a_genuine_record_resumes_even_with_infinities_written_as_null():
+    """The check recomputes the hash from the record's config as it was written (JSON has no inf: null), so the
+    records of an arm with an infinite value (EnKS's nu) still resume; a changed value is still refused."""
+    (arm,) = resolve_arms(["emergency-brake"], ["lane-keep"], {"lane-keep": {"k_speed": math.inf}})
+    record = json.loads(json.dumps(ev._finite({**ev._base_record(ev.Job(arm, 5)), "status": "error"})))
+    assert record["config"]["config"]["k_speed"] is None
+    ev.check_conflicts([arm], [(1, record)])  # accepted
+    record["config"]["config"]["k_lat"] = 0.01
+    with pytest.raises(EvaluationError, match="line 7: .*k_lat"):
+        ev.check_conflicts([arm], [(7, record)])
+
+
+BAD_LINES = {
+    "empty object": b"{}",
+    "null": b"null",
+    "a list": b"[1, 2]",
+    "bad JSON": b'{"scenario": oops}',
+    "missing status": b'{"scenario": "emergency-brake", "policy": "zero", "seed": 9}',
+    "ok without metrics": b'{"scenario": "emergency-brake", "policy": "zero", "seed": 9, "status": "ok"}',
+    "a string seed": b'{"scenario": "emergency-brake", "policy": "zero", "seed": "9", "status": "error"}',
+    "binary": bytes(range(128, 256)),
+}
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """Two arms, two seeds, traced: what evaluate, compare, aggregate and plot read."""
+    out = tmp_path_factory.mktemp("records") / "base"
+    evaluate(out=out, policies=["lane-keep", "zero"], **ARGS)
+    return out
+
+
+@pytest.mark.parametrize("line", BAD_LINES.values(), ids=BAD_LINES.keys())
+def test_a_line_that_is_not_a_record_is_reported_and_skipped_by_every_reader(folder, tmp_path, capsys, line):
+    out = tmp_path / "out"
+    shutil.copytree(folder, out)
+    good = (out / EPISODES_FILE).read_bytes()
+    n = good.count(b"\n") + 1  # the bad line's number
+    # and a last line cut by an interruption, skipped silently as before
+    (out / EPISODES_FILE).write_bytes(good + line + b"\n" + b'{"scenario": "emergency-brake", "pol')
+    assert [r["seed"] for r in read_records(out)] == [r["seed"] for r in read_records(folder)]
+    warned = capsys.readouterr().err
+    assert "skipped 1 line(s)" in warned and f"line {n} (" in warned
+    assert ev.main(["--policy", "lane-keep", "zero", *CLI, "--out", str(out)]) == 0  # resumed: nothing reran
+    assert compare.main([str(out), "--policies", "lane-keep", "zero"]) == 0
+    assert aggregate.main([str(out), "--runs", "lane-keep", "zero", "--name", "x"]) == 0
+    assert plots.main([str(out)]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    data = (out / EPISODES_FILE).read_bytes()
+    assert data.startswith(good + line + b"\n") and data.count(b"\n") == n + 1  # appended to only, nothing lost
+    assert len(read_records(out)) == len(read_records(folder))
