@@ -507,11 +507,13 @@ def write_summary(summary: dict, out: Path) -> None:
     columns = ["policy", "scenario", "episodes", "errors"]
     with open(out / "summary.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(columns + ["error_seeds", "failed_seeds"] + [f"{m}_{s}" for m in METRICS for s in STATS])
+        w.writerow(columns + ["error_seeds", "failed_seeds"] + [f"{m}_{s}" for m in METRICS for s in STATS]
+                   + ["fallback_seeds", "fallback_steps"])
         for e in summary.values():
             w.writerow([e[c] for c in columns] + [" ".join(map(str, e["error_seeds"])),
                                                   " ".join(map(str, e["failed_seeds"]["success"]))]
-                       + [e[m][s] for m in METRICS for s in STATS])
+                       + [e[m][s] for m in METRICS for s in STATS]
+                       + [" ".join(map(str, e["fallback_seeds"])), e["fallback_steps"]])
     (out / "summary.md").write_text(markdown_table(summary))
 
 
@@ -532,15 +534,22 @@ def _seeds(seeds: list[int], most: int = 8) -> str:
 def markdown_table(summary: dict) -> str:
     """Scenario-by-arm rows: every metric as ``mean [95% interval]`` (Wilson for the episode outcomes,
     bootstrap for the rest), the errors and the failed episodes with their seeds."""
-    head = ["scenario", "policy", "episodes", "errors", "failed"] + list(METRICS)
+    fallbacks = any(e.get("fallback_steps") for e in summary.values())  # a column only where a planner fell back
+    head = ["scenario", "policy", "episodes", "errors", "failed"] + ["fallbacks"] * fallbacks + list(METRICS)
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for e in sorted(summary.values(), key=lambda e: (e["scenario"], e["policy"])):
         cells = [e["scenario"], e["policy"], str(e["episodes"]), _seeds(e["error_seeds"]),
-                 _seeds(e["failed_seeds"]["success"])] + [_fmt(e[m]) for m in METRICS]
-        lines.append("| " + " | ".join(cells) + " |")
+                 _seeds(e["failed_seeds"]["success"])]
+        if fallbacks:
+            cells.append(f"{_seeds(e['fallback_seeds'])}; {e['fallback_steps']} of {e['steps']} steps"
+                         if e.get("fallback_steps") else "0")
+        lines.append("| " + " | ".join(cells + [_fmt(e[m]) for m in METRICS]) + " |")
     notes = (f"\nIntervals: 95%, Wilson for {', '.join(BINARY)} (per episode), bootstrap of the mean for the "
              "rest. `errors`: episodes that raised (not results; retried by the next run). `failed`: episodes "
              "without success. Seeds in parentheses.\n")
+    if fallbacks:
+        notes += ("`fallbacks`: episodes where the planner found no usable plan on at least one step and fell back "
+                  "(held or braked), and those steps out of all steps: what the outcomes of these rows rest on.\n")
     mixed = [f"{e['policy']}/{e['scenario']}" for e in summary.values() if len(e.get("code_versions", ())) > 1]
     if mixed:
         notes += (f"\n**Mixed code versions** in {', '.join(mixed)}: these rows hold records made by different "

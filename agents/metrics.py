@@ -66,6 +66,9 @@ def summarize(records: list[dict]) -> dict[str, dict]:
     """Summary per ``label/scenario`` of episode records (one per label, scenario and seed: see
     :func:`agents.evaluate.latest_records`).
 
+    ``fallback_seeds`` and ``fallback_steps``: the episodes where the planner fell back on at least one step, and
+    the fallback steps out of ``steps`` (all steps of the results).
+
     Results are the episodes that ran to their end (``status`` "ok"); an episode that raised is not a result:
     it is counted in ``errors`` with its seed in ``error_seeds`` and left out of every metric. Episode
     outcomes (``BINARY``) get ``{mean, ci_low, ci_high, k, n}`` with the Wilson 95% interval, the other
@@ -91,9 +94,21 @@ def summarize(records: list[dict]) -> dict[str, dict]:
                 "collision": [r["seed"] for r in ok if r["metrics"]["collision_rate"]],
                 "offroad": [r["seed"] for r in ok if r["metrics"]["offroad_rate"]],
             },
+            # A planner that found no usable plan held or braked instead (its step_info "fallback"): driving on
+            # fallbacks is a failure of the planner even where no collision followed, so the summary says so.
+            "fallback_seeds": [r["seed"] for r in ok if _fallback_steps(r)],
+            "fallback_steps": sum(_fallback_steps(r) for r in ok),
+            "steps": sum(r.get("steps") or 0 for r in ok),
         }
         for name in METRICS:
             values = [r["metrics"][name] for r in ok if r["metrics"].get(name) is not None]
             entry[name] = rate_summary(values) if name in BINARY else mean_summary(values)
         out[f"{label}/{scenario}"] = entry
     return out
+
+
+def _fallback_steps(record: dict) -> int:
+    """How many steps of an episode the planner fell back (``policy_info.fallback_steps``, from the planner's
+    per-step ``step_info``: :func:`agents.evaluate.step_info_summary`); 0 for a policy that reports none."""
+    steps = (record.get("policy_info") or {}).get("fallback_steps")
+    return len(steps) if isinstance(steps, list) else 0

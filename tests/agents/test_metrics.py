@@ -95,3 +95,20 @@ def test_overtake_rate_is_the_last_step_ahead_of_ov1_and_none_elsewhere():
     followed = episode_metrics(trace(ahead_of_ov1=[False] * 10), dt=0.1, truncated=True)
     braking = episode_metrics(trace(ahead_of_ov1=[None] * 10), dt=0.1, truncated=True)
     assert (passed["overtake_rate"], followed["overtake_rate"], braking["overtake_rate"]) == (1.0, 0.0, None)
+
+
+def test_fallbacks_are_counted_and_shown_only_when_a_planner_fell_back():
+    """Issue 24: six of six episodes driven on fallbacks (nu rounding to 2 in float32) showed only as collisions."""
+    from agents.evaluate import markdown_table
+
+    ok = {"scenario": "s", "policy": "p", "status": "ok", "steps": 10,
+          "metrics": episode_metrics(trace(), dt=0.1, truncated=True)}
+    every_step = {"fallback_steps": list(range(10))}
+    fell_back = summarize([{**ok, "seed": s, "policy_info": every_step} for s in range(6)])
+    e = fell_back["p/s"]
+    assert e["fallback_seeds"] == [0, 1, 2, 3, 4, 5] and (e["fallback_steps"], e["steps"]) == (60, 60)
+    table = markdown_table(fell_back)
+    assert "| fallbacks |" in table and "6 (0, 1, 2, 3, 4, 5); 60 of 60 steps" in table
+    clean = summarize([{**ok, "seed": 0, "policy_info": {"fallback_steps": []}}, {**ok, "seed": 1}])
+    assert clean["p/s"]["fallback_seeds"] == [] and clean["p/s"]["fallback_steps"] == 0
+    assert "fallbacks" not in markdown_table(clean)  # no column for policies that never fell back
