@@ -6,7 +6,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= runs/demo
 
-.PHONY: install install-ray demo test test-slow test-ray bench clean
+.PHONY: install install-ray demo test test-slow test-ray check-wheel bench clean
 
 install: $(STAMP)
 
@@ -24,7 +24,9 @@ install-ray: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/bimp demo --out $(DEMO_OUT)
 
+# Lint and import order first (ruff, configured in pyproject.toml): seconds, before minutes of tests.
 test: $(STAMP)
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
 test-slow: $(STAMP)
@@ -32,6 +34,17 @@ test-slow: $(STAMP)
 
 test-ray: install-ray
 	$(PY) -m pytest -q -m slow tests/agents/test_backends.py
+
+# The built wheel in a fresh virtualenv beside PyPI's `envs`: both importable, only `bimp` installed, the CLI runs.
+WHEEL_DIR := build/check-wheel
+check-wheel: $(STAMP)
+	rm -rf $(WHEEL_DIR)
+	$(PY) -m pip wheel -q --no-deps --no-build-isolation -w $(WHEEL_DIR) .
+	rm -rf bimp.egg-info  # the build leaves it in the checkout, where it would pass for the installed metadata
+	$(PYTHON) -m venv $(WHEEL_DIR)/venv
+	$(WHEEL_DIR)/venv/bin/python -m pip install -q torch==2.13.0
+	$(WHEEL_DIR)/venv/bin/python -m pip install -q $(WHEEL_DIR)/bimp-*.whl envs
+	cd $(WHEEL_DIR) && venv/bin/python -I $(CURDIR)/tests/check_wheel.py  # -I: no checkout folder on sys.path
 
 bench: $(STAMP)
 	$(VENV)/bin/bimp bench

@@ -3,7 +3,7 @@
 Each training seed's model is evaluated as its own labelled arm of one folder (``bimp evaluate --policy ppo
 --set ppo.model=PATH --label ppo-s1``); this command reports, per scenario and over both, the mean over
 training seeds of each arm's episode mean, with the stratified bootstrap interval over training seeds
-(:func:`agents.stats.stratified_bootstrap`), and every seed's own value. A single training seed says little
+(:func:`bimp.agents.stats.stratified_bootstrap`), and every seed's own value. A single training seed says little
 about an algorithm (Henderson et al. 2018): the interval is over seeds, not episodes. Every arm must have run
 the same episode seeds, so the seeds compare like with like.
 
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.compare import label_results
-from agents.stats import stratified_bootstrap
+from bimp.agents.compare import label_results
+from bimp.agents.stats import stratified_bootstrap
 
 METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "progress_m")
 # Rates are on one scale in every scenario; progress is not (a 110 m brake against a 300 m pass), so it is not

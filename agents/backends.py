@@ -3,9 +3,9 @@
     bimp evaluate ... --backend ray                        # a local Ray instance on this machine's cores
     bimp evaluate ... --backend ray --address HOST:6379    # a running cluster (``ray start --head`` there)
 
-A backend runs :func:`agents.evaluate.run_group` over the groups of jobs and hands each record to ``write`` as its
+A backend runs :func:`bimp.agents.evaluate.run_group` over the groups of jobs and hands each record to ``write`` as its
 group finishes; everything else (what to run, resume, the lock, provenance, the summary) stays in
-:func:`agents.evaluate.evaluate`, in the driver process, whichever backend runs the episodes. Both backends keep
+:func:`bimp.agents.evaluate.evaluate`, in the driver process, whichever backend runs the episodes. Both backends keep
 the same failure semantics: a group whose worker process dies is run again, and one that kills its worker again
 is recorded as a ``WorkerDied`` error; never lost, never a hang. The local pool reruns every group in flight when
 its pool breaks, each alone; on Ray each group is a task in its own worker, so a crash is the task's own and Ray

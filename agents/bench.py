@@ -15,7 +15,7 @@ for all of them. Reported: median and 95th percentile [ms] for EnKTS, EnKS and M
 (20 forward passes of the 2x128 MLP on N rows, float32, plain numpy: the model work every plan must do); the ratios
 EnKTS/floor and EnKTS/MPPI per N and NMPC/EnKTS at N = 50; EnKTS at N = 50 for H in {10, 20, 40} (how a plan grows
 with H); and the first call of each JAX planner shape (compile + one plan). ``--quick``: N in {50, 500} and 5
-repeats. EnKTS and EnKS compute in float32 (``planners.core``).
+repeats. EnKTS and EnKS compute in float32 (``bimp.planners.core``).
 
 One thread everywhere: ``torch.set_num_threads(1)`` and ``OPENBLAS_NUM_THREADS=1`` (also OMP / MKL). BLAS reads the
 latter only when numpy loads, and ``bimp`` has loaded numpy before this module (the ``agents`` package imports
@@ -54,9 +54,9 @@ def observations(count: int):
     its scene (the road is fixed within an episode)."""
     import gymnasium as gym
 
-    import envs
-    from agents.registry import make_policy
-    from agents.rollout import rollout
+    from bimp import envs
+    from bimp.agents.registry import make_policy
+    from bimp.agents.rollout import rollout
 
     env = gym.make(envs.env_id(SCENARIO))
     recorded: list = []
@@ -69,11 +69,10 @@ def observations(count: int):
 def time_policy(name: str, env, sequence: list, repeats: int, **overrides) -> dict:
     """Median and 95th percentile [ms] of ``act`` on ``sequence[1:repeats + 1]`` after an untimed call on
     ``sequence[0]``."""
+    import jax
     import numpy as np
 
-    from agents.registry import make_policy
-
-    import jax
+    from bimp.agents.registry import make_policy
 
     jax.clear_caches()  # the first call of a JAX planner then includes its compile, whatever ran before
     policy = make_policy(name, env, **overrides)
@@ -99,7 +98,7 @@ def floor_ms(n: int, repeats: int, horizon: int = H_DEFAULT) -> float:
     """Median [ms] of ``horizon`` forward passes of the shipped MLP on ``n`` rows, float32, plain numpy."""
     import numpy as np
 
-    from planners.dynamics import load_model
+    from bimp.planners.dynamics import load_model
 
     model = load_model()
     rng = np.random.default_rng(0)
@@ -193,7 +192,8 @@ def report(result: dict) -> str:
         floor = result["floor_ms"].get(str(n))
         ratio = result["ratios"].get(f"enkts/mppi N={n}")
         lines.append(f"{n:>6} {fmt(by['enkts', n])} {fmt(by['enks', n])} {mppi} "
-                     + (f"{floor:8.2f} {by['enkts', n]['median_ms'] / floor:>10.1f}x " if floor else f"{'-':>8} {'-':>11} ")
+                     + (f"{floor:8.2f} {by['enkts', n]['median_ms'] / floor:>10.1f}x " if floor
+                        else f"{'-':>8} {'-':>11} ")
                      + (f"{ratio:>10.2f}x" if ratio else f"{'-':>11}")
                      + f" {by['enkts', n].get('first_call_ms', float('nan')):>11.0f} ms")
     nmpc = result["nmpc"]
@@ -209,7 +209,8 @@ def report(result: dict) -> str:
         f"H={r['horizon']}: {fmt(r).strip()} ({r['median_ms'] / base:.2f}x)" for r in h_rows)
         + "; time ~ H^k with k = " + ", ".join(
             f"{k:.2f} (H {a['horizon']}->{b['horizon']})" for k, a, b in zip(slopes, h_rows, h_rows[1:])))
-    lines.append("  (per horizon step O(N) model and measurement work, and an update over the full-width control history"
+    lines.append("  (per horizon step O(N) model and measurement work, and an update over the full-width control "
+                 "history"
                  " (N x (6 + 2H)): linear in H, quadratic once the update dominates)")
     lines.append(f"float type: {result.get('float', 'float64')}; floor: 20 MLP forward passes on N rows, numpy float32")
     return "\n".join(lines)
@@ -238,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     if not _single_threaded():
         env = {**os.environ, **{v: "1" for v in THREAD_VARS}}
         forwarded = list(sys.argv[1:] if argv is None else argv)
-        return subprocess.run([sys.executable, "-m", "agents.bench", *forwarded], env=env).returncode
+        return subprocess.run([sys.executable, "-m", "bimp.agents.bench", *forwarded], env=env).returncode
     print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
     if args.device:
         result = run_device(repeats, args.steps, progress=lambda s: print(s, flush=True))

@@ -11,18 +11,18 @@ import sys
 import tempfile
 
 COMMANDS = {
-    "demo": ("agents.demo", "small evaluation of both scenarios and planners, with table and figures"),
-    "evaluate": ("agents.evaluate", "run policies x scenarios x seeds and write safety metrics"),
-    "compare": ("agents.compare", "paired per-seed comparison of two policies: McNemar, paired bootstrap"),
-    "aggregate": ("agents.aggregate", "a learning algorithm over its training seeds, intervals over the seeds"),
-    "render": ("agents.video", "one episode as an MP4 video"),
-    "plot": ("agents.plots", "draw the paper's figures from an evaluation folder"),
-    "sweep": ("agents.sweep", "policies along one config key (any --param, or N with --n)"),
-    "frontier": ("agents.sweep:frontier_main", "success and violations against plan time, across N / iterations"),
-    "tune": ("agents.tune", "tune a policy's config with Optuna on training seeds (best config to configs/tuned/)"),
-    "bench": ("agents.bench", "plan-step timing of the planners, side by side"),
-    "train-dynamics": ("planners.dynamics", "train the MLP vehicle model and print its accuracy"),
-    "train-rl": ("agents.rl", "train the stable-baselines3 baseline"),
+    "demo": ("bimp.agents.demo", "small evaluation of both scenarios and planners, with table and figures"),
+    "evaluate": ("bimp.agents.evaluate", "run policies x scenarios x seeds and write safety metrics"),
+    "compare": ("bimp.agents.compare", "paired per-seed comparison of two policies: McNemar, paired bootstrap"),
+    "aggregate": ("bimp.agents.aggregate", "a learning algorithm over its training seeds, intervals over the seeds"),
+    "render": ("bimp.agents.video", "one episode as an MP4 video"),
+    "plot": ("bimp.agents.plots", "draw the paper's figures from an evaluation folder"),
+    "sweep": ("bimp.agents.sweep", "policies along one config key (any --param, or N with --n)"),
+    "frontier": ("bimp.agents.sweep:frontier_main", "success and violations against plan time, across N / iterations"),
+    "tune": ("bimp.agents.tune", "tune a policy's config with Optuna on training seeds (best to configs/tuned/)"),
+    "bench": ("bimp.agents.bench", "plan-step timing of the planners, side by side"),
+    "train-dynamics": ("bimp.planners.dynamics", "train the MLP vehicle model and print its accuracy"),
+    "train-rl": ("bimp.agents.rl", "train the stable-baselines3 baseline"),
 }
 
 

@@ -16,9 +16,9 @@ import json
 import sys
 from pathlib import Path
 
-from agents.evaluate import latest_records, read_records
-from agents.metrics import BINARY, METRICS
-from agents.stats import mcnemar_exact, paired_bootstrap
+from bimp.agents.evaluate import latest_records, read_records
+from bimp.agents.metrics import BINARY, METRICS
+from bimp.agents.stats import mcnemar_exact, paired_bootstrap
 
 
 def label_results(folder: Path, label: str) -> dict[tuple[str, int], dict]:

@@ -7,8 +7,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from agents.evaluate import evaluate
-from agents.plots import plot_all, render_episode
+from bimp.agents.evaluate import evaluate
+from bimp.agents.plots import plot_all, render_episode
 
 # The columns a terminal shows whole: (header, summary key). Every other metric is in summary.md.
 SHORT_COLUMNS = (
@@ -29,7 +29,7 @@ def _cell(stat: dict | None) -> str:
 
 
 def short_table(summary: dict) -> str:
-    """One row per scenario and policy of a summary (``agents.metrics.summarize``): episodes, then success,
+    """One row per scenario and policy of a summary (``bimp.agents.metrics.summarize``): episodes, then success,
     collision, off road (Wilson 95% intervals), progress and median plan time per step (bootstrap 95%
     intervals), as Markdown."""
     head = ["scenario", "policy", "episodes"] + [name for name, _ in SHORT_COLUMNS]

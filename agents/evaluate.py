@@ -18,7 +18,7 @@ A worker process that dies is detected and its episode retried alone, then recor
 again; the run never hangs. One run at a time per folder (a lock). ``OUT/summary.{json,csv,md}`` cover the
 episodes this command asked for (``--all``: the folder).
 Episodes run on a local process pool (``--workers``) or, with ``--backend ray [--address ADDR]``, on a Ray
-cluster (:mod:`agents.backends`, ``docs/scaling.md``); this process writes the records either way.
+cluster (:mod:`bimp.agents.backends`, ``docs/scaling.md``); this process writes the records either way.
 """
 
 from __future__ import annotations
@@ -41,11 +41,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from agents.backends import BackendError, run_groups, start_backend
-from agents.metrics import BINARY, METRICS, episode_metrics, summarize
-from agents.provenance import code_version, config_diff, config_hash, resolved_config
-from agents.rollout import SEEDING, rollout, rollout_batch
-from agents.video import with_video
+from bimp.agents.backends import BackendError, run_groups, start_backend
+from bimp.agents.metrics import BINARY, METRICS, episode_metrics, summarize
+from bimp.agents.provenance import code_version, config_diff, config_hash, resolved_config
+from bimp.agents.rollout import SEEDING, rollout, rollout_batch
+from bimp.agents.video import with_video
 
 EPISODES_FILE = "episodes.jsonl"
 LOCK_FILE = ".lock"
@@ -102,8 +102,8 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
     Raises :class:`EvaluationError` naming the first problem."""
     import gymnasium as gym
 
-    import envs
-    from agents.registry import POLICIES, is_policy_name, make_policy
+    from bimp import envs
+    from bimp.agents.registry import POLICIES, is_policy_name, make_policy
 
     overrides, labels = overrides or {}, labels or {}
     if not scenarios or not policies:
@@ -197,14 +197,14 @@ def run_episode(job: Job) -> dict:
 
 
 def run_group(group: tuple[Job, ...]) -> list[dict]:
-    """Records of a group of episodes of one arm: one episode through :func:`agents.rollout.rollout` (with its
+    """Records of a group of episodes of one arm: one episode through :func:`bimp.agents.rollout.rollout` (with its
     video if asked for), several through one batched planner over one env each
-    (:func:`agents.rollout.rollout_batch`). Never raises for an error inside an episode: the group's records come
+    (:func:`bimp.agents.rollout.rollout_batch`). Never raises for an error inside an episode: the group's records come
     back as ``status: "error"`` with the traceback, and the next run retries each episode."""
     import gymnasium as gym
 
-    import envs
-    from agents.registry import make_policy
+    from bimp import envs
+    from bimp.agents.registry import make_policy
 
     arm, batched = group[0].arm, len(group) > 1
     records = [_base_record(job) for job in group]
@@ -418,7 +418,7 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
     how many of the first seeds per arm keep their per-step trace / get an MP4 in ``out/videos``;
     ``all_records``: summarize the whole folder instead of this request; ``batch``: plan up to this many episodes
     of an arm in one batched call (policies with ``batched = True``; episodes with video run alone);
-    ``backend``: where the episodes run (:mod:`agents.backends`): ``"local"``, a pool of ``workers`` processes,
+    ``backend``: where the episodes run (:mod:`bimp.agents.backends`): ``"local"``, a pool of ``workers`` processes,
     or ``"ray"``, the Ray cluster at ``address`` (default: a new local instance of ``ray_cpus`` CPUs). Raises
     :class:`EvaluationError` before anything is written when the request is invalid, conflicts with the folder's
     records, or names a backend that cannot run.
@@ -475,7 +475,7 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
 
 
 def _batched(policy: str) -> bool:
-    from agents.registry import policy_class
+    from bimp.agents.registry import policy_class
 
     return bool(getattr(policy_class(policy), "batched", False))
 

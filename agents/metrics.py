@@ -1,10 +1,10 @@
 """Safety metrics of one episode, computed from its per-step trace, and their summary over episodes.
 
-A trace is a dict of equal-length per-step lists, as :func:`agents.rollout.rollout` records them from
+A trace is a dict of equal-length per-step lists, as :func:`bimp.agents.rollout.rollout` records them from
 the env's ``info`` (evaluation never re-derives what the env already measured):
 ``collision``, ``offroad`` (bool); ``ov_distance`` (K floats, m); ``edge_distance`` (m); ``ttc`` (s, inf if no
 closing OV); ``lateral_error`` (m); ``speed_error`` (m/s); ``input`` ([a, delta]); ``constraints`` (dicts of
-values <= 0 when satisfied, see :mod:`envs.scenarios`); ``plan_ms`` (ms spent in ``act``); ``s`` (arc length
+values <= 0 when satisfied, see :mod:`bimp.envs.scenarios`); ``plan_ms`` (ms spent in ``act``); ``s`` (arc length
 along the road, m; gives ``progress_m``, e.g. higher when the EV overtakes instead of following).
 """
 
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from agents.stats import mean_summary, rate_summary
+from bimp.agents.stats import mean_summary, rate_summary
 
 METRICS = (
     "success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate",
@@ -64,7 +64,7 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
 
 def summarize(records: list[dict]) -> dict[str, dict]:
     """Summary per ``label/scenario`` of episode records (one per label, scenario and seed: see
-    :func:`agents.evaluate.latest_records`).
+    :func:`bimp.agents.evaluate.latest_records`).
 
     ``fallback_seeds`` and ``fallback_steps``: the episodes where the planner fell back on at least one step, and
     the fallback steps out of ``steps`` (all steps of the results).
@@ -109,6 +109,6 @@ def summarize(records: list[dict]) -> dict[str, dict]:
 
 def _fallback_steps(record: dict) -> int:
     """How many steps of an episode the planner fell back (``policy_info.fallback_steps``, from the planner's
-    per-step ``step_info``: :func:`agents.evaluate.step_info_summary`); 0 for a policy that reports none."""
+    per-step ``step_info``: :func:`bimp.agents.evaluate.step_info_summary`); 0 for a policy that reports none."""
     steps = (record.get("policy_info") or {}).get("fallback_steps")
     return len(steps) if isinstance(steps, list) else 0

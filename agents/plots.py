@@ -19,9 +19,9 @@ matplotlib.use("Agg")  # headless: files only
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from agents.evaluate import EvaluationError, check_out_dir, read_records  # noqa: E402
-from envs.road import RoadGeometry  # noqa: E402
-from envs.scene import Bounds  # noqa: E402
+from bimp.agents.evaluate import EvaluationError, check_out_dir, read_records  # noqa: E402
+from bimp.envs.road import RoadGeometry  # noqa: E402
+from bimp.envs.scene import Bounds  # noqa: E402
 
 OV_COLORS = ("tab:cyan", "tab:olive", "tab:gray")  # kept apart from every policy's colour
 COLORS = {"enkts": "tab:red", "enks": "tab:blue", "mppi": "tab:green", "nmpc": "tab:purple",
@@ -144,9 +144,9 @@ def render_episode(scenario: str, policy: str, seed: int, path: str | Path, ever
     the last one) as one PNG: what the simulator shows, next to the plotted trajectories."""
     import gymnasium as gym
 
-    import envs
-    from agents.registry import make_policy
-    from agents.rollout import rollout
+    from bimp import envs
+    from bimp.agents.registry import make_policy
+    from bimp.agents.rollout import rollout
 
     env = gym.make(envs.env_id(scenario), render_mode="rgb_array")
     frames: list[tuple[int, np.ndarray]] = []
@@ -169,7 +169,7 @@ def render_episode(scenario: str, policy: str, seed: int, path: str | Path, ever
 
 def plot_all(folder: str | Path, out: str | Path | None = None) -> list[Path]:
     """Draw every figure for the evaluation in ``folder`` into ``out`` (default ``folder/figures``), made only when
-    there is something to draw. :class:`agents.evaluate.EvaluationError` for a folder or ``out`` that cannot be
+    there is something to draw. :class:`bimp.agents.evaluate.EvaluationError` for a folder or ``out`` that cannot be
     read or written."""
     folder = Path(folder)
     flag = "--out" if out is not None else "the figures folder"

@@ -1,7 +1,7 @@
 """What produced an episode: the policy's fully resolved config, its hash, and the code version.
 
 Every episode record carries these so a result can never be attributed to the wrong configuration:
-resume in :mod:`agents.evaluate` matches on ``(scenario, label, config_hash, seed)``.
+resume in :mod:`bimp.agents.evaluate` matches on ``(scenario, label, config_hash, seed)``.
 """
 
 from __future__ import annotations

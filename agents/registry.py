@@ -7,22 +7,22 @@ from pathlib import Path
 
 import gymnasium as gym
 
-from agents.policy import Policy
+from bimp.agents.policy import Policy
 
 # Tuned configs written by `bimp tune` (configs/tuned/NAME.yaml): where one ships, it is NAME's default.
 TUNED_DIR = Path(__file__).resolve().parent.parent / "configs" / "tuned"
 
 # name -> "module:factory"; each factory takes (env, **overrides) and returns a Policy.
 POLICIES = {
-    "enkts": "planners.enkts:make_enkts",
-    "enks": "planners.enkts:make_enks",
-    "lane-keep": "agents.baselines:LaneKeeping",
-    "zero": "agents.baselines:ZeroAction",
-    "ppo": "agents.rl:make_ppo",
-    "sac": "agents.rl:make_sac",
-    "mppi": "planners.mppi:make_mppi",
-    "nmpc": "planners.nmpc:make_nmpc",
-    "nmpc-t": "planners.nmpc:make_nmpc_t",
+    "enkts": "bimp.planners.enkts:make_enkts",
+    "enks": "bimp.planners.enkts:make_enks",
+    "lane-keep": "bimp.agents.baselines:LaneKeeping",
+    "zero": "bimp.agents.baselines:ZeroAction",
+    "ppo": "bimp.agents.rl:make_ppo",
+    "sac": "bimp.agents.rl:make_sac",
+    "mppi": "bimp.planners.mppi:make_mppi",
+    "nmpc": "bimp.planners.nmpc:make_nmpc",
+    "nmpc-t": "bimp.planners.nmpc:make_nmpc_t",
 }
 
 
@@ -50,7 +50,7 @@ def make_policy(name: str, env: gym.Env, config: str | Path | None = None, **ove
     if config is None and (TUNED_DIR / f"{name}.yaml").is_file():
         config = TUNED_DIR / f"{name}.yaml"  # a shipped tuned config is the policy's default
     if config is not None:
-        from agents.tune import load_tuned
+        from bimp.agents.tune import load_tuned
 
         tuned = load_tuned(name, config)
         overrides = _merge(tuned, overrides) if tuned is not None else {"config": config, **overrides}

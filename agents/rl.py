@@ -19,9 +19,9 @@ Model files, checkpoints and replay buffers are read without unpickling (:func:`
 from anywhere runs no code; ``trust_model=True`` falls back to SB3's own ``load``, which does unpickle
 (docs/security.md).
 
-Observation and action go through fixed transforms, the same at training (:class:`envs.PlanningWrapper`) and
+Observation and action go through fixed transforms, the same at training (:class:`bimp.envs.PlanningWrapper`) and
 at inference (:class:`SB3Policy`): ego-relative scaled features and actions on the planning bounds, rate-limited
-(:mod:`envs.wrappers` says why).
+(:mod:`bimp.envs.wrappers` says why).
 
 The env's reward is used as it is: it pays tracking of the reference speed *along the road* and of the
 reference lane, so weaving or spinning earns less than driving straight; stopping earns only the lane term
@@ -46,11 +46,11 @@ import numpy as np
 from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.sac.policies import SACPolicy
 
-import envs
-from configs import check_fields
-from agents.baselines import ZeroAction
-from agents.rollout import rollout
-from envs.wrappers import PlanningWrapper, features, n_features, to_env_action
+from bimp import envs
+from bimp.agents.baselines import ZeroAction
+from bimp.agents.rollout import rollout
+from bimp.configs import check_fields
+from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 ALGOS = ("ppo", "sac")
@@ -136,7 +136,7 @@ def _algo_class(algo: str):
 
 
 class _FeaturesOnly:
-    """Mixin for an SB3 policy that acts on :func:`envs.wrappers.features`: refuses any other input.
+    """Mixin for an SB3 policy that acts on :func:`bimp.envs.wrappers.features`: refuses any other input.
 
     The raw observation and the features have the same length here, so SB3's own shape check passes and a
     model handed the raw env (``evaluate_policy(model, gym.make(...))``) would silently drive on nonsense.
@@ -660,7 +660,7 @@ def make_sac(env: gym.Env, *, model: str | Path | None = None, training_seed: in
 
 
 def quick_check(env: gym.Env, policy, seed: int) -> dict[str, float]:
-    """One episode of :func:`agents.rollout.rollout`: ``progress`` (m along the road), ``collision``, ``offroad``,
+    """One episode of :func:`bimp.agents.rollout.rollout`: ``progress`` (m along the road), ``collision``, ``offroad``,
     ``return`` and ``steps``. A quick check for training and tests, not the full evaluation."""
     episode = rollout(env, policy, seed)
     t = episode.trace

@@ -6,12 +6,14 @@
                   --iters 5 10 20 40 --episodes 20 --seed 2000 --out DIR
 
 A sweep is a list of *points* (a policy under one set of overrides, shown as a label such as ``enkts N=50``), each
-an ordinary evaluation (:func:`agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
+an ordinary evaluation (:func:`bimp.agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
 provenance, one ``episodes.jsonl``, and the same ``--backend ray [--address ADDR]`` (``docs/scaling.md``).
 Every point is checked (its config, and against the folder's records) before the first episode runs: a bad
 request exits with status 2 and names the point, never after hours of the others.
 ``--param POLICY.KEY=V1,V2,...`` sweeps any config key (``KEY`` as in ``bimp tune``'s search spaces:
-``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` sweep together, value by value (the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles`` of every ``--policy``.
+``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` sweep together, value by value
+(the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles``
+of every ``--policy``.
 
 The frontier puts quality against compute: each policy along its compute axis (``FRONTIER_AXES``: the particles N
 of EnKTS, EnKS and MPPI, the iteration cap of NMPC; one point for a policy without one, such as PPO), success
@@ -31,8 +33,19 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from agents.evaluate import (EvaluationError, _fmt, add_backend_arguments, backend_options, check_conflicts,
-                             check_out_dir, evaluate, numbered_records, parse_overrides, resolve_arms, write_summary)
+from bimp.agents.evaluate import (
+    EvaluationError,
+    _fmt,
+    add_backend_arguments,
+    backend_options,
+    check_conflicts,
+    check_out_dir,
+    evaluate,
+    numbered_records,
+    parse_overrides,
+    resolve_arms,
+    write_summary,
+)
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 # The config key that buys a policy quality with compute, and its default values for the frontier.
@@ -56,7 +69,7 @@ def param_points(params: list[str], base: dict | None = None) -> list[Point]:
     ``base``: ``{policy: overrides}`` under every point. :class:`EvaluationError` naming a malformed param."""
     import yaml
 
-    from agents.tune import TuneError, overrides_for
+    from bimp.agents.tune import TuneError, overrides_for
 
     parsed = []
     for item in params:
@@ -89,9 +102,9 @@ def _factory_kwargs(policy: str, overrides: dict) -> dict:
     """The policy's complete keyword arguments under ``overrides`` (built once on the overtaking env)."""
     import gymnasium as gym
 
-    import envs
-    from agents.registry import make_policy
-    from agents.tune import TuneError, factory_kwargs
+    from bimp import envs
+    from bimp.agents.registry import make_policy
+    from bimp.agents.tune import TuneError, factory_kwargs
 
     try:
         return factory_kwargs(make_policy(policy, gym.make(envs.env_id("overtaking")), **overrides))
@@ -117,7 +130,7 @@ def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: i
                workers: int = 1, batch: int = 1, progress: bool = True, backend: str = "local",
                address: str | None = None, ray_cpus: int | None = None) -> list[dict]:
     """Evaluate every point into ``out``; ``[{label, policy, param, value, scenario, **summary entry}]``.
-    ``backend``, ``address``, ``ray_cpus``: where the episodes run, as for :func:`agents.evaluate.evaluate`."""
+    ``backend``, ``address``, ``ray_cpus``: where the episodes run, as for :func:`bimp.agents.evaluate.evaluate`."""
     labels = [p.label for p in points]
     if not points or len(set(labels)) != len(labels):
         raise EvaluationError(f"the points need distinct labels, got {labels}")
@@ -165,7 +178,7 @@ def plot(rows: list[dict], path: Path, frontier: bool) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from agents.plots import policy_color
+    from bimp.agents.plots import policy_color
 
     scenarios = sorted({r["scenario"] for r in rows})
     fig, axes = plt.subplots(len(scenarios), 2, figsize=(10, 3.2 * len(scenarios)), squeeze=False)

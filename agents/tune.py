@@ -12,7 +12,7 @@ from). Every key is checked against the policy's resolved config, and the policy
 before any trial runs.
 
 Trial. The sampled values replace those keys in the policy's resolved config; the trial is an ordinary evaluation
-(:func:`agents.evaluate.evaluate`) of that config on seeds ``seed .. seed + episodes - 1`` of every scenario, in
+(:func:`bimp.agents.evaluate.evaluate`) of that config on seeds ``seed .. seed + episodes - 1`` of every scenario, in
 ``OUT/trials/<config hash>``, so a trial that is retried after an interruption resumes its episodes. It runs in
 rungs of ``--rung`` seeds; after each the running objective is reported and the median pruner stops a trial that
 trails the median of earlier trials at the same rung. Episodes that raise fail the trial with their error (a
@@ -51,10 +51,16 @@ from typing import Any
 
 import yaml
 
-from agents.evaluate import (EvaluationError, add_backend_arguments, backend_options, check_out_dir, evaluate,
-                             read_records)
-from agents.provenance import config_hash
-from configs import read_yaml
+from bimp.agents.evaluate import (
+    EvaluationError,
+    add_backend_arguments,
+    backend_options,
+    check_out_dir,
+    evaluate,
+    read_records,
+)
+from bimp.agents.provenance import config_hash
+from bimp.configs import read_yaml
 
 RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
 _PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
@@ -72,7 +78,7 @@ class TrialError(RuntimeError):
 # --- the search space and the config it edits ---------------------------------------------------------------
 def search_space(policy: str) -> dict:
     """``{key: optuna distribution}`` the policy's factory declares; :class:`TuneError` if it has none."""
-    from agents.registry import policy_class
+    from bimp.agents.registry import policy_class
 
     try:
         factory = policy_class(policy)
@@ -87,7 +93,7 @@ def search_space(policy: str) -> dict:
 def factory_kwargs(policy) -> dict:
     """The keyword arguments that rebuild ``policy`` exactly: its resolved config, and the shared problem of a
     peer planner under ``problem``."""
-    from agents.provenance import resolved_config
+    from bimp.agents.provenance import resolved_config
 
     resolved = resolved_config(policy)
     return {**resolved["config"], **({"problem": resolved["tuning"]} if "tuning" in resolved else {})}
@@ -143,8 +149,8 @@ def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
     own defaults (not a shipped tuned config, which a study must not drift with), as complete factory kwargs."""
     import gymnasium as gym
 
-    import envs
-    from agents.registry import make_policy, policy_class
+    from bimp import envs
+    from bimp.agents.registry import make_policy, policy_class
 
     envs_ = []
     for scenario in scenarios:
@@ -184,7 +190,7 @@ def _ends(distribution) -> tuple:
 # --- the objective -------------------------------------------------------------------------------------------
 def objective_value(summary: dict) -> float:
     """Success first, then fewer collisions, off-road exits and bound violations (see the module docstring);
-    ``summary`` as :func:`agents.metrics.summarize` returns it. Rates are pooled over the arms by episodes."""
+    ``summary`` as :func:`bimp.agents.metrics.summarize` returns it. Rates are pooled over the arms by episodes."""
     arms = [a for a in summary.values() if a["episodes"]]
     n = sum(a["episodes"] for a in arms)
     if not n:
@@ -310,7 +316,7 @@ def run_trials_on_ray(spec: Study, n_trials: int, sampler_seed: int, parallel: i
     heartbeat, and :class:`optuna.study.MaxTrialsCallback` keeps the study's total."""
     import numpy as np
 
-    from agents.backends import connect_ray, in_worker, ray_options
+    from bimp.agents.backends import connect_ray, in_worker, ray_options
 
     ray = connect_ray(address, ray_cpus)
     n = parallel or max(1, int(ray.cluster_resources().get("CPU", 1)) // spec.workers)
@@ -342,7 +348,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
     Raises :class:`TuneError` before any trial for an invalid request."""
     import optuna
 
-    from agents.backends import BackendError, start_backend
+    from bimp.agents.backends import BackendError, start_backend
 
     if not scenarios:
         raise TuneError("give at least one scenario")

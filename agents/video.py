@@ -28,12 +28,12 @@ def with_video(env: gym.Env, folder: str | Path, name: str) -> gym.Env:
 
 def render_video(scenario: str, policy: str, seed: int, out: str | Path, overrides: dict | None = None) -> Path:
     """One episode of ``policy`` on ``scenario`` from episode ``seed`` as an MP4 in ``out``; returns its path.
-    :class:`agents.evaluate.EvaluationError` in one line, before anything is written, for a request that cannot run
+    :class:`bimp.agents.evaluate.EvaluationError` in one line, before anything is written, for a request that cannot run
     (a bad seed, scenario, policy, override or ``out``)."""
-    import envs
-    from agents.evaluate import EvaluationError, check_out_dir, resolve_arms
-    from agents.registry import make_policy
-    from agents.rollout import episode_seeds, rollout
+    from bimp import envs
+    from bimp.agents.evaluate import EvaluationError, check_out_dir, resolve_arms
+    from bimp.agents.registry import make_policy
+    from bimp.agents.rollout import episode_seeds, rollout
 
     try:
         episode_seeds(seed)  # the check every episode makes, here before anything is built
@@ -50,7 +50,7 @@ def render_video(scenario: str, policy: str, seed: int, out: str | Path, overrid
 
 
 def main(argv: list[str] | None = None) -> int:
-    from agents.evaluate import EvaluationError, parse_overrides
+    from bimp.agents.evaluate import EvaluationError, parse_overrides
 
     parser = argparse.ArgumentParser(prog="bimp render", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

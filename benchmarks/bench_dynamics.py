@@ -27,7 +27,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from planners.dynamics import BicycleModel, load_model  # noqa: E402
+from bimp.planners.dynamics import BicycleModel, load_model  # noqa: E402
 
 
 def median_time(fn, repeats: int) -> float:

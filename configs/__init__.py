@@ -2,7 +2,7 @@
 
 A YAML file holds overrides only; an unknown key is an error.
 
->>> from configs import load_config
+>>> from bimp.configs import load_config
 >>> cfg = load_config(EnKTSConfig, "planner.yaml", n_particles=100)
 
 Every config calls :func:`check_fields` first thing in its ``__post_init__``, so a value of the wrong type is

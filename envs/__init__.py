@@ -1,23 +1,23 @@
-"""The paper's scenarios as Gymnasium environments. Importing this package registers them:
+"""The paper's scenarios as Gymnasium environments. Importing ``bimp`` (or this package) registers them:
 
->>> import gymnasium as gym, envs
+>>> import gymnasium as gym, bimp
 >>> env = gym.make("bimp/Overtaking-v0", render_mode="rgb_array")
 """
 
 from gymnasium.envs.registration import register, registry
 
-from envs.road import RoadGeometry
-from envs.scene import Bounds, Scene
-from envs.wrappers import PlanningWrapper
+from bimp.envs.road import RoadGeometry
+from bimp.envs.scene import Bounds, Scene
+from bimp.envs.wrappers import PlanningWrapper
 
 ENV_IDS = {"overtaking": "bimp/Overtaking-v0", "emergency-brake": "bimp/EmergencyBrake-v0"}
 # Variants of a scenario under their own id, so that `bimp evaluate --scenario NAME` and its records name them: the
 # discovery variant of overtaking (the reference keeps the EV's lane: the planner must find the pass itself).
 VARIANT_IDS = {"overtaking-keep-lane": "bimp/OvertakingKeepLane-v0"}
 _ENTRY_POINTS = {
-    "bimp/Overtaking-v0": ("envs.scenarios:OvertakingEnv", 150),
-    "bimp/EmergencyBrake-v0": ("envs.scenarios:EmergencyBrakeEnv", 120),
-    "bimp/OvertakingKeepLane-v0": ("envs.scenarios:OvertakingKeepLaneEnv", 150),
+    "bimp/Overtaking-v0": ("bimp.envs.scenarios:OvertakingEnv", 150),
+    "bimp/EmergencyBrake-v0": ("bimp.envs.scenarios:EmergencyBrakeEnv", 120),
+    "bimp/OvertakingKeepLane-v0": ("bimp.envs.scenarios:OvertakingKeepLaneEnv", 150),
 }
 
 for _id, (_entry, _steps) in _ENTRY_POINTS.items():

@@ -20,7 +20,7 @@ reference's ``ref_zero_step`` after ``ref_hold``). highway-env's own keys (rende
 
 Collision: ``info["collision"]`` is true exactly when the EV's footprint touches or overlaps an OV's, i.e. when
 ``min(info["ov_distance"]) <= 0``, the exact signed distance between the two 5 m x 2 m rectangles
-(:meth:`envs.scene.Scene.ov_gaps`). It is measured on the simulated state itself: highway-env's collision handling
+(:meth:`bimp.envs.scene.Scene.ov_gaps`). It is measured on the simulated state itself: highway-env's collision handling
 (which predicts an intersection one step ahead, pushes both vehicles apart by an "impact" translation and then
 brakes crashed vehicles to a stop) is switched off for all vehicles, so no contact moves anyone, OV-OV contacts
 included. The env checks the gap after every simulation step and ends the step at the first overlapping state.
@@ -30,7 +30,7 @@ Rendering: ``metadata["render_fps"]`` is the policy frequency, one frame per ste
 captures them, so videos play in real time (highway-env would double it, in a dict shared by all instances).
 It is set per instance at every reset; ``RecordVideo`` reads it once, when it wraps the env.
 
-Observation (flat ``Box``, float32, see :mod:`envs.scene`): EV ``[x, y, heading, speed]``, the previous
+Observation (flat ``Box``, float32, see :mod:`bimp.envs.scene`): EV ``[x, y, heading, speed]``, the previous
 physical input ``[a, delta]``, per OV ``[present, x, y, heading, speed, acceleration]``, and the reference
 ``[v_ref, dv_ref/dt, lateral offset of the reference lane]``.
 
@@ -64,8 +64,8 @@ from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from envs.road import RoadGeometry
-from envs.scene import Bounds, Scene
+from bimp.envs.road import RoadGeometry
+from bimp.envs.scene import Bounds, Scene
 
 ACTUATOR_ACCEL = (-10.0, 10.0)
 ACTUATOR_STEER = (-0.3, 0.3)

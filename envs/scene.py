@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.road import RoadGeometry, corner_edge_distance, rect_gap
+from bimp.envs.road import RoadGeometry, corner_edge_distance, rect_gap
 
 EGO_FIELDS = ("x", "y", "heading", "speed")
 OV_FIELDS = ("present", "x", "y", "heading", "speed", "acceleration")
@@ -127,7 +127,7 @@ class Scene:
         of ``[present, x, y, heading, ..]`` (:data:`OV_FIELDS`); ``inf`` where an OV is absent.
 
         The exact signed distance between the two ``vehicle_length`` x ``vehicle_width`` rectangles at their
-        positions and headings (:func:`envs.road.rect_gap`): > 0 apart, 0 touching, < 0 overlapping (minus the
+        positions and headings (:func:`bimp.envs.road.rect_gap`): > 0 apart, 0 touching, < 0 overlapping (minus the
         penetration depth). The env's ``info["collision"]`` is ``min(ov_gaps) <= 0``.
         """
         ego, ovs = np.asarray(ego, float), np.atleast_2d(np.asarray(ovs, float))

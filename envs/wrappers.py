@@ -1,6 +1,6 @@
 """The planning-features view of a bimp env, for learning agents: :func:`features` as observation, an action on
 the *planning* bounds (:func:`to_env_action`). The RL baseline trains through :class:`PlanningWrapper` and acts
-through the same functions (:class:`agents.rl.SB3Policy`).
+through the same functions (:class:`bimp.agents.rl.SB3Policy`).
 
 highway-env's own SB3 examples feed the raw observation and the raw action space to the agent. For continuous
 control on these scenarios that fails in known ways, so both sides go through fixed transforms built from the raw
@@ -22,7 +22,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
-from envs.scene import Scene
+from bimp.envs.scene import Scene
 
 # Feature scales: typical magnitudes, so features are O(1) without running statistics.
 _GAP_SCALE = 50.0  # m along the road

@@ -6,7 +6,7 @@ One compiled function per :class:`Settings` (the static shapes and switches): ``
 horizon, fixed shapes (inactive barrier rows are masked, not dropped; the control history has its full width from
 the start), no Python branches on data, no raises inside, explicit PRNG keys, the road's shape traced (a redrawn road
 is new data, not a new program). ``jax.vmap`` of it plans a batch of episodes at once; the same code runs on a GPU
-when JAX sees one. :class:`planners.enkts.EnKTSPlanner` is the thin stateful adapter around it.
+when JAX sees one. :class:`bimp.planners.enkts.EnKTSPlanner` is the thin stateful adapter around it.
 
 Per control step, smoothing over the horizon ``t = 0 .. H-1`` (particles ``j = 1 .. N``):
 
@@ -32,8 +32,16 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from planners import model as vehicle
-from planners.problem import ACTIVE, N_FIRST_CONTROL, N_TRACK, Problem, measure, predict_obstacles, reference_profile
+from bimp.planners import model as vehicle
+from bimp.planners.problem import (
+    ACTIVE,
+    N_FIRST_CONTROL,
+    N_TRACK,
+    Problem,
+    measure,
+    predict_obstacles,
+    reference_profile,
+)
 
 # Relative Tikhonov regularization of P_y: a barrier that reads 0 for every particle leaves only the (sampled)
 # noise in its row, and a near-singular P_y would turn into huge gains.
@@ -185,7 +193,7 @@ def _active(h, gate: bool = True, first_control: bool = True):
     some particle touches. A barrier that reads ~0 for every particle is flat there and carries no information, yet
     with N = 50 its noise regresses spuriously on the plan and collapses the ensemble within a few steps.
     ``gate=False`` keeps every row (the ablation's "no gating"); ``first_control=False`` drops the last four rows,
-    the first control's bounds (:data:`planners.problem.BARRIERS`)."""
+    the first control's bounds (:data:`bimp.planners.problem.BARRIERS`)."""
     rows = jnp.arange(h.shape[1])
     active = (rows < N_TRACK) | (h.max(axis=0) > ACTIVE) if gate else jnp.ones(h.shape[1], bool)
     return active if first_control else active & (rows < h.shape[1] - N_FIRST_CONTROL)
@@ -313,5 +321,5 @@ def plan_batch(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, 
     return jax.vmap(_plan, in_axes=(_BATCH_AXES, None, 0, 0, 0))(problem, cfg, carry, obs, keys)
 
 
-__all__ = ["Carry", "PlanOut", "READINGS", "Settings", "chi_square", "initial_carry", "plan_batch", "plan_step", "roll_out",
-           "spread_factor", "student_t", "student_t_update"]
+__all__ = ["Carry", "PlanOut", "READINGS", "Settings", "chi_square", "initial_carry", "plan_batch", "plan_step",
+           "roll_out", "spread_factor", "student_t", "student_t_update"]

@@ -4,10 +4,10 @@ State ``x = [x m, y m, heading rad, speed m/s]``, input ``u = [acceleration m/s^
 ``dt = 0.1`` s, rows are particles. Two models share that contract (both are plain callables, as the planners
 expect):
 
-- :class:`BicycleModel`: the exact kinematic bicycle of :class:`envs.scenarios.EgoVehicle` (highway-env's
+- :class:`BicycleModel`: the exact kinematic bicycle of :class:`bimp.envs.scenarios.EgoVehicle` (highway-env's
   ``Vehicle.step`` with the speed clamped at >= 0). Ground truth for tests and a stand-in for the learned model.
 - :class:`LearnedDynamics`: the paper's feedforward MLP (section V; two hidden layers of 128), trained on
-  transitions of that same vehicle model by ``bimp train-dynamics`` (:mod:`planners.dynamics_train`), shipped as
+  transitions of that same vehicle model by ``bimp train-dynamics`` (:mod:`bimp.planners.dynamics_train`), shipped as
   ``planners/weights/mlp.pt`` and loaded with :func:`load_model`.
 
 The MLP does not see the pose. The bicycle model is invariant to translation *and* rotation, so the network maps
@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from configs import ConfigError
 from torch import nn
+
+from bimp.configs import ConfigError
 
 # Mirrors of envs.scenarios / highway-env (tests check they agree); not imported, so that loading a model does
 # not pull in highway-env and pygame.
@@ -68,7 +68,7 @@ def _validate_limits(dt: float, max_speed: float, accel_range: tuple[float, floa
 
 @dataclass(frozen=True)
 class BicycleModel:
-    """Exact one-step model of :class:`envs.scenarios.EgoVehicle` (highway-env ``Vehicle.step``), batched.
+    """Exact one-step model of :class:`bimp.envs.scenarios.EgoVehicle` (highway-env ``Vehicle.step``), batched.
 
     ``beta = arctan(tan(delta) / 2)``; ``x += v cos(h + beta) dt``; ``y += v sin(h + beta) dt``;
     ``h += v sin(beta) / (L / 2) dt``; ``v = max(v + a dt, 0)``, where highway-env first caps the acceleration at
@@ -338,7 +338,7 @@ DYNAMICS_NAMES = ("mlp", "bicycle")
 
 
 def check_dynamics(name: str, key: str = "dynamics") -> None:
-    """Raise :class:`configs.ConfigError` unless ``name`` is ``"mlp"``, ``"bicycle"`` or the path of a readable
+    """Raise :class:`bimp.configs.ConfigError` unless ``name`` is ``"mlp"``, ``"bicycle"`` or the path of a readable
     weights file written by ``bimp train-dynamics`` (the file is loaded once here, so a bad path fails when the
     config is built, not at the first action)."""
     if name in DYNAMICS_NAMES:
@@ -364,8 +364,8 @@ def model_from_name(name: str) -> BicycleModel | LearnedDynamics:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``bimp train-dynamics``: see :mod:`planners.dynamics_train`."""
-    from planners import dynamics_train  # torch training and the env roll-outs load only for this command
+    """``bimp train-dynamics``: see :mod:`bimp.planners.dynamics_train`."""
+    from bimp.planners import dynamics_train  # torch training and the env roll-outs load only for this command
 
     return dynamics_train.main(sys.argv[1:] if argv is None else argv)
 

@@ -1,6 +1,7 @@
-"""``bimp train-dynamics``: data, training and the accuracy report of the learned model in :mod:`planners.dynamics`.
+"""``bimp train-dynamics``: data, training and the accuracy report of the learned model in
+:mod:`bimp.planners.dynamics`.
 
-Training data come from the env's own vehicle (:class:`envs.scenarios.EgoVehicle`, stepped directly) over the whole
+Training data come from the env's own vehicle (:class:`bimp.envs.scenarios.EgoVehicle`, stepped directly) over the whole
 envelope: speeds 0-40 m/s, the full actuator ranges, random smooth input sequences (piecewise linear between random
 knots), independent uniform transitions, and rows at speed 0 or braking through 0 (the speed clamp). Half of the
 sequences keep their inputs near the planning bounds, where the planners spend their time.
@@ -25,9 +26,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from configs import ConfigError, check_fields
-from planners.dynamics import (
-    ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, MLP, BicycleModel, LearnedDynamics, features, save_model,
+from bimp.configs import ConfigError, check_fields
+from bimp.planners.dynamics import (
+    ACTUATOR_ACCEL,
+    ACTUATOR_STEER,
+    DT,
+    MAX_SPEED,
+    MLP,
+    BicycleModel,
+    LearnedDynamics,
+    features,
+    save_model,
 )
 
 STATE_NAMES = ("x [m]", "y [m]", "heading [rad]", "speed [m/s]")
@@ -81,10 +90,10 @@ class TrainConfig:
 
 # --- data ----------------------------------------------------------------------------------------------------
 def simulate_vehicle(x0: np.ndarray, inputs: np.ndarray, dt: float = DT) -> np.ndarray:
-    """Step :class:`envs.scenarios.EgoVehicle` (no road) from states ``x0 (M, 4)`` under physical inputs
+    """Step :class:`bimp.envs.scenarios.EgoVehicle` (no road) from states ``x0 (M, 4)`` under physical inputs
     ``inputs (M, T, 2)``; returns the states ``(M, T + 1, 4)``. One Python vehicle per row: this *is* the env's
     model, not a re-implementation of it."""
-    from envs.scenarios import EgoVehicle
+    from bimp.envs.scenarios import EgoVehicle
 
     m, t_steps = inputs.shape[:2]
     out = np.empty((m, t_steps + 1, 4))
@@ -156,7 +165,7 @@ def generate_data(rng: np.random.Generator, config: DataConfig = DataConfig()
 
 
 def body_change(x: np.ndarray, x_next: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`planners.dynamics.apply_change`: ``[d_lon, d_lat, d_heading, d_speed] (K, 4)``."""
+    """Inverse of :func:`bimp.planners.dynamics.apply_change`: ``[d_lon, d_lat, d_heading, d_speed] (K, 4)``."""
     c, s = np.cos(x[:, 2]), np.sin(x[:, 2])
     d = x_next - x
     return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2], d[:, 3]])
@@ -225,7 +234,7 @@ def rollout_scenarios(rng: np.random.Generator, episodes: int = 6,
     collision are dropped (highway-env pushes colliding vehicles apart, which no dynamics model predicts)."""
     import gymnasium as gym
 
-    import envs  # noqa: F401  (registers the ids)
+    from bimp import envs  # noqa: F401  (registers the ids)
 
     out = []
     for env_id in scenarios:

@@ -1,8 +1,8 @@
-"""EnKTS and EnKS as policies: thin stateful adapters around the pure JAX core (:mod:`planners.core`).
+"""EnKTS and EnKS as policies: thin stateful adapters around the pure JAX core (:mod:`bimp.planners.core`).
 
 EnKS is the same planner with ``nu = inf`` (Gaussian draws, no spread adaptation): a special case, not a copy. The
 adapter checks the observation (outside the compiled function, so a bad one raises a clear ``ValueError``), builds
-the planning problem of the env's current scene (:mod:`planners.problem`), keeps the warm start and the episode's
+the planning problem of the env's current scene (:mod:`bimp.planners.problem`), keeps the warm start and the episode's
 PRNG key, and counts fallbacks. The same policy plans a batch: ``reset(seed=[s1, ..., sB])`` then
 ``act(obs (B, obs_dim)) -> (B, 2)``, one compiled call, row ``i`` equal to a single planner reset with ``s_i``.
 """
@@ -18,17 +18,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from configs import ConfigError, check_fields, load_config
-from envs.scene import Scene, real_array
-from planners import core
-from planners.model import model_params
-from planners.problem import PROBLEM_FILE, BarrierShape, Problem, ProblemConfig, Road, make_problem
-from planners.problem import search_space as problem_search_space
+from bimp.configs import ConfigError, check_fields, load_config
+from bimp.envs.scene import Scene, real_array
+from bimp.planners import core
+from bimp.planners.model import model_params
+from bimp.planners.problem import PROBLEM_FILE, BarrierShape, Problem, ProblemConfig, Road, make_problem
+from bimp.planners.problem import search_space as problem_search_space
 
 
 @dataclass(frozen=True)
 class EnKTSConfig(ProblemConfig):
-    """Planner settings beside the problem's tuning (:class:`planners.problem.ProblemConfig`: horizon, nu,
+    """Planner settings beside the problem's tuning (:class:`bimp.planners.problem.ProblemConfig`: horizon, nu,
     sigma_du, sigma_ref, sigma_input, sigma_barrier, barrier, dynamics; ``nu = inf`` is EnKS). Units: m, rad, s,
     m/s, m/s^2; increments per control step.
 
@@ -37,13 +37,13 @@ class EnKTSConfig(ProblemConfig):
     that factor (``inf``: none); max_innovation: how many predicted standard deviations the virtual observation may
     lie from the predicted mean, per row and step; relaxation: share of the spread an update removed that is given
     back (0 = none); iterations: smoothing passes per step (1 = the paper's single pass); gate_barriers: a barrier
-    that no particle touches sits out the update (``planners.core._active``); first_control_barriers: the applied
+    that no particle touches sits out the update (``bimp.planners.core._active``); first_control_barriers: the applied
     control's bounds are measured at every step; update: the reading of the printed eq. 16, ``"perturbed"`` (ours),
-    ``"deterministic"`` (the authors' public EnKS code) or ``"literal"`` (:func:`planners.core.student_t_update`);
+    ``"deterministic"`` (the authors' public EnKS code) or ``"literal"`` (:func:`bimp.planners.core.student_t_update`);
     seed: default seed of the planner's key. The switches exist for the ablation and the readings study
     (``docs/reproduction.md``); the defaults are what that study supports. Values are checked by
-    :func:`configs.check_fields` (types, lengths) and then for range: a bad one raises
-    :class:`configs.ConfigError` naming the key and the value.
+    :func:`bimp.configs.check_fields` (types, lengths) and then for range: a bad one raises
+    :class:`bimp.configs.ConfigError` naming the key and the value.
     """
 
     n_particles: int = 50
@@ -77,7 +77,7 @@ class EnKTSConfig(ProblemConfig):
         self._check_problem()
 
     def settings(self, n_obstacles: int) -> core.Settings:
-        """The static part for :func:`planners.core.plan_step`."""
+        """The static part for :func:`bimp.planners.core.plan_step`."""
         return core.Settings(self.n_particles, self.horizon, n_obstacles, float(self.nu),
                              self.adapt_spread and not math.isinf(self.nu), self.grow_nu, float(self.max_spread),
                              float(self.max_innovation), float(self.relaxation), self.iterations,
@@ -103,14 +103,14 @@ def _key(seed: int) -> jax.Array:
 
 
 class EnKTSPlanner:
-    """EnKTS (``nu < inf``) or EnKS (``nu = inf``) as a :class:`agents.Policy`.
+    """EnKTS (``nu < inf``) or EnKS (``nu = inf``) as a :class:`bimp.agents.Policy`.
 
-    scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``: the road
+    scene: a :class:`bimp.envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``: the road
     is redrawn at every env reset); for a batch, a callable returning one scene per row.
 
     ``fallbacks`` counts plans (rows, for a batch) that came out non-finite and were replaced by holding the last
     input; ``step_info`` says what the last ``act`` did: ``{"fallback": bool}``, for a batch one bool per row
-    (``{"fallback": (b_1, .., b_B)}``). The episode loops record it per step (:mod:`agents.rollout`).
+    (``{"fallback": (b_1, .., b_B)}``). The episode loops record it per step (:mod:`bimp.agents.rollout`).
     """
 
     batched = True  # reset(seed=[...]) and act(obs (B, d)) plan B episodes in one call
@@ -191,7 +191,8 @@ class EnKTSPlanner:
             problems = [make_problem(s, self.config, self._model) for s in scenes]
             problem = problems[0]
             if self.batch is not None:  # the roads differ per episode; everything else is shared
-                problem = problem._replace(road=Road(*(np.array(v, np.float32) for v in zip(*(p.road for p in problems)))))
+                roads = zip(*(p.road for p in problems))
+                problem = problem._replace(road=Road(*(np.array(v, np.float32) for v in roads)))
             self._problem = jax.device_put(jax.tree.map(
                 lambda a: np.asarray(a, np.float32) if isinstance(a, (float, np.ndarray)) else a, problem))
             self._problem_scenes = scenes

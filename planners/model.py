@@ -1,6 +1,6 @@
-"""The vehicle models of :mod:`planners.dynamics` as pure JAX functions of parameter pytrees (paper eq. 1).
+"""The vehicle models of :mod:`bimp.planners.dynamics` as pure JAX functions of parameter pytrees (paper eq. 1).
 
-Training and loading stay in torch (:mod:`planners.dynamics`); :func:`model_params` turns the shipped MLP (or any
+Training and loading stay in torch (:mod:`bimp.planners.dynamics`); :func:`model_params` turns the shipped MLP (or any
 weights file written by ``bimp train-dynamics``), or the exact bicycle model, into numbers that :func:`step`
 evaluates inside the compiled planner. A test pins ``step`` to the torch forward pass.
 """
@@ -40,7 +40,7 @@ class BicycleParams(NamedTuple):
 
 def model_params(name: str) -> MLPParams | BicycleParams:
     """Parameters of the model a config's ``dynamics`` names (``"mlp"``, ``"bicycle"`` or a weights file)."""
-    from planners.dynamics import BicycleModel, model_from_name
+    from bimp.planners.dynamics import BicycleModel, model_from_name
 
     model = model_from_name(name)
     if isinstance(model, BicycleModel):

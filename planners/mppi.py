@@ -13,9 +13,9 @@ applied control's barriers at every step. Its transition with MPPI's action ``u_
 so ``du_0`` is charged against it as EnKTS does. Like every planner here it measures the states ``x_1 .. x_H``,
 each with the input that reached it.
 
-Choices: the dynamics wrap :meth:`planners.dynamics.LearnedDynamics.predict` (numpy, tensors converted without
+Choices: the dynamics wrap :meth:`bimp.planners.dynamics.LearnedDynamics.predict` (numpy, tensors converted without
 copies: float64 CPU tensors share memory with numpy): the same model object as EnKTS, and the faster path at
-N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`planners.problem.measure`,
+N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`bimp.planners.problem.measure`,
 numpy too (the one definition of the problem, evaluated with numpy arrays). Noise: by default MPPI's action is the
 control *increment* (``sample: increments``), perturbed i.i.d. per step with ``noise_gain * sigma_du`` (the
 virtual system's own prior on increments, eq. 7) and clamped to the rate bounds; the input integrates it. The
@@ -52,11 +52,19 @@ import numpy as np
 import torch
 from pytorch_mppi import MPPI
 
-from configs import ConfigError, check_fields, load_config
-from envs.scene import Scene
-from planners.problem import (PROBLEM_FILE, Problem, ProblemConfig, load_problem, make_problem, measure,
-                              predict_obstacles, reference_profile)
-from planners.problem import search_space as problem_search_space
+from bimp.configs import ConfigError, check_fields, load_config
+from bimp.envs.scene import Scene
+from bimp.planners.problem import (
+    PROBLEM_FILE,
+    Problem,
+    ProblemConfig,
+    load_problem,
+    make_problem,
+    measure,
+    predict_obstacles,
+    reference_profile,
+)
+from bimp.planners.problem import search_space as problem_search_space
 
 Dynamics = Callable[[np.ndarray, np.ndarray], np.ndarray]
 NX = 10  # [x (4), u (2), du (2), u_0 (2)]
@@ -65,7 +73,7 @@ NX = 10  # [x (4), u (2), du (2), u_0 (2)]
 @dataclass(frozen=True)
 class MPPIConfig:
     """MPPI settings; the cost (noise scales, barriers) and the horizon come from the shared problem
-    (:class:`planners.problem.ProblemConfig`).
+    (:class:`bimp.planners.problem.ProblemConfig`).
 
     n_particles: samples N >= 2 (EnKTS's default, 50); horizon: H >= 1 steps (``None``: the shared problem's,
     as every planner); temperature: MPPI's lambda > 0, in units of the cost (a negative log-likelihood);
@@ -77,8 +85,8 @@ class MPPIConfig:
     which pulled the plans straight off the road in the curve); sample: what MPPI perturbs, ``"increments"`` (its
     action is the control increment ``du``, clamped to the rate bounds, the input ``u`` part of its state) or
     ``"inputs"`` (its action is ``u``, perturbed i.i.d. per step); seed: default seed of the planner's generator.
-    A bad value raises :class:`configs.ConfigError` naming the key and the value (types by
-    :func:`configs.check_fields`).
+    A bad value raises :class:`bimp.configs.ConfigError` naming the key and the value (types by
+    :func:`bimp.configs.check_fields`).
     """
 
     n_particles: int = 50
@@ -128,7 +136,7 @@ class _SeededMPPI(MPPI):
 
 def generator_seed(seed: int) -> int:
     """The torch generator's seed for the planner seed ``seed`` (an int >= 0 of any size; ``ValueError``
-    otherwise, as :class:`planners.enkts.EnKTSPlanner` refuses it). torch's CPU generator keeps only the low 32
+    otherwise, as :class:`bimp.planners.enkts.EnKTSPlanner` refuses it). torch's CPU generator keeps only the low 32
     bits of what ``manual_seed`` gets (its Mersenne Twister takes a 32-bit seed), so seeds that differ only above
     them would draw the same noise: the whole seed goes through ``numpy.random.SeedSequence`` into 32 bits."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -138,7 +146,7 @@ def generator_seed(seed: int) -> int:
 
 @dataclass(frozen=True)
 class _Context:
-    """What the running cost of one plan needs beside the block: see :func:`planners.problem.measure`."""
+    """What the running cost of one plan needs beside the block: see :func:`bimp.planners.problem.measure`."""
 
     problem: Problem
     u_prev: np.ndarray
@@ -149,9 +157,9 @@ class _Context:
 
 
 class MPPIPlanner:
-    """MPPI as an :class:`agents.Policy`.
+    """MPPI as an :class:`bimp.agents.Policy`.
 
-    scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
+    scene: a :class:`bimp.envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
     config: MPPI settings; tuning: the shared problem (noise scales, barriers, horizon); dynamics:
     any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the model ``tuning.dynamics`` names, as
     EnKTS: the shipped MLP, the bicycle model or a weights file).
@@ -166,14 +174,15 @@ class MPPIPlanner:
         self.n_particles, self.horizon = config.n_particles, config.horizon or tuning.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         if dynamics is None:
-            from planners.dynamics import model_from_name
+            from bimp.planners.dynamics import model_from_name
 
             dynamics = model_from_name(tuning.dynamics)
         self.dynamics = dynamics
         self.generator = torch.Generator()
         noise_std = config.noise_gain * torch.tensor(tuning.sigma_du, dtype=torch.float64)
         self._mppi = _SeededMPPI(
-            self.generator, config.control_cost, self._step, self.running_cost, nx=NX, noise_sigma=torch.diag(noise_std**2),
+            self.generator, config.control_cost, self._step, self.running_cost, nx=NX,
+            noise_sigma=torch.diag(noise_std**2),
             num_samples=self.n_particles, horizon=self.horizon, lambda_=config.temperature,
             U_init=torch.zeros(self.horizon, 2, dtype=torch.float64), step_dependent_dynamics=True)
         self._context: _Context | None = None
@@ -244,7 +253,7 @@ class MPPIPlanner:
     def running_cost(self, block: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
         """Negative log-likelihood ``(N,)`` of the zero virtual observation at step ``t`` for blocks ``(N, 10)``
         holding ``x_{t+1}`` and the input ``u_t`` that reached it: ``0.5 * sum_i (h_i / sigma_i)^2`` with ``h`` =
-        :func:`planners.problem.measure` and ``sigma`` the problem's measurement noise."""
+        :func:`bimp.planners.problem.measure` and ``sigma`` the problem's measurement noise."""
         ctx = self._context
         b = block.numpy()
         s_o, l_o, v_o, a_o, present = ctx.obstacles
@@ -258,7 +267,7 @@ def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE,
     """MPPI for ``env``: settings from :class:`MPPIConfig`'s defaults, the YAML ``config`` on top if given (a file
     of overrides: a key it leaves out keeps its default), then ``overrides`` (an unknown key raises naming it); cost
     and horizon from the shared problem ``tuning`` (``configs/problem.yaml``) plus ``problem``, overrides of it for
-    this planner alone (a tuned cost). ``agents.make_policy("mppi", ...)`` starts from the shipped tuned config
+    this planner alone (a tuned cost). ``bimp.agents.make_policy("mppi", ...)`` starts from the shipped tuned config
     (``configs/tuned/mppi.yaml``) instead."""
     return MPPIPlanner(lambda: env.unwrapped.scene, load_config(MPPIConfig, config, **overrides),
                        load_problem(tuning, **(problem or {})))

@@ -16,7 +16,7 @@ directly with a gradient-based solver, so the EnKTS planner can be compared agai
 - ``nmpc-t`` (``nu`` = the tuning's ``nu``): rho_n(q) = (nu + n) / 2 log(1 + q / nu), the Student's-t log cost
   of section IV (it tends to q / 2 as nu -> inf).
 
-The residuals are those of :func:`planners.problem.measure` (road frame: lateral offset to the reference lane,
+The residuals are those of :func:`bimp.planners.problem.measure` (road frame: lateral offset to the reference lane,
 heading relative to the road, speed error; acceleration minus the reference's rate, steering minus the
 curvature feed-forward), each input ``u_t`` paired with the state ``x_{t+1}`` it reaches and the references of
 time ``t + 1``, as every planner measures ``x_1 .. x_H``. ``u_{-1}`` is the input applied last (from the
@@ -25,8 +25,8 @@ smooth superellipse through the semi-axes of the virtual system's keep-out box (
 :func:`keep_out_semi_axes`).
 An ellipse (p = 2) cuts the box's corners by 29% of each semi-axis, and in the emergency brake NMPC used that
 to stop between the lanes 0.3 m from an OV; p = 4 (16%) stays closer to the box the other planners see and
-stopped 1.7 m behind. OV motion comes from :func:`planners.problem.predict_obstacles`. The road's Frenet frame
-is written as CasADi expressions of ``(x, y)`` mirroring :meth:`envs.road.RoadGeometry.to_frenet` (tests check
+stopped 1.7 m behind. OV motion comes from :func:`bimp.planners.problem.predict_obstacles`. The road's Frenet frame
+is written as CasADi expressions of ``(x, y)`` mirroring :meth:`bimp.envs.road.RoadGeometry.to_frenet` (tests check
 they agree), with the road's shape as NLP parameters, so one compiled solver serves every redrawn road.
 
 Solver: IPOPT (MUMPS), multiple shooting (X and U are both decision variables: the MLP's nonlinearity stays
@@ -56,12 +56,20 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from configs import ConfigError, check_fields, load_config
-from envs.road import RoadGeometry
-from envs.scene import Scene
-from planners.problem import (NU_MIN, PROBLEM_FILE, BarrierShape, ProblemConfig, load_problem, make_problem,
-                              predict_obstacles, reference_profile)
-from planners.problem import search_space as problem_search_space
+from bimp.configs import ConfigError, check_fields, load_config
+from bimp.envs.road import RoadGeometry
+from bimp.envs.scene import Scene
+from bimp.planners.problem import (
+    NU_MIN,
+    PROBLEM_FILE,
+    BarrierShape,
+    ProblemConfig,
+    load_problem,
+    make_problem,
+    predict_obstacles,
+    reference_profile,
+)
+from bimp.planners.problem import search_space as problem_search_space
 
 _SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 _CAPPED = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded", "Maximum_WallTime_Exceeded")
@@ -71,10 +79,10 @@ _ABSENT = 1e3  # added to an absent OV's keep-out value: the constraint can neve
 @dataclass(frozen=True)
 class NMPCConfig:
     """Solver settings; the cost weights, barrier margins and horizon come from the shared problem
-    (:class:`planners.problem.ProblemConfig`).
+    (:class:`bimp.planners.problem.ProblemConfig`).
 
     horizon: H >= 1 steps (``None``: the shared tuning's); nu: degrees of freedom of the Student's-t log cost, >=
-    ``planners.problem.NU_MIN`` = 2.1 (``inf``: the quadratic cost of eq. 21): the shared problem's floor, as
+    ``bimp.planners.problem.NU_MIN`` = 2.1 (``inf``: the quadratic cost of eq. 21): the shared problem's floor, as
     ``nmpc-t`` takes that nu (one virtual system, one range of nu whichever planner solves it); max_iter: IPOPT
     iteration cap per warm-started solve (>= 0); max_cpu_time [s]: IPOPT CPU-time cap per warm-started solve;
     cold_max_iter, cold_max_cpu_time: the same for the first solve of an episode; tol: IPOPT's convergence
@@ -84,8 +92,8 @@ class NMPCConfig:
     exponent p >= 2 of the keep-out superellipse (2: an ellipse); slack_penalty: weight > 0 of the exact (L1)
     penalty on slack variables that soften the keep-out and road-edge constraints (``inf``: hard constraints, the
     paper's eq. 21; with them a sudden brake ahead makes the problem infeasible, IPOPT fails at every step and the
-    fallback drives into the OV). A bad value raises :class:`configs.ConfigError` naming the key and the value
-    (types by :func:`configs.check_fields`).
+    fallback drives into the OV). A bad value raises :class:`bimp.configs.ConfigError` naming the key and the value
+    (types by :func:`bimp.configs.check_fields`).
     """
 
     horizon: int | None = None
@@ -127,16 +135,16 @@ class NMPCConfig:
 def mlp_function(model=None) -> ca.Function:
     """The learned model as a CasADi ``Function f(x (4,), u (2,)) -> x_next (4,)``, float64.
 
-    Same math as :meth:`planners.dynamics.LearnedDynamics.predict`: feature map of
-    :func:`planners.dynamics.features` (inputs clipped to the actuator ranges, acceleration capped above
+    Same math as :meth:`bimp.planners.dynamics.LearnedDynamics.predict`: feature map of
+    :func:`bimp.planners.dynamics.features` (inputs clipped to the actuator ranges, acceleration capped above
     ``max_speed``), three affine maps with two tanh from the folded weights ``model._w``, ``model._b``, body-frame
-    change rotated by the heading, next speed clamped at 0 (:func:`planners.dynamics.apply_change`). Built on MX:
+    change rotated by the heading, next speed clamped at 0 (:func:`bimp.planners.dynamics.apply_change`). Built on MX:
     the layers stay dense matrix products, which CasADi evaluates and differentiates about 3x faster than the
     scalar SX graph (16k products per layer); JIT-compiling them gains nothing. ``model``: a ``LearnedDynamics``
     (default: the shipped one).
     """
     if model is None:
-        from planners.dynamics import load_model
+        from bimp.planners.dynamics import load_model
 
         model = load_model()
     x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
@@ -157,10 +165,10 @@ def mlp_function(model=None) -> ca.Function:
 
 def bicycle_function(model=None) -> ca.Function:
     """The exact kinematic bicycle as a CasADi ``Function f(x (4,), u (2,)) -> x_next (4,)``, float64: the same
-    math as :meth:`planners.dynamics.BicycleModel.predict` (tests check they agree). ``model``: a
+    math as :meth:`bimp.planners.dynamics.BicycleModel.predict` (tests check they agree). ``model``: a
     ``BicycleModel`` (default: the env's vehicle)."""
     if model is None:
-        from planners.dynamics import BicycleModel
+        from bimp.planners.dynamics import BicycleModel
 
         model = BicycleModel()
     x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
@@ -189,7 +197,7 @@ def frenet(x, y, p):
     """Road coordinates ``(s, l)`` of world points, as CasADi expressions (element-wise on rows).
 
     ``p``: :func:`road_params` (symbols or numbers). Same pieces and the same switching as
-    :meth:`envs.road.RoadGeometry.to_frenet`: the first straight (extended backwards), the arc where the polar
+    :meth:`bimp.envs.road.RoadGeometry.to_frenet`: the first straight (extended backwards), the arc where the polar
     angle about its centre is >= 0, the second straight past the arc's end. With ``arc_angle = 0`` the arc
     branch is never selected (the second straight starts at ``straight_in``), as in numpy.
     """
@@ -211,13 +219,13 @@ def frenet(x, y, p):
 
 
 def heading_at(s, p):
-    """Centreline heading [rad] at ``s`` (:meth:`envs.road.RoadGeometry.heading_at`)."""
+    """Centreline heading [rad] at ``s`` (:meth:`bimp.envs.road.RoadGeometry.heading_at`)."""
     turn = ca.if_else(p[2] >= 0, 1.0, -1.0)
     return turn * ca.fmin(ca.fmax((s - p[0]) / p[1], 0.0), ca.fabs(p[2]))
 
 
 def curvature_at(s, p):
-    """Signed curvature [1/m] at ``s`` (:meth:`envs.road.RoadGeometry.curvature_at`)."""
+    """Signed curvature [1/m] at ``s`` (:meth:`bimp.envs.road.RoadGeometry.curvature_at`)."""
     turn = ca.if_else(p[2] >= 0, 1.0, -1.0)
     on_arc = (s >= p[0]) * (s <= p[0] + p[1] * ca.fabs(p[2])) * (ca.fabs(p[2]) > 0)
     return ca.if_else(on_arc, turn / p[1], 0.0)
@@ -226,7 +234,7 @@ def curvature_at(s, p):
 def keep_out_semi_axes(scene: Scene, shape: BarrierShape, ds, v, v_o, a_o):
     """Semi-axes ``(semi_s, semi_l)`` [m] of the keep-out around an OV, as CasADi expressions.
 
-    The half-sizes of the keep-out box of :func:`planners.problem.measure` (centre to centre): the footprint
+    The half-sizes of the keep-out box of :func:`bimp.planners.problem.measure` (centre to centre): the footprint
     length plus ``d_min``, the time headway of whichever vehicle follows and its braking room; laterally the
     footprint width plus the clearance. ``ds = s_EV - s_OV`` [m], ``v`` EV speed, ``v_o`` / ``a_o`` OV speed
     [m/s] and acceleration [m/s^2]. The switch at ``ds = 0`` leaves ``(ds / semi_s)^p`` continuous (it is 0 there
@@ -267,9 +275,9 @@ class _Problem:
 
 
 class NMPCPlanner:
-    """NMPC (eq. 21) as an :class:`agents.Policy`.
+    """NMPC (eq. 21) as an :class:`bimp.agents.Policy`.
 
-    scene: a :class:`envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
+    scene: a :class:`bimp.envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
     config: solver settings; tuning: the shared planner tuning (cost weights = inverse squared noise scales,
     barrier margins); dynamics: a CasADi ``Function f(x (4,), u (2,)) -> (4,)`` (default: the model
     ``tuning.dynamics`` names, as EnKTS: :func:`mlp_function` of the shipped MLP or of a weights file, or
@@ -288,7 +296,7 @@ class NMPCPlanner:
         self._scene = scene if callable(scene) else (lambda: scene)
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
         if dynamics is None:
-            from planners.dynamics import BicycleModel, model_from_name
+            from bimp.planners.dynamics import BicycleModel, model_from_name
 
             model = model_from_name(tuning.dynamics)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
@@ -510,7 +518,7 @@ def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE,
 def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
                 **overrides) -> NMPCPlanner:
     """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared problem (EnKTS's); configured in
-    layers as :func:`make_nmpc`. ``agents.make_policy("nmpc-t", ...)`` starts from the shipped tuned config
+    layers as :func:`make_nmpc`. ``bimp.agents.make_policy("nmpc-t", ...)`` starts from the shipped tuned config
     (``configs/tuned/nmpc-t.yaml``) instead."""
     shared = load_problem(tuning, **(problem or {}))
     return NMPCPlanner(lambda: env.unwrapped.scene,
@@ -521,7 +529,8 @@ def search_space() -> dict:
     """What ``bimp tune`` searches for NMPC: the weights of its cost and the margins of its constraints
     (``problem.*``, this planner's copy of the shared problem), the keep-out's shape and the slack penalty. Not the
     iteration cap: it buys quality with compute, compared across values by ``bimp frontier``."""
-    from optuna.distributions import CategoricalDistribution, FloatDistribution as Float
+    from optuna.distributions import CategoricalDistribution
+    from optuna.distributions import FloatDistribution as Float
 
     return {
         **problem_search_space("problem."),

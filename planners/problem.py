@@ -1,7 +1,7 @@
 """The planning problem, defined once: the virtual system of the paper (eq. 2-8) as immutable pytrees and pure
 functions.
 
-EnKTS/EnKS (:mod:`planners.core`, JAX), MPPI (numpy) and the env's safety values share these definitions; NMPC's
+EnKTS/EnKS (:mod:`bimp.planners.core`, JAX), MPPI (numpy) and the env's safety values share these definitions; NMPC's
 CasADi expressions are pinned to them by tests. Every function takes numpy or JAX arrays and answers in kind (the
 array module follows the inputs), so the numbers a plan is measured against are the numbers the env reports.
 
@@ -35,9 +35,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from configs import ConfigError, check_fields
-from envs.road import _xp, corner_edge_distance, curvature_at, heading_at, to_frenet
-from envs.scene import Scene
+from bimp.configs import ConfigError, check_fields
+from bimp.envs.road import _xp, corner_edge_distance, curvature_at, heading_at, to_frenet
+from bimp.envs.scene import Scene
 
 N_TRACK = 5  # r (3) + s (2)
 N_BOUND_BARRIERS = 9  # road edge, accel, steer, accel rate, steer rate, and the four of the first control
@@ -61,8 +61,8 @@ class BarrierShape:
     planner tightens the input and rate bounds (the barriers are soft: the ensemble mean settles a little past
     where they start to read); widths: the constraint violation that makes a barrier read 1, per family, in its
     own units [share of the keep-out box, m, m/s^2, rad, m/s^2, rad]; sharpness: softplus sharpness in those
-    normalized units. Checked by :func:`configs.check_fields`, then headway, lateral_clearance >= 0, brake_decel,
-    widths, sharpness > 0, bound_margin in [0, 1): a bad value raises :class:`configs.ConfigError` naming it.
+    normalized units. Checked by :func:`bimp.configs.check_fields`, then headway, lateral_clearance >= 0, brake_decel,
+    widths, sharpness > 0, bound_margin in [0, 1): a bad value raises :class:`bimp.configs.ConfigError` naming it.
     """
 
     headway: float = 0.6
@@ -108,7 +108,7 @@ class ProblemConfig:
     reference lane at most this fast, a lane-change path rather than a step (``inf``: the step);
     barrier: margins and widths (:class:`BarrierShape`); dynamics: ``"mlp"`` (the shipped model), ``"bicycle"``
     (the exact model) or the path of a weights file written by ``bimp train-dynamics`` (checked when the config is
-    built). A bad value raises :class:`configs.ConfigError` naming the key and the value.
+    built). A bad value raises :class:`bimp.configs.ConfigError` naming the key and the value.
     """
 
     horizon: int = 20
@@ -138,14 +138,14 @@ class ProblemConfig:
             value = getattr(self, key)
             if min(np.atleast_1d(value)) <= 0:
                 raise ConfigError(key, "> 0" if key == "sigma_barrier" else "a list of numbers > 0", value)
-        from planners.dynamics import check_dynamics
+        from bimp.planners.dynamics import check_dynamics
 
         check_dynamics(self.dynamics)
 
 
 # --- the problem as pytrees -----------------------------------------------------------------------------------
 class Road(NamedTuple):
-    """Road geometry as traced numbers (:class:`envs.road.RoadGeometry`): a redrawn road is new data, not a new
+    """Road geometry as traced numbers (:class:`bimp.envs.road.RoadGeometry`): a redrawn road is new data, not a new
     program."""
 
     straight_in: float
@@ -183,7 +183,7 @@ class Barrier(NamedTuple):
 
 class Problem(NamedTuple):
     """One episode's planning problem: ``noise (m,)`` is the measurement noise scale of each row of ``y``;
-    ``model`` the dynamics' parameters (:mod:`planners.model`); ``lane_rate`` the reference lane's lateral speed
+    ``model`` the dynamics' parameters (:mod:`bimp.planners.model`); ``lane_rate`` the reference lane's lateral speed
     [m/s] over the horizon (finite: a step is 1e6)."""
 
     road: Road
@@ -224,7 +224,7 @@ def search_space(prefix: str = "") -> dict:
 
 def load_problem(source=PROBLEM_FILE, **overrides) -> ProblemConfig:
     """The shared problem tuning: ``configs/problem.yaml`` (or ``source``) plus ``overrides``."""
-    from configs import load_config
+    from bimp.configs import load_config
 
     return load_config(ProblemConfig, source, **overrides)
 
@@ -364,6 +364,7 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     return xp.concatenate([tracking, xp.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness], axis=1)
 
 
-__all__ = ["ACTIVE", "BARRIERS", "N_FIRST_CONTROL", "NU_MIN", "PROBLEM_FILE", "load_problem", "Barrier", "BarrierShape", "Limits", "N_TRACK", "Problem", "ProblemConfig", "Road",
-           "edge_distance", "edge_distance_local", "frenet", "input_constraints", "rate_constraints", "make_problem", "measure", "measurement_noise", "n_measurements",
-           "predict_obstacles", "reference_profile"]
+__all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance", "edge_distance_local", "frenet",
+           "input_constraints", "Limits", "load_problem", "make_problem", "measure", "measurement_noise",
+           "N_FIRST_CONTROL", "n_measurements", "N_TRACK", "NU_MIN", "predict_obstacles", "Problem", "PROBLEM_FILE",
+           "ProblemConfig", "rate_constraints", "reference_profile", "Road"]

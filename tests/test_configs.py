@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import yaml
 
-from configs import CONFIG_DIR, ConfigError, check_fields, load_config
-from planners.dynamics_train import DataConfig, TrainConfig
-from planners.enkts import EnKTSConfig
-from planners.mppi import MPPIConfig
-from planners.nmpc import NMPCConfig
-from planners.problem import BarrierShape, ProblemConfig
+from bimp.configs import CONFIG_DIR, ConfigError, check_fields, load_config
+from bimp.planners.dynamics_train import DataConfig, TrainConfig
+from bimp.planners.enkts import EnKTSConfig
+from bimp.planners.mppi import MPPIConfig
+from bimp.planners.nmpc import NMPCConfig
+from bimp.planners.problem import BarrierShape, ProblemConfig
 
 CONFIGS = (EnKTSConfig, ProblemConfig, BarrierShape, MPPIConfig, NMPCConfig, DataConfig, TrainConfig)
 

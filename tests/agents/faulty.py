@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from agents.baselines import LaneKeeping
+from bimp.agents.baselines import LaneKeeping
 
 
 class Faulty:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from agents import bench
+from bimp.agents import bench
 
 
 def synthetic_result() -> dict:

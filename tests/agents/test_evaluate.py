@@ -6,10 +6,10 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from agents import evaluate as ev
-from agents.evaluate import EPISODES_FILE, EvaluationError, evaluate, folder_lock, read_records
-from agents.metrics import METRICS
-from agents.plots import plot_all
+from bimp.agents import evaluate as ev
+from bimp.agents.evaluate import EPISODES_FILE, EvaluationError, evaluate, folder_lock, read_records
+from bimp.agents.metrics import METRICS
+from bimp.agents.plots import plot_all
 
 ARGS = dict(scenarios=["emergency-brake"], policies=["lane-keep"], episodes=3, seed=5, workers=1,
             traces=1, progress=False)
@@ -125,8 +125,8 @@ def test_a_worker_that_dies_neither_hangs_nor_loses_its_episode(tmp_path):
     flag = tmp_path / "died-once"
     with deadline(240):
         summary = evaluate(out=tmp_path / "once", **{
-            **ARGS, "workers": 2, "policies": [FAULTY], "episodes": 3, "overrides": {FAULTY: {"flag": str(flag), "mode": "die",
-                                                                                "once": True}}})
+            **ARGS, "workers": 2, "policies": [FAULTY], "episodes": 3,
+            "overrides": {FAULTY: {"flag": str(flag), "mode": "die", "once": True}}})
     assert flag.exists()  # a worker did die
     e = summary[f"{FAULTY}/emergency-brake"]
     assert e["episodes"] == 3 and e["errors"] == 0  # retried, not lost
@@ -199,7 +199,7 @@ def test_batched_episodes_follow_the_single_ones(tmp_path):
 def test_a_changed_scenario_range_is_another_config(tmp_path, monkeypatch):
     import dataclasses
 
-    from envs.scenarios import EmergencyBrakeEnv
+    from bimp.envs.scenarios import EmergencyBrakeEnv
 
     evaluate(out=tmp_path, **{**ARGS, "episodes": 1})
     params = dict(EmergencyBrakeEnv.PARAMS)
@@ -212,7 +212,7 @@ def test_a_changed_scenario_range_is_another_config(tmp_path, monkeypatch):
 def test_a_changed_behaviour_rule_is_another_config(tmp_path, monkeypatch):
     import dataclasses
 
-    from envs.scenarios import OvertakingEnv
+    from bimp.envs.scenarios import OvertakingEnv
 
     args = {**ARGS, "scenarios": ["overtaking"], "episodes": 1}
     evaluate(out=tmp_path, **args)
@@ -223,7 +223,7 @@ def test_a_changed_behaviour_rule_is_another_config(tmp_path, monkeypatch):
 
 
 def test_compare_pairs_two_arms_across_both_scenarios(tmp_path, capsys):
-    from agents import compare
+    from bimp.agents import compare
 
     args = {**ARGS, "scenarios": ["emergency-brake", "overtaking"], "policies": ["lane-keep", "zero"],
             "episodes": 2, "traces": 0}

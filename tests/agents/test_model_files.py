@@ -16,10 +16,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs
-from agents import rl
-from agents.cli import main as bimp
-from agents.registry import make_policy
+from bimp import envs
+from bimp.agents import rl
+from bimp.agents.cli import main as bimp
+from bimp.agents.registry import make_policy
 
 SHIPPED = sorted(rl.MODEL_DIR.glob("*.zip"))
 

@@ -2,7 +2,7 @@
 
 import subprocess
 
-from agents.provenance import git_state
+from bimp.agents.provenance import git_state
 
 
 def test_a_changed_results_file_is_not_dirty_a_changed_code_file_is(tmp_path):

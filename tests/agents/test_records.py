@@ -8,9 +8,9 @@ import shutil
 
 import pytest
 
-from agents import aggregate, compare, plots
-from agents import evaluate as ev
-from agents.evaluate import EPISODES_FILE, EvaluationError, evaluate, read_records, resolve_arms
+from bimp.agents import aggregate, compare, plots
+from bimp.agents import evaluate as ev
+from bimp.agents.evaluate import EPISODES_FILE, EvaluationError, evaluate, read_records, resolve_arms
 
 ARGS = dict(scenarios=["emergency-brake"], episodes=2, seed=5, workers=1, traces=1, progress=False)
 CLI = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5", "--workers", "1"]

@@ -9,11 +9,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs
-from agents import rl
-from agents.policy import Policy
-from agents.registry import make_policy
-from envs.wrappers import features, n_features
+from bimp import envs
+from bimp.agents import rl
+from bimp.agents.policy import Policy
+from bimp.agents.registry import make_policy
+from bimp.envs.wrappers import features, n_features
 
 SHIPPED = sorted(
     (algo, scenario) for algo in rl.ALGOS for scenario in envs.ENV_IDS

@@ -2,9 +2,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs
-from agents.baselines import LaneKeeping
-from agents.rollout import episode_seeds, rollout, rollout_batch
+from bimp import envs
+from bimp.agents.baselines import LaneKeeping
+from bimp.agents.rollout import episode_seeds, rollout, rollout_batch
 
 
 class Recorder(LaneKeeping):

@@ -5,10 +5,10 @@ import optuna
 import pytest
 import yaml
 
-import envs  # noqa: F401  (registers the envs)
-from agents.baselines import LaneKeeping
-from agents.registry import POLICIES, TUNED_DIR, make_policy, policy_class
-from agents.tune import TuneError, check_space, objective_value, search_space, set_value, tune
+from bimp import envs  # noqa: F401  (registers the envs)
+from bimp.agents.baselines import LaneKeeping
+from bimp.agents.registry import POLICIES, TUNED_DIR, make_policy, policy_class
+from bimp.agents.tune import TuneError, check_space, objective_value, search_space, set_value, tune
 
 EB = ["emergency-brake"]
 SMALL = dict(scenarios=EB, episodes=2, progress=False)
@@ -67,10 +67,10 @@ def test_every_search_space_names_only_keys_its_config_accepts(policy):
 
 
 def test_a_shipped_tuned_config_is_the_default_and_a_study_does_not_drift_with_it(tmp_path, monkeypatch):
-    import agents.registry
+    import bimp.agents.registry
 
     study = _run(tmp_path, 2)
-    monkeypatch.setattr(agents.registry, "TUNED_DIR", tmp_path)
+    monkeypatch.setattr(bimp.agents.registry, "TUNED_DIR", tmp_path)
     (tmp_path / "best.yaml").rename(tmp_path / "lane-keep.yaml")
     env = gym.make("bimp/EmergencyBrake-v0")
     assert make_policy("lane-keep", env).config == pytest.approx(study.best_trial.params)
@@ -89,8 +89,8 @@ def test_make_policy_refuses_a_config_tuned_for_another_policy_and_passes_a_plai
 
 
 def test_an_override_of_a_nested_entry_keeps_the_rest_of_the_tuned_config():
-    from agents.registry import TUNED_DIR
-    from agents.tune import load_tuned
+    from bimp.agents.registry import TUNED_DIR
+    from bimp.agents.tune import load_tuned
 
     tuned = load_tuned("mppi", TUNED_DIR / "mppi.yaml")["problem"]
     policy = make_policy("mppi", gym.make("bimp/Overtaking-v0"), problem={"horizon": 30})

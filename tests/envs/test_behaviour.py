@@ -5,9 +5,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs  # noqa: F401  (registers the envs)
-from agents.baselines import LaneKeeping
-from agents.rollout import rollout
+from bimp import envs  # noqa: F401  (registers the envs)
+from bimp.agents.baselines import LaneKeeping
+from bimp.agents.rollout import rollout
 
 OT = "bimp/Overtaking-v0"
 RIGHT, LEFT = 2.0, -2.0  # lane centre offsets

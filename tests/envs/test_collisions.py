@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from highway_env import utils
 
-import envs  # noqa: F401  (registers the ids)
+from bimp import envs  # noqa: F401  (registers the ids)
 
 L, W = 5.0, 2.0
 FAR = {"ov1_gap": 300.0, "ov2_gap": 320.0}

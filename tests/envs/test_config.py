@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from gymnasium.wrappers import RecordVideo
 
-import envs
-from envs.scenarios import MIN_CENTRE_GAP, EmergencyBrakeEnv, OvertakingEnv
+from bimp import envs
+from bimp.envs.scenarios import MIN_CENTRE_GAP, EmergencyBrakeEnv, OvertakingEnv
 
 EB, OT = "bimp/EmergencyBrake-v0", "bimp/Overtaking-v0"
 

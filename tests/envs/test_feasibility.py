@@ -11,9 +11,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs  # noqa: F401  (registers the envs)
-from envs.scenarios import OvertakingEnv
-from envs.scene import Bounds
+from bimp import envs  # noqa: F401  (registers the envs)
+from bimp.envs.scenarios import OvertakingEnv
+from bimp.envs.scene import Bounds
 
 DRAWS = 1000
 B = Bounds()
@@ -78,7 +78,7 @@ class RampBrake:
     """Lane keeping until the OVs' deceleration shows, then braking at the planning bounds (rate-limited)."""
 
     def __init__(self, env):
-        from agents.baselines import LaneKeeping
+        from bimp.agents.baselines import LaneKeeping
 
         self.keep, self.env, self.braking, self.a = LaneKeeping(env), env, False, 0.0
 

@@ -1,11 +1,11 @@
-"""The exact footprint gap between two turned rectangles (``envs.road.rect_gap``, used by ``Scene.ov_gaps``)."""
+"""The exact footprint gap between two turned rectangles (``bimp.envs.road.rect_gap``, used by ``Scene.ov_gaps``)."""
 
 import numpy as np
 import pytest
 from highway_env import utils
 
-from envs.road import RoadGeometry, body_corners, rect_gap
-from envs.scene import Bounds, Scene
+from bimp.envs.road import RoadGeometry, body_corners, rect_gap
+from bimp.envs.scene import Bounds, Scene
 
 L, W = 5.0, 2.0
 

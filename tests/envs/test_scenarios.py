@@ -4,9 +4,9 @@ import pytest
 from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
 
-import envs
-from agents.baselines import LaneKeeping
-from envs.scenarios import MAX_GAP, MAX_SPEED, MIN_CENTRE_GAP, REFERENCE_COLOUR
+from bimp import envs
+from bimp.agents.baselines import LaneKeeping
+from bimp.envs.scenarios import MAX_GAP, MAX_SPEED, MIN_CENTRE_GAP, REFERENCE_COLOUR
 
 IDS = list(envs.ENV_IDS.values()) + list(envs.VARIANT_IDS.values())
 

@@ -6,8 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs
-from envs.wrappers import features, n_features, to_env_action, to_physical
+from bimp import envs
+from bimp.envs.wrappers import features, n_features, to_env_action, to_physical
 
 
 @pytest.fixture

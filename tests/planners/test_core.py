@@ -9,11 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs  # noqa: F401  (registers the envs)
-from planners import core
-from planners.enkts import EnKTSConfig, EnKTSPlanner, make_enkts
-from planners.model import model_params
-from planners.problem import make_problem
+from bimp import envs  # noqa: F401  (registers the envs)
+from bimp.planners import core
+from bimp.planners.enkts import EnKTSConfig, EnKTSPlanner, make_enkts
+from bimp.planners.model import model_params
+from bimp.planners.problem import make_problem
 
 ALL = jnp.ones(2, bool)
 

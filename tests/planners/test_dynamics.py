@@ -11,14 +11,21 @@ import numpy as np
 import pytest
 import torch
 
-from configs import load_config
-from planners import dynamics, dynamics_train
-from planners.dynamics import BicycleModel, LearnedDynamics, load_model, model_from_name, save_model
-from planners.dynamics_train import (
-    DEFAULT_OUT, DataConfig, TrainConfig, generate_data, open_loop_errors, parser, rollout_scenarios, simulate_vehicle,
+from bimp.configs import load_config
+from bimp.planners import dynamics, dynamics_train
+from bimp.planners.dynamics import BicycleModel, LearnedDynamics, load_model, model_from_name, save_model
+from bimp.planners.dynamics_train import (
+    DEFAULT_OUT,
+    DataConfig,
+    TrainConfig,
+    generate_data,
+    open_loop_errors,
+    parser,
+    rollout_scenarios,
+    simulate_vehicle,
     train,
 )
-from planners.enkts import EnKTSConfig
+from bimp.planners.enkts import EnKTSConfig
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +43,7 @@ def random_rows(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarra
 
 
 def test_constants_mirror_the_env():
-    from envs.scenarios import ACTUATOR_ACCEL, ACTUATOR_STEER, EgoVehicle
+    from bimp.envs.scenarios import ACTUATOR_ACCEL, ACTUATOR_STEER, EgoVehicle
 
     assert dynamics.VEHICLE_LENGTH == EgoVehicle.LENGTH and dynamics.MAX_SPEED == EgoVehicle.MAX_SPEED
     assert dynamics.ACTUATOR_ACCEL == ACTUATOR_ACCEL and dynamics.ACTUATOR_STEER == ACTUATOR_STEER

@@ -5,14 +5,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
-from agents import make_policy
-from agents.rollout import rollout
-from configs import ConfigError, load_config
-from planners import core
-from planners.dynamics import BicycleModel, load_model, save_model
-from planners.enkts import EnKTSConfig, EnKTSPlanner, make_enks, make_enkts
-from planners.model import BicycleParams
+from bimp import envs
+from bimp.agents import make_policy
+from bimp.agents.rollout import rollout
+from bimp.configs import ConfigError, load_config
+from bimp.planners import core
+from bimp.planners.dynamics import BicycleModel, load_model, save_model
+from bimp.planners.enkts import EnKTSConfig, EnKTSPlanner, make_enks, make_enkts
+from bimp.planners.model import BicycleParams
 
 
 def env_at(env_id="bimp/EmergencyBrake-v0", seed=0, **config):
@@ -155,7 +155,7 @@ def test_jax_forward_equals_the_torch_forward():
     import jax.numpy as jnp
     import torch
 
-    from planners.model import model_params, step
+    from bimp.planners.model import model_params, step
 
     model, params = load_model(), model_params("mlp")
     rng = np.random.default_rng(0)
@@ -174,7 +174,7 @@ def test_jax_forward_equals_the_torch_forward():
 @pytest.mark.parametrize("scenario", ["overtaking", "emergency-brake"])
 def test_enkts_is_safe_on_twenty_tuning_seeds(scenario):
     """The shipped tuning on 20 tuning seeds (the safety and results seeds are never used in tests)."""
-    from agents.rollout import rollout
+    from bimp.agents.rollout import rollout
 
     env = gym.make(envs.env_id(scenario))
     planner = make_enkts(env)

@@ -9,13 +9,20 @@ import numpy as np
 import pytest
 import torch
 
-import envs
-from agents.rollout import rollout
-from envs.road import RoadGeometry
-from envs.scene import Bounds, Scene
-from planners.dynamics import BicycleModel, load_model, save_model
-from planners.mppi import MPPIConfig, MPPIPlanner, make_mppi
-from planners.problem import ProblemConfig, load_problem, make_problem, measure, predict_obstacles, reference_profile
+from bimp import envs
+from bimp.agents.rollout import rollout
+from bimp.envs.road import RoadGeometry
+from bimp.envs.scene import Bounds, Scene
+from bimp.planners.dynamics import BicycleModel, load_model, save_model
+from bimp.planners.mppi import MPPIConfig, MPPIPlanner, make_mppi
+from bimp.planners.problem import (
+    ProblemConfig,
+    load_problem,
+    make_problem,
+    measure,
+    predict_obstacles,
+    reference_profile,
+)
 
 
 def straight_scene() -> Scene:
@@ -119,7 +126,7 @@ def test_with_increments_every_step_keeps_the_rate_bounds():
 def test_actions_are_finite_in_the_space_and_seeded(scenario):
     env = gym.make(envs.env_id(scenario))
     planner = make_mppi(env)
-    from planners.enkts import EnKTSConfig
+    from bimp.planners.enkts import EnKTSConfig
 
     assert planner.n_particles == EnKTSConfig().n_particles and planner.horizon == load_problem().horizon
     runs = []

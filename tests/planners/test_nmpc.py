@@ -12,18 +12,38 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs
-from configs import ConfigError
-from envs.road import RoadGeometry
-from envs.scene import Bounds, Scene
-from planners.dynamics import BicycleModel, load_model, save_model
-from planners.nmpc import (
-    NMPCConfig, NMPCPlanner, bicycle_function, curvature_at, frenet, heading_at, keep_out_semi_axes, make_nmpc,
-    make_nmpc_t, mlp_function, road_params, robust_cost,
+from bimp import envs
+from bimp.configs import ConfigError
+from bimp.envs.road import RoadGeometry
+from bimp.envs.scene import Bounds, Scene
+from bimp.planners.dynamics import BicycleModel, load_model, save_model
+from bimp.planners.nmpc import (
+    NMPCConfig,
+    NMPCPlanner,
+    bicycle_function,
+    curvature_at,
+    frenet,
+    heading_at,
+    keep_out_semi_axes,
+    make_nmpc,
+    make_nmpc_t,
+    mlp_function,
+    road_params,
+    robust_cost,
 )
-from planners.problem import (N_TRACK, BarrierShape, ProblemConfig, edge_distance, edge_distance_local, frenet as
-                              problem_frenet, load_problem, make_problem, measure, predict_obstacles,
-                              reference_profile)
+from bimp.planners.problem import (
+    N_TRACK,
+    BarrierShape,
+    ProblemConfig,
+    edge_distance,
+    edge_distance_local,
+    load_problem,
+    make_problem,
+    measure,
+    predict_obstacles,
+    reference_profile,
+)
+from bimp.planners.problem import frenet as problem_frenet
 
 DT = 0.1
 
@@ -131,7 +151,7 @@ def random_states_near_the_road(scene: Scene, rng, n: int) -> np.ndarray:
 
 def test_road_edge_rows_are_the_problem_edge_distance():
     """NMPC's four smooth corner rows, evaluated in its compiled NLP (CasADi Frenet frame included), give
-    ``planners.problem.edge_distance_local`` (the planners' edge distance) and are bounded at the barrier's edge
+    ``bimp.planners.problem.edge_distance_local`` (the planners' edge distance) and are bounded at the barrier's edge
     margin. That local distance is within 2 cm of the exact corners (``edge_distance``) on the scenarios' sharpest
     curve: it takes the road as straight over the car, and the road bends by (L/2)^2 / 2R = 1.7 cm over half a
     5 m car at R = 180 m (so a 1 mm bound does not hold; the margin is 0.3 m). The env's edge distance is the
@@ -352,7 +372,7 @@ def test_config_validation_and_unknown_overrides():
 
 def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
     # No iterations allowed and an infeasible first guess: every solve stops at the cap, infeasible -> fallback.
-    from agents.evaluate import evaluate, read_records
+    from bimp.agents.evaluate import evaluate, read_records
 
     evaluate(["emergency-brake"], ["nmpc"], 1, 3, out=tmp_path, traces=1, progress=False,
              overrides={"nmpc": {"max_iter": 0, "cold_max_iter": 0, "horizon": 3}})

@@ -7,9 +7,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs  # noqa: F401  (registers the envs)
-from planners.problem import (ProblemConfig, input_constraints, load_problem, make_problem, measure,
-                              n_measurements, predict_obstacles, rate_constraints, reference_profile)
+from bimp import envs  # noqa: F401  (registers the envs)
+from bimp.planners.problem import (
+    ProblemConfig,
+    input_constraints,
+    load_problem,
+    make_problem,
+    measure,
+    n_measurements,
+    predict_obstacles,
+    rate_constraints,
+    reference_profile,
+)
 
 
 @pytest.fixture
@@ -133,7 +142,7 @@ def test_the_reference_lane_changes_at_the_lane_change_rate(scene, xp):
 
 @pytest.mark.parametrize("bad", [0.0, -1.0])
 def test_a_lane_change_rate_must_be_positive(bad):
-    from configs import ConfigError
+    from bimp.configs import ConfigError
 
     with pytest.raises(ConfigError, match="lane_change_rate"):
         ProblemConfig(lane_change_rate=bad)
@@ -144,7 +153,7 @@ def test_a_lane_change_rate_must_be_positive(bad):
 def test_every_policy_refuses_observations_that_are_not_real_numbers(name):
     """A complex observation was planned on without its imaginary part; bools, numeric strings and objects were
     converted to floats."""
-    from agents import make_policy
+    from bimp.agents import make_policy
 
     env = gym.make("bimp/EmergencyBrake-v0")
     obs, _ = env.reset(seed=0)
@@ -159,8 +168,8 @@ def test_every_policy_refuses_observations_that_are_not_real_numbers(name):
 def test_default_resolved_configs_are_unchanged():
     """Committed result records are keyed by the hash of each policy's resolved config: building a policy with no
     config and no overrides must give the same one (the hashes of commit e3c9e7b)."""
-    from agents import make_policy
-    from agents.provenance import config_hash, resolved_config
+    from bimp.agents import make_policy
+    from bimp.agents.provenance import config_hash, resolved_config
 
     env = gym.make("bimp/Overtaking-v0")
     hashes = {name: config_hash(name, resolved_config(make_policy(name, env)))
