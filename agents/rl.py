@@ -33,6 +33,7 @@ overtaking model learned to stop behind OV1. One of the three shipped overtaking
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import pickle
 import time
@@ -125,7 +126,7 @@ class RLConfig:
 
 def model_name(algo: str, scenario: str) -> str:
     """File name of a model: ``{algo}_{scenario}.zip`` with the scenario's short name."""
-    short = {v: k for k, v in envs.ENV_IDS.items()}.get(scenario, scenario)
+    short = envs.scenario_name(scenario) or scenario
     return f"{algo}_{short}.zip"
 
 
@@ -187,13 +188,22 @@ def read_model_file(path: str | Path, how: str = _HOW) -> tuple[dict[str, Any], 
     "policy.optimizer": ...}`` (one per ``.pth`` entry) and ``variables`` ``pytorch_variables.pth`` (SAC's
     ``log_ent_coef``; ``{}`` when absent), both read by ``torch.load(weights_only=True)``.
     ``ValueError`` naming the file when it is not such a zip, and ending in ``how`` (what to do instead)."""
-    from stable_baselines3.common.save_util import load_from_zip_file
+    import torch
 
     try:
         with zipfile.ZipFile(path) as archive:
             data = json.loads(archive.read("data"))
-        # SB3's reader with load_data=False touches only the .pth entries, each read with weights_only=True.
-        _, state_dicts, variables = load_from_zip_file(path, load_data=False, device="cpu")
+            state_dicts, variables = {}, {}
+            for name in archive.namelist():
+                if not name.endswith(".pth"):
+                    continue
+                # Read here, not by SB3's load_from_zip_file: SB3 up to 2.7 passes weights_only=False there, which
+                # unpickles. SB3 names each entry after its attribute; pytorch_variables holds SAC's log_ent_coef.
+                loaded = torch.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
+                if name == "pytorch_variables.pth":
+                    variables = loaded
+                else:
+                    state_dicts[name.removesuffix(".pth")] = loaded
     except FileNotFoundError:
         raise
     except pickle.UnpicklingError:
@@ -529,41 +539,6 @@ def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
     plt.close(fig)
 
 
-def plot_seed_curves(run_dirs: list[Path], path: Path, title: str = "", bin_steps: int = 5_000) -> None:
-    """Learning curves over training seeds: per run, the mean episode return in bins of ``bin_steps``
-    timesteps (from its monitor logs); drawn as the mean over runs with the band from the lowest to the
-    highest run, and each run thin."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from stable_baselines3.common.monitor import load_results
-
-    curves = []
-    for run in run_dirs:
-        df = load_results(str(run))
-        if df.empty:
-            raise ValueError(f"{run} has no finished episode to draw")
-        steps, returns = np.cumsum(df["l"].to_numpy()), df["r"].to_numpy()
-        bins = steps // bin_steps
-        curves.append(np.array([returns[bins == b].mean() if np.any(bins == b) else np.nan
-                                for b in range(int(bins.max()) + 1)]))
-    n = min(len(c) for c in curves)
-    y = np.stack([c[:n] for c in curves])  # (runs, bins)
-    x = (np.arange(n) + 0.5) * bin_steps
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for run, c in zip(run_dirs, y):
-        ax.plot(x, c, lw=0.8, alpha=0.5, label=Path(run).name)
-    ax.plot(x, np.nanmean(y, axis=0), color="k", lw=2, label=f"mean of {len(y)} seeds")
-    ax.fill_between(x, np.nanmin(y, axis=0), np.nanmax(y, axis=0), color="k", alpha=0.12, label="min-max")
-    ax.set(xlabel="timesteps", ylabel=f"episode return (mean per {bin_steps} steps)", title=title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 # --- inference -----------------------------------------------------------------------------------------
 class SB3Policy:
     """A trained SB3 model as a :class:`Policy`: the deterministic prediction on :func:`features` of the raw
@@ -584,6 +559,7 @@ class SB3Policy:
         if not isinstance(trust_model, bool):
             raise ValueError(f"trust_model must be true or false, got {trust_model!r}")
         self.env, self.algo, self.model_path = env, algo, path
+        self.step_info: dict = {}  # a deterministic network: nothing to say about a step
         # trust_model enters the config only when set: the default config (and the records' hashes) are as
         # they were before it existed.
         self.config = {"algo": algo, "model_path": str(path), "model_sha256": _sha256(path)}
@@ -611,7 +587,7 @@ def _sha256(path: Path) -> str:
 def _scenario_of(env: gym.Env) -> str | None:
     """The scenario of an env made by ``gym.make(envs.env_id(...))``; None for any other env."""
     spec = env.spec or env.unwrapped.spec
-    return {v: k for k, v in envs.ENV_IDS.items()}.get(spec.id) if spec is not None else None
+    return envs.scenario_name(spec.id) if spec is not None else None
 
 
 def shipped_name(algo: str, scenario: str, training_seed: int) -> str:
@@ -680,7 +656,7 @@ def compare_with_zero(env: gym.Env, policy, seeds) -> dict[str, dict[str, float]
 # --- command line --------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp train-rl", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenario", required=True, help=f"one of {sorted(envs.ENV_IDS)}")
+    parser.add_argument("--scenario", required=True, help=f"one of {sorted(envs.SCENARIOS)}")
     parser.add_argument("--algo", choices=ALGOS, default="ppo")
     parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: RLConfig's)")
     parser.add_argument("--seed", type=int, default=None)

@@ -132,6 +132,31 @@ def test_a_crafted_weights_entry_is_refused_naming_the_file(overtaking, tmp_path
     assert code == 2 and not marker.exists() and not (tmp_path / "eval" / "episodes.jsonl").exists()
 
 
+def test_every_torch_load_on_the_safe_path_is_weights_only(overtaking, monkeypatch):
+    """Whatever SB3 is installed (up to 2.7 its zip reader passed ``weights_only=False``): the safe path calls
+    ``torch.load`` itself, and only with ``weights_only=True``."""
+    import torch
+
+    real, calls = torch.load, []
+
+    def guarded(*args, **kwargs):
+        calls.append(kwargs.get("weights_only"))
+        assert kwargs.get("weights_only") is True, "torch.load without weights_only=True on the safe path"
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(torch, "load", guarded)
+    from stable_baselines3.common import save_util
+
+    def sb3_reader(*args, **kwargs):  # its weights_only depends on the SB3 version installed: never on this path
+        raise AssertionError("the safe path called SB3's load_from_zip_file")
+
+    monkeypatch.setattr(save_util, "load_from_zip_file", sb3_reader)
+    for algo in ("ppo", "sac"):
+        rl.read_model_file(rl._shipped_model(overtaking, algo, None))
+        make_policy(algo, overtaking)
+    assert calls and all(calls)
+
+
 def test_files_that_do_not_fit_are_refused_naming_the_file_and_why(overtaking, tmp_path):
     shipped = rl._shipped_model(overtaking, "ppo", None)
     not_zip = tmp_path / "model.zip"
