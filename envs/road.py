@@ -111,7 +111,10 @@ class RoadGeometry:
 # --- the road frame as functions of the geometry's numbers -----------------------------------------------------
 # One definition for the env (numpy, through RoadGeometry) and the planners (jax.numpy, with the geometry as
 # traced parameters, so a redrawn road does not recompile): the array module follows the inputs.
-def _xp(*arrays):
+def array_module(*arrays):
+    """``jax.numpy`` if any of ``arrays`` is a JAX array (a tracer included), else ``numpy``: what the shared
+    numpy-or-JAX functions (here, :mod:`bimp.envs.scene`, :mod:`bimp.planners.problem`) compute with. JAX is
+    imported only when a JAX array is passed, so the env never loads it."""
     for a in arrays:
         if type(a).__module__.startswith("jax"):
             import jax.numpy as jnp
@@ -122,14 +125,14 @@ def _xp(*arrays):
 
 def heading_at(s, straight_in, radius, arc_angle):
     """Centreline heading [rad] at arc length ``s (...)`` of the road straight_in + arc + straight."""
-    xp = _xp(s, straight_in, radius, arc_angle)
+    xp = array_module(s, straight_in, radius, arc_angle)
     turn = xp.where(arc_angle >= 0, 1.0, -1.0)
     return turn * xp.clip((s - straight_in) / radius, 0.0, xp.abs(arc_angle))
 
 
 def curvature_at(s, straight_in, radius, arc_angle):
     """Signed centreline curvature [1/m] at ``s (...)``, > 0 turning right, 0 on the straights."""
-    xp = _xp(s, straight_in, radius, arc_angle)
+    xp = array_module(s, straight_in, radius, arc_angle)
     arc_length = radius * xp.abs(arc_angle)
     on_arc = (s >= straight_in) & (s <= straight_in + arc_length) & (arc_length > 0)
     return xp.where(on_arc, xp.where(arc_angle >= 0, 1.0, -1.0) / radius, 0.0)
@@ -141,7 +144,7 @@ def to_frenet(xy, straight_in, radius, arc_angle):
     Before the arc: the first straight (extended backwards); on the arc: angle about its centre; past the arc's end
     (projected on the last straight's direction): the last straight. Straight road (``arc_angle = 0``): ``(x, y)``.
     """
-    xp = _xp(xy, straight_in, radius, arc_angle)
+    xp = array_module(xy, straight_in, radius, arc_angle)
     x, y = xy[..., 0], xy[..., 1]
     turn = xp.where(arc_angle >= 0, 1.0, -1.0)
     angle = xp.abs(arc_angle)
@@ -164,7 +167,7 @@ def corner_edge_distance(x, length, width, straight_in, radius, arc_angle, half_
     ``[x, y, heading, ..]`` of ``length`` x ``width`` vehicles: > 0 on the road. Exact for the rectangle; numpy or
     JAX (the env's ``info`` and the planning problem both read it)."""
     _, lat = to_frenet(body_corners(x[..., :2], x[..., 2], length, width), straight_in, radius, arc_angle)
-    return (half_width - _xp(lat).abs(lat)).min(axis=-1)
+    return (half_width - array_module(lat).abs(lat)).min(axis=-1)
 
 
 def rect_gap(xy1, heading1, xy2, heading2, length: float, width: float) -> np.ndarray:
@@ -202,7 +205,7 @@ def _vertex_edge_distance(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def body_corners(xy: np.ndarray, heading: np.ndarray, length: float, width: float) -> np.ndarray:
     """World positions ``(..., 4, 2)`` of the body corners of vehicles at ``xy (..., 2)``, ``heading (...)``."""
-    xp = _xp(xy, heading, length)
+    xp = array_module(xy, heading, length)
     c, s = xp.cos(heading)[..., None], xp.sin(heading)[..., None]
     fwd = np.array([1, 1, -1, -1]) * 0.5 * length
     side = np.array([1, -1, 1, -1]) * 0.5 * width

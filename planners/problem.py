@@ -36,7 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from bimp.configs import ConfigError, check_fields
-from bimp.envs.road import _xp, corner_edge_distance, curvature_at, heading_at, to_frenet
+from bimp.envs.road import array_module, corner_edge_distance, curvature_at, heading_at, to_frenet
 from bimp.envs.scene import Scene
 
 N_TRACK = 5  # r (3) + s (2)
@@ -265,7 +265,7 @@ def edge_distance_local(road: Road, limits: Limits, lat, dpsi):
     What the planners measure (NMPC too, as four smooth rows): a quarter of the transcendental work of the exact
     corners, and within 2 cm of them on the scenarios' curves (the road bends by (L/2)^2 / 2R = 1.7 cm over half a
     car at R = 180 m; the barrier's edge margin is 0.3 m; a test pins it)."""
-    xp = _xp(lat, dpsi)
+    xp = array_module(lat, dpsi)
     extent = xp.abs(lat) + 0.5 * limits.length * xp.abs(xp.sin(dpsi)) + 0.5 * limits.width * xp.cos(dpsi)
     return road.half_width - extent
 
@@ -274,7 +274,7 @@ def input_constraints(limits: Limits, u, keep=1.0):
     """Input bounds (eq. 4) as values <= 0 when satisfied, ``(N, 2)`` for ``u (N, 2)``: ``|a - centre| - half-range``
     (= the larger of ``a_min - a`` and ``a - a_max``) and ``|delta| - delta_max``, the bounds scaled by ``keep``
     about their centre. The env reports the same numbers (``info["constraints"]``)."""
-    xp = _xp(u, limits.accel)
+    xp = array_module(u, limits.accel)
     lo, hi = limits.accel[0], limits.accel[1]
     centre = xp.stack([keep * (lo + hi) / 2, xp.zeros_like(lo)])
     half = xp.stack([keep * (hi - lo) / 2, keep * xp.ones_like(lo) * limits.steer])
@@ -283,7 +283,7 @@ def input_constraints(limits: Limits, u, keep=1.0):
 
 def rate_constraints(limits: Limits, du, keep=1.0):
     """Rate bounds (eq. 5) as values <= 0 when satisfied, ``(N, 2)`` for increments ``du (N, 2)`` per step."""
-    xp = _xp(du, limits.accel_rate)
+    xp = array_module(du, limits.accel_rate)
     return xp.abs(du) - keep * xp.stack([limits.accel_rate, limits.steer_rate])
 
 
@@ -293,7 +293,7 @@ def predict_obstacles(problem: Problem, ovs, horizon: int):
     ovs: observation rows ``(K, 6)`` ``[present, x, y, heading, speed, accel]``. Returns ``s, l, v, a`` of shapes
     ``(horizon + 1, K)`` (index 0 = now) and ``present`` (bool ``(K,)``).
     """
-    xp = _xp(ovs, problem.limits.dt, problem.road.radius)
+    xp = array_module(ovs, problem.limits.dt, problem.road.radius)
     s0, l0 = frenet(problem.road, ovs[:, 1:3])
     v0, a = ovs[:, 4], ovs[:, 5]
     t = xp.arange(horizon + 1)[:, None] * problem.limits.dt
@@ -310,7 +310,7 @@ def reference_profile(problem: Problem, ref, ego, horizon: int):
     ``ego (4,)`` toward ``l_ref`` at ``problem.lane_rate``. A lane change asked as a step makes every state of the
     horizon pull for the far lane at once: the plan swerves and overshoots to the far edge (EnKTS left the road so on
     6 of development seeds 200-499 of the overtaking scenario; at 1.5 m/s, on 3)."""
-    xp = _xp(ref, ego, problem.limits.dt)
+    xp = array_module(ref, ego, problem.limits.dt)
     t = xp.arange(horizon + 1) * problem.limits.dt
     v = xp.maximum(ref[0] + ref[1] * t, 0.0)
     _, lat = frenet(problem.road, ego[:2])
@@ -325,7 +325,7 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     ``ref_lane``, ``v_ref``, ``a_ref`` the reference at the state's time; ``obstacles``: ``(s, l, v, a)`` each
     ``(K,)`` at that time and ``present (K,)`` (one row of :func:`predict_obstacles`). Observed value: zeros.
     """
-    xp = _xp(x, u, du, u0, problem.limits.accel, problem.road.radius)
+    xp = array_module(x, u, du, u0, problem.limits.accel, problem.road.radius)
     road, lim, bar = problem.road, problem.limits, problem.barrier
     s, lat = frenet(road, x[:, :2])
     dpsi = x[:, 2] - heading_at(s, road.straight_in, road.radius, road.arc_angle)
