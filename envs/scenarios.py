@@ -37,7 +37,8 @@ physical input ``[a, delta]``, per OV ``[present, x, y, heading, speed, accelera
 ``info`` per step: ``collision``, ``offroad`` (any body corner past a road edge), ``ov_distance`` (signed
 footprint gap to each OV, see above), ``edge_distance`` (least corner distance to the edge), ``ttc`` (time to
 collision with the nearest closing OV in the EV's lane), ``reference``, ``lateral_error``, ``speed_error``,
-``input`` (the physical input applied) and ``constraints`` (paper eq. 2-5 as values that are <= 0 when satisfied).
+``input`` (the physical input applied) and ``constraints`` (paper eq. 2-5 as values that are <= 0 when satisfied; the
+input and rate ones are :func:`bimp.envs.scene.bound_constraints`, the very function the planners' barriers measure).
 
 Reward (for RL): tracking of the reference speed measured *along the road* and of the reference lane,
 in [0, 1] per step, minus small penalties for inputs and rate beyond the planning bounds; -20 and
@@ -65,10 +66,21 @@ from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from bimp.envs.road import RoadGeometry
-from bimp.envs.scene import Bounds, Scene
+from bimp.envs.scene import (
+    ACTUATOR_ACCEL,
+    ACTUATOR_STEER,
+    BOUND_CONSTRAINTS,
+    MAX_SPEED,
+    OV_FIELDS,
+    POLICY_FREQUENCY,
+    VEHICLE_LENGTH,
+    VEHICLE_WIDTH,
+    Bounds,
+    Scene,
+    bound_constraints,
+    join_obs,
+)
 
-ACTUATOR_ACCEL = (-10.0, 10.0)
-ACTUATOR_STEER = (-0.3, 0.3)
 N_OBSTACLES = 2
 CRASH_PENALTY = 20.0
 OBS_BOUND = 1e4
@@ -77,8 +89,7 @@ ROAD_HALF_WIDTH = LANES * LANE_WIDTH / 2.0
 # Least centre gap [m] between two vehicles that start in the same lane: a vehicle length, so the footprints do
 # not overlap, plus the planning bound d_min (1 m), so the initial scene already satisfies the distance constraint
 # (eq. 5) that the planners enforce; a smaller gap starts the episode in violation, or in a crash at 0.
-MIN_CENTRE_GAP = Vehicle.LENGTH + Bounds().d_min
-MAX_SPEED = Vehicle.MAX_SPEED  # highway-env's Vehicle.clip_actions pulls any faster vehicle back to this speed
+MIN_CENTRE_GAP = VEHICLE_LENGTH + Bounds().d_min
 # Largest centre gap [m] an OV may start at: 25 s away at the top speed, beyond any episode (15 s) and horizon
 # (2 s), and small enough that every position stays inside the observation space (|x|, |y| <= OBS_BOUND): an OV
 # can travel at most MAX_SPEED * 15 s = 600 m past it in an episode.
@@ -307,14 +318,11 @@ class BimpObservation(ObservationType):
         return spaces.Box(-OBS_BOUND, OBS_BOUND, shape=(self.env.scene.obs_dim,), dtype=np.float32)
 
     def observe(self) -> np.ndarray:
-        env, ev = self.env, self.env.vehicle
-        ovs = np.zeros((N_OBSTACLES, 6))
-        for k, ov in enumerate(env.obstacles[:N_OBSTACLES]):
-            ovs[k] = [1.0, *ov.position, ov.heading, ov.speed, ov.acceleration]
-        ref = env.reference()
-        return np.concatenate(
-            [[*ev.position, ev.heading, ev.speed], env.last_input, ovs.ravel(), ref]
-        ).astype(np.float32)
+        env = self.env
+        ovs = np.zeros((env.scene.n_obstacles, len(OV_FIELDS)))  # an absent OV is a row of zeros: present = 0
+        rows = env._ov_rows()[:len(ovs)]
+        ovs[:len(rows)] = rows
+        return join_obs(env._ev_state(), env.last_input, ovs, env.reference()).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -374,8 +382,9 @@ class BimpEnv(AbstractEnv):
     def default_config(cls) -> dict:
         config = super().default_config()
         config.update(
-            simulation_frequency=10, policy_frequency=10, screen_width=800, screen_height=240,
-            centering_position=[0.35, 0.5], scaling=4.0, **{k: p.default for k, p in cls.PARAMS.items()},
+            simulation_frequency=POLICY_FREQUENCY, policy_frequency=POLICY_FREQUENCY, screen_width=800,
+            screen_height=240, centering_position=[0.35, 0.5], scaling=4.0,
+            **{k: p.default for k, p in cls.PARAMS.items()},
             **{k: choices[0] for k, choices in cls.OPTIONS.items()},
         )
         return config
@@ -458,7 +467,7 @@ class BimpEnv(AbstractEnv):
 
     def _make_scene(self, road: RoadGeometry) -> Scene:
         return Scene(road=road, bounds=Bounds(), dt=1.0 / self.config["policy_frequency"],
-                     vehicle_length=Vehicle.LENGTH, vehicle_width=Vehicle.WIDTH,
+                     vehicle_length=VEHICLE_LENGTH, vehicle_width=VEHICLE_WIDTH,
                      actuator_accel=ACTUATOR_ACCEL, actuator_steer=ACTUATOR_STEER, n_obstacles=N_OBSTACLES)
 
     # --- episode -----------------------------------------------------------------------------------
@@ -548,7 +557,9 @@ class BimpEnv(AbstractEnv):
         self.enable_auto_render = False
 
     def _ov_rows(self) -> np.ndarray:
-        return np.array([[1.0, *ov.position, ov.heading, ov.speed, ov.acceleration] for ov in self.obstacles])
+        """Every OV as an observation row ``(K, 6)`` (:data:`bimp.envs.scene.OV_FIELDS`)."""
+        rows = [[1.0, *ov.position, ov.heading, ov.speed, ov.acceleration] for ov in self.obstacles]
+        return np.array(rows).reshape(-1, len(OV_FIELDS))
 
     def _ev_state(self) -> np.ndarray:
         ev = self.vehicle
@@ -581,10 +592,9 @@ class BimpEnv(AbstractEnv):
         closing = ev.speed - ovs[:, 4]
         ttc = np.where(ahead_same_lane & (closing > 1e-6), np.maximum(gaps, 0.0) / np.maximum(closing, 1e-6), np.inf)
         ref = self.reference()
-        b, u, du = scene.bounds, self.last_input, self.last_input - self.prev_input
+        b, u = scene.bounds, self.last_input
         constraints = {
-            "accel_min": b.accel[0] - u[0], "accel_max": u[0] - b.accel[1], "steer": abs(u[1]) - b.steer,
-            "accel_rate": abs(du[0]) - b.accel_rate, "steer_rate": abs(du[1]) - b.steer_rate,
+            **dict(zip(BOUND_CONSTRAINTS, bound_constraints(b, u, u - self.prev_input).tolist())),
             "ov_distance": (b.d_min - gaps).tolist(), "road_edge": b.edge_margin - edge,
         }
         heading_err = ev.heading - float(scene.road.heading_at(s_e))

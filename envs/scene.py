@@ -1,8 +1,16 @@
 """What a planner may know beside the observation: the static scene description an env publishes.
 
-``env.unwrapped.scene`` is a frozen :class:`Scene`, rebuilt at every ``reset`` (the road is randomized).
-It also owns the observation layout and the planning-constraint functions (paper eq. 2-5) so that the
-env's ``info`` and the planners' barriers compute the very same quantities.
+``env.unwrapped.scene`` is a frozen :class:`Scene`, rebuilt at every ``reset`` (the road is randomized). This module
+is also the one definition of what the env and the planners must read alike:
+
+- the observation layout (:data:`EGO_FIELDS` ...), built by :func:`join_obs` and read only by :func:`split_obs`
+  (numpy or JAX: the jitted planner core slices by the same static indices);
+- the input and rate constraint values (paper eq. 4-5, :func:`bound_constraints`), which the env's
+  ``info["constraints"]`` reports and the planning problem's barriers measure;
+- the scenarios' vehicle and actuators (:data:`VEHICLE_LENGTH` ...), which the env simulates and the vehicle models
+  of :mod:`bimp.planners.dynamics` mirror without loading highway-env.
+
+Nothing here imports highway-env or JAX.
 """
 
 from __future__ import annotations
@@ -11,11 +19,66 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bimp.envs.road import RoadGeometry, corner_edge_distance, rect_gap
+from bimp.envs.road import RoadGeometry, array_module, corner_edge_distance, rect_gap
 
+# --- the scenarios' vehicle and actuators -----------------------------------------------------------------------
+# highway-env's Vehicle.LENGTH, WIDTH and MAX_SPEED (tests/envs/test_scenarios.py pins them): here so that the vehicle
+# models, which must not load highway-env and pygame, read the very numbers the env simulates.
+POLICY_FREQUENCY = 10  # Hz: simulation and policy steps alike
+DT = 1.0 / POLICY_FREQUENCY  # s, one policy step
+VEHICLE_LENGTH, VEHICLE_WIDTH = 5.0, 2.0  # m
+MAX_SPEED = 40.0  # m/s: highway-env's Vehicle.clip_actions pulls any faster vehicle back to it
+ACTUATOR_ACCEL = (-10.0, 10.0)  # m/s^2 at the normalized actions -1 and +1
+ACTUATOR_STEER = (-0.3, 0.3)  # rad
+
+# --- the observation layout -------------------------------------------------------------------------------------
 EGO_FIELDS = ("x", "y", "heading", "speed")
+INPUT_FIELDS = ("acceleration", "steering")  # the physical input applied last
 OV_FIELDS = ("present", "x", "y", "heading", "speed", "acceleration")
 REF_FIELDS = ("speed", "acceleration", "lane_offset")
+
+
+def split_obs(obs, n_obstacles: int):
+    """The one reading of the observation layout: ``obs (..., obs_dim)`` -> ego ``[x, y, heading, speed] (..., 4)``,
+    previous input ``[a, delta] (..., 2)``, OVs ``(..., n_obstacles, 6)`` with columns :data:`OV_FIELDS`, reference
+    ``[v_ref, a_ref, l_ref] (..., 3)``. Static slices of numpy or JAX arrays alike (inside ``jit`` too), no copy."""
+    i = len(EGO_FIELDS)
+    k = i + len(INPUT_FIELDS)
+    r = k + n_obstacles * len(OV_FIELDS)
+    ovs = obs[..., k:r].reshape(*obs.shape[:-1], n_obstacles, len(OV_FIELDS))
+    return obs[..., :i], obs[..., i:k], ovs, obs[..., r:]
+
+
+def join_obs(ego, u_prev, ovs, ref) -> np.ndarray:
+    """The inverse of :func:`split_obs` for one observation: ``(obs_dim,)`` from ego ``(4,)``, previous input
+    ``(2,)``, OV rows ``(n_obstacles, 6)`` and reference ``(3,)``."""
+    return np.concatenate([ego, u_prev, np.ravel(ovs), ref])
+
+
+# --- the input and rate constraints (eq. 4-5) -------------------------------------------------------------------
+BOUND_CONSTRAINTS = ("accel_min", "accel_max", "steer", "accel_rate", "steer_rate")
+
+
+def bound_constraints(bounds, u, du, keep=1.0):
+    """The input and rate bounds (paper eq. 4-5) as values that are <= 0 when satisfied, ``(..., 5)`` in the order of
+    :data:`BOUND_CONSTRAINTS`: ``a_min - a``, ``a - a_max``, ``|delta| - delta_max``, ``|da| - da_max``,
+    ``|ddelta| - ddelta_max``, for inputs ``u (..., 2)`` ``[a m/s^2, delta rad]`` and their increments per policy
+    step ``du (..., 2)``.
+
+    The one definition: the env's ``info["constraints"]`` reports it, the planning problem's barriers
+    (:func:`bimp.planners.problem.measure`) measure it. ``bounds``: a :class:`Bounds` or the problem's ``Limits``
+    (``accel (2,)``, ``steer``, ``accel_rate``, ``steer_rate``; numbers or traced). ``keep``: the bounds scaled by it
+    about their centre (the planners aim a little inside). numpy or JAX, the module following the inputs.
+    """
+    xp = array_module(u, du, bounds.accel)
+    lo, hi = bounds.accel[0], bounds.accel[1]
+    # Both acceleration bounds from the offset to the centre of the range: their larger value is then exactly
+    # (bit for bit) |a - centre| - half, the one barrier the planners put on the pair.
+    offset = u[..., 0] - keep * (lo + hi) / 2
+    half = keep * (hi - lo) / 2
+    return xp.stack([-offset - half, offset - half, xp.abs(u[..., 1]) - keep * bounds.steer,
+                     xp.abs(du[..., 0]) - keep * bounds.accel_rate, xp.abs(du[..., 1]) - keep * bounds.steer_rate],
+                    axis=-1)
 
 
 def real_array(values, what: str = "array") -> np.ndarray:
@@ -35,6 +98,7 @@ class Bounds:
     accel: (a_min, a_max) [m/s^2]; steer: |delta| <= steer [rad]; accel_rate / steer_rate: bound on the
     change of the commanded input per policy step [m/s^2 per step, rad per step]; d_min: least gap between
     the EV's and an OV's footprints [m]; edge_margin: least distance of every body corner to the road edge [m].
+    The input and rate constraint values: :func:`bound_constraints`.
     """
 
     accel: tuple[float, float] = (-7.0, 3.0)
@@ -43,18 +107,6 @@ class Bounds:
     steer_rate: float = 0.005
     d_min: float = 1.0
     edge_margin: float = 0.0
-
-    def input_violation(self, u: np.ndarray) -> np.ndarray:
-        """Per-row max of the input-bound constraint values ``phi(u) (N,)`` for ``u (N, 2)``; <= 0 is feasible."""
-        u = np.atleast_2d(u)
-        return np.max(
-            np.stack([self.accel[0] - u[:, 0], u[:, 0] - self.accel[1], np.abs(u[:, 1]) - self.steer], -1), -1
-        )
-
-    def rate_violation(self, du: np.ndarray) -> np.ndarray:
-        """Per-row max of the rate constraint values ``(N,)`` for ``du (N, 2)``; <= 0 is feasible."""
-        du = np.atleast_2d(du)
-        return np.maximum(np.abs(du[:, 0]) - self.accel_rate, np.abs(du[:, 1]) - self.steer_rate)
 
 
 @dataclass(frozen=True)
@@ -77,14 +129,12 @@ class Scene:
     # --- observation layout --------------------------------------------------------------------------
     @property
     def obs_dim(self) -> int:
-        return len(EGO_FIELDS) + 2 + self.n_obstacles * len(OV_FIELDS) + len(REF_FIELDS)
+        return len(EGO_FIELDS) + len(INPUT_FIELDS) + self.n_obstacles * len(OV_FIELDS) + len(REF_FIELDS)
 
     def split_obs(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``obs (obs_dim,)`` -> ego ``[x, y, heading, speed] (4,)``, previous input ``[a, delta] (2,)``,
-        OVs ``(n_obstacles, 6)`` with columns :data:`OV_FIELDS`, reference ``[v_ref, a_ref, l_ref] (3,)``."""
-        obs = np.asarray(obs, dtype=float)
-        k = 6 + self.n_obstacles * len(OV_FIELDS)
-        return obs[:4], obs[4:6], obs[6:k].reshape(self.n_obstacles, len(OV_FIELDS)), obs[k:]
+        """:func:`split_obs` of ``obs (obs_dim,)`` as float64: ego ``(4,)``, previous input ``(2,)``, OVs
+        ``(n_obstacles, 6)``, reference ``(3,)``."""
+        return split_obs(np.asarray(obs, dtype=float), self.n_obstacles)
 
     def check_obs(self, obs: np.ndarray) -> np.ndarray:
         """Validate an observation for a policy: real numbers (:func:`real_array`), right shape, finite. Returns it

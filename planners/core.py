@@ -4,9 +4,10 @@
 
 One compiled function per :class:`Settings` (the static shapes and switches): ``jax.jit`` with ``lax.scan`` over the
 horizon, fixed shapes (inactive barrier rows are masked, not dropped; the control history has its full width from
-the start), no Python branches on data, no raises inside, explicit PRNG keys, the road's shape traced (a redrawn road
-is new data, not a new program). ``jax.vmap`` of it plans a batch of episodes at once; the same code runs on a GPU
-when JAX sees one. :class:`bimp.planners.enkts.EnKTSPlanner` is the thin stateful adapter around it.
+the start), no Python branches on data, nothing that raises once compiled (the one check, of the static ``update``
+reading, runs while tracing), explicit PRNG keys, the road's shape traced (a redrawn road is new data, not a new
+program). ``jax.vmap`` of it plans a batch of episodes at once; the same code runs on a GPU when JAX sees one.
+:class:`bimp.planners.enkts.EnKTSPlanner` is the thin stateful adapter around it.
 
 Per control step, smoothing over the horizon ``t = 0 .. H-1`` (particles ``j = 1 .. N``):
 
@@ -32,6 +33,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from bimp.envs.scene import split_obs
 from bimp.planners import model as vehicle
 from bimp.planners.problem import (
     ACTIVE,
@@ -273,11 +275,9 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
 
 def _plan(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, key: jax.Array):
     """One receding-horizon step: ``(action (2,) in [-1, 1], carry, PlanOut)`` for the observation ``obs`` (flat,
-    the env's layout: ego (4), previous input (2), ``K`` OV rows of 6, reference (3)). Pure: the same arguments give
-    the same result."""
+    the env's layout, read by :func:`bimp.envs.scene.split_obs`). Pure: the same arguments give the same result."""
     obs = obs.astype(problem.noise.dtype)  # float32 unless the problem is built in float64
-    k6 = 6 + cfg.n_obstacles * 6
-    ego, u_prev, ovs, ref = obs[:4], obs[4:6], obs[6:k6].reshape(cfg.n_obstacles, 6), obs[k6:]
+    ego, u_prev, ovs, ref = split_obs(obs, cfg.n_obstacles)
     previous = carry.previous.astype(obs.dtype)
     shifted = jnp.concatenate([previous[1:], previous[-1:]])
     nominal = jnp.where(carry.has_previous, shifted, jnp.broadcast_to(u_prev, (cfg.horizon, 2)))

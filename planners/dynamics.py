@@ -20,7 +20,6 @@ highway-env's acceleration cap above ``max_speed`` is applied to the input, and 
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,13 +30,8 @@ from torch import nn
 
 from bimp.configs import ConfigError
 
-# Mirrors of envs.scenarios / highway-env (tests check they agree); not imported, so that loading a model does
-# not pull in highway-env and pygame.
-DT = 0.1
-VEHICLE_LENGTH = 5.0
-MAX_SPEED = 40.0
-ACTUATOR_ACCEL = (-10.0, 10.0)
-ACTUATOR_STEER = (-0.3, 0.3)
+# The env's vehicle and actuators, from the module that defines them without loading highway-env and pygame.
+from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, VEHICLE_LENGTH
 
 WEIGHTS_PATH = Path(__file__).resolve().parent / "weights" / "mlp.pt"
 CHECKPOINT_FORMAT = "bimp-dynamics-mlp"
@@ -363,12 +357,5 @@ def model_from_name(name: str) -> BicycleModel | LearnedDynamics:
     return load_model(name)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``bimp train-dynamics``: see :mod:`bimp.planners.dynamics_train`."""
-    from bimp.planners import dynamics_train  # torch training and the env roll-outs load only for this command
-
-    return dynamics_train.main(sys.argv[1:] if argv is None else argv)
-
-
 __all__ = ["BicycleModel", "LearnedDynamics", "MLP", "WEIGHTS_PATH", "features", "apply_change", "load_model",
-           "model_from_name", "save_model", "main"]
+           "model_from_name", "save_model"]

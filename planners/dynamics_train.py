@@ -1,5 +1,5 @@
-"""``bimp train-dynamics``: data, training and the accuracy report of the learned model in
-:mod:`bimp.planners.dynamics`.
+"""``bimp train-dynamics`` (or ``python -m bimp.planners.dynamics_train``): data, training and the accuracy report of
+the learned model in :mod:`bimp.planners.dynamics`.
 
 Training data come from the env's own vehicle (:class:`bimp.envs.scenarios.EgoVehicle`, stepped directly) over the whole
 envelope: speeds 0-40 m/s, the full actuator ranges, random smooth input sequences (piecewise linear between random
@@ -19,6 +19,7 @@ uses other weights through its config: ``dynamics: runs/dynamics/mlp.pt``.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -27,17 +28,8 @@ import numpy as np
 import torch
 
 from bimp.configs import ConfigError, check_fields
-from bimp.planners.dynamics import (
-    ACTUATOR_ACCEL,
-    ACTUATOR_STEER,
-    DT,
-    MAX_SPEED,
-    MLP,
-    BicycleModel,
-    LearnedDynamics,
-    features,
-    save_model,
-)
+from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED
+from bimp.planners.dynamics import MLP, BicycleModel, LearnedDynamics, features, save_model
 
 STATE_NAMES = ("x [m]", "y [m]", "heading [rad]", "speed [m/s]")
 
@@ -342,7 +334,8 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str] | None = None) -> int:
+    """``bimp train-dynamics ARGS``: ``argv`` the arguments (default: the command line's)."""
     args = parser().parse_args(argv)
     config = TrainConfig(seed=args.seed, steps=args.steps, batch_size=args.batch_size)
     data_config = DataConfig()
@@ -361,3 +354,7 @@ def main(argv: list[str]) -> int:
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
     print(f"weights: {path} (use them in a planner config with `dynamics: {path}`)")
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

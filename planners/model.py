@@ -1,8 +1,9 @@
 """The vehicle models of :mod:`bimp.planners.dynamics` as pure JAX functions of parameter pytrees (paper eq. 1).
 
-Training and loading stay in torch (:mod:`bimp.planners.dynamics`); :func:`model_params` turns the shipped MLP (or any
-weights file written by ``bimp train-dynamics``), or the exact bicycle model, into numbers that :func:`step`
-evaluates inside the compiled planner. A test pins ``step`` to the torch forward pass.
+Loading stays in torch (:mod:`bimp.planners.dynamics`; training in :mod:`bimp.planners.dynamics_train`):
+:func:`model_params` turns the shipped MLP (or any weights file written by ``bimp train-dynamics``), or the exact
+bicycle model, into numbers that :func:`step` evaluates inside the compiled planner. A test pins ``step`` to the
+torch forward pass.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
+
+from bimp.planners.dynamics import BicycleModel, model_from_name
 
 
 class MLPParams(NamedTuple):
@@ -40,8 +43,6 @@ class BicycleParams(NamedTuple):
 
 def model_params(name: str) -> MLPParams | BicycleParams:
     """Parameters of the model a config's ``dynamics`` names (``"mlp"``, ``"bicycle"`` or a weights file)."""
-    from bimp.planners.dynamics import BicycleModel, model_from_name
-
     model = model_from_name(name)
     if isinstance(model, BicycleModel):
         return BicycleParams(float(model.dt), float(model.length), float(model.max_speed),

@@ -1,9 +1,10 @@
 """The planning problem, defined once: the virtual system of the paper (eq. 2-8) as immutable pytrees and pure
 functions.
 
-EnKTS/EnKS (:mod:`bimp.planners.core`, JAX), MPPI (numpy) and the env's safety values share these definitions; NMPC's
-CasADi expressions are pinned to them by tests. Every function takes numpy or JAX arrays and answers in kind (the
-array module follows the inputs), so the numbers a plan is measured against are the numbers the env reports.
+EnKTS/EnKS (:mod:`bimp.planners.core`, JAX) and MPPI (numpy) share these definitions; NMPC's CasADi expressions are
+pinned to them by tests. Every function takes numpy or JAX arrays and answers in kind (the array module follows the
+inputs). The input and rate bounds are measured by the env's own function (:func:`bimp.envs.scene.bound_constraints`),
+so the numbers a plan is measured against are the numbers the env reports.
 
 Per horizon step ``t`` a particle carries ``xb = [x (4), u (2), du (2)]``: state ``x = [x m, y m, heading rad,
 speed m/s]``, input ``u = [a m/s^2, delta rad]``, its increment ``du``. The virtual measurement of the state
@@ -37,7 +38,7 @@ import numpy as np
 
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.road import array_module, corner_edge_distance, curvature_at, heading_at, to_frenet
-from bimp.envs.scene import Scene
+from bimp.envs.scene import Scene, bound_constraints
 
 N_TRACK = 5  # r (3) + s (2)
 N_BOUND_BARRIERS = 9  # road edge, accel, steer, accel rate, steer rate, and the four of the first control
@@ -194,11 +195,6 @@ class Problem(NamedTuple):
     lane_rate: float
 
 
-def n_measurements(n_obstacles: int) -> int:
-    """Size m of the virtual measurement: tracking (5), one barrier per OV, nine more."""
-    return N_TRACK + n_obstacles + N_BOUND_BARRIERS
-
-
 def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
     """The noise scale of each row of ``y`` ``(m,)``: reference state, reference input, the barriers."""
     return np.array([*config.sigma_ref, *config.sigma_input]
@@ -270,23 +266,6 @@ def edge_distance_local(road: Road, limits: Limits, lat, dpsi):
     return road.half_width - extent
 
 
-def input_constraints(limits: Limits, u, keep=1.0):
-    """Input bounds (eq. 4) as values <= 0 when satisfied, ``(N, 2)`` for ``u (N, 2)``: ``|a - centre| - half-range``
-    (= the larger of ``a_min - a`` and ``a - a_max``) and ``|delta| - delta_max``, the bounds scaled by ``keep``
-    about their centre. The env reports the same numbers (``info["constraints"]``)."""
-    xp = array_module(u, limits.accel)
-    lo, hi = limits.accel[0], limits.accel[1]
-    centre = xp.stack([keep * (lo + hi) / 2, xp.zeros_like(lo)])
-    half = xp.stack([keep * (hi - lo) / 2, keep * xp.ones_like(lo) * limits.steer])
-    return xp.abs(u - centre) - half
-
-
-def rate_constraints(limits: Limits, du, keep=1.0):
-    """Rate bounds (eq. 5) as values <= 0 when satisfied, ``(N, 2)`` for increments ``du (N, 2)`` per step."""
-    xp = array_module(du, limits.accel_rate)
-    return xp.abs(du) - keep * xp.stack([limits.accel_rate, limits.steer_rate])
-
-
 def predict_obstacles(problem: Problem, ovs, horizon: int):
     """Constant-acceleration prediction of the OVs along the road, speed never below 0.
 
@@ -353,18 +332,19 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     semi_l = lim.width + bar.lateral_clearance
     phi_ov = xp.minimum(1.0 - xp.abs(ds) / semi_s, 1.0 - xp.abs(lat[:, None] - l_o) / semi_l)
     phi_ov = xp.where(present, phi_ov / w[0], -1e3)
-    w_input, w_rate = w[2:4], w[4:6]
     keep = 1.0 - bar.bound_margin  # the barriers are soft: aim a little inside the bounds
+
+    def bounds(u, du):
+        """Eq. 4-5 as the env reports them (one function), one barrier per acceleration pair: the nearer bound."""
+        c = bound_constraints(lim, u, du, keep)
+        return xp.stack([xp.maximum(c[:, 0], c[:, 1]), c[:, 2], c[:, 3], c[:, 4]], axis=1) / w[2:6]
+
     edge = (bar.edge_margin - edge_distance_local(road, lim, lat, dpsi)) / w[1]
-    phi = xp.concatenate([
-        phi_ov, edge[:, None],
-        input_constraints(lim, u, keep) / w_input, rate_constraints(lim, du, keep) / w_rate,
-        input_constraints(lim, u0, keep) / w_input, rate_constraints(lim, u0 - u_prev, keep) / w_rate,
-    ], axis=1)
+    phi = xp.concatenate([phi_ov, edge[:, None], bounds(u, du), bounds(u0, u0 - u_prev)], axis=1)
     return xp.concatenate([tracking, xp.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness], axis=1)
 
 
 __all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance", "edge_distance_local", "frenet",
-           "input_constraints", "Limits", "load_problem", "make_problem", "measure", "measurement_noise",
-           "N_FIRST_CONTROL", "n_measurements", "N_TRACK", "NU_MIN", "predict_obstacles", "Problem", "PROBLEM_FILE",
-           "ProblemConfig", "rate_constraints", "reference_profile", "Road"]
+           "Limits", "load_problem", "make_problem", "measure", "measurement_noise",
+           "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles", "Problem", "PROBLEM_FILE",
+           "ProblemConfig", "reference_profile", "Road"]

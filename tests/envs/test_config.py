@@ -6,7 +6,8 @@ import pytest
 from gymnasium.wrappers import RecordVideo
 
 from bimp import envs
-from bimp.envs.scenarios import MIN_CENTRE_GAP, EmergencyBrakeEnv, OvertakingEnv
+from bimp.envs.scenarios import MIN_CENTRE_GAP, N_OBSTACLES, EmergencyBrakeEnv, OvertakingEnv
+from bimp.envs.scene import split_obs
 
 EB, OT = "bimp/EmergencyBrake-v0", "bimp/Overtaking-v0"
 
@@ -107,7 +108,7 @@ def test_integer_ranges_draw_integer_steps():
 
 # --- per-reset configuration ---------------------------------------------------------------------------------------
 def ov1_speed(obs):
-    return float(obs[6 + 4])
+    return float(split_obs(obs, N_OBSTACLES)[2][0, 4])
 
 
 def test_reset_config_applies_to_that_reset_only():

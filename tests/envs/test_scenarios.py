@@ -7,6 +7,7 @@ from gymnasium.utils.env_checker import check_env
 from bimp import envs
 from bimp.agents.baselines import LaneKeeping
 from bimp.envs.scenarios import MAX_GAP, MAX_SPEED, MIN_CENTRE_GAP, REFERENCE_COLOUR
+from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT
 
 IDS = list(envs.ENV_IDS.values()) + list(envs.VARIANT_IDS.values())
 
@@ -168,6 +169,19 @@ def test_the_frame_draws_the_reference_lane():
         rows[reference] = np.nonzero(drawn)[0].mean()
     lane_px = env.unwrapped.config["scaling"] * env.unwrapped.scene.road.lane_width
     assert rows["keep-lane"] - rows["behaviour"] == pytest.approx(lane_px, abs=2)
+
+
+def test_the_scene_defines_the_vehicle_that_highway_env_simulates():
+    """bimp.envs.scene holds the vehicle and actuator numbers once, so that the vehicle models read them without
+    loading highway-env: they must be highway-env's and the env's own."""
+    from highway_env.vehicle.kinematics import Vehicle
+
+    env = gym.make("bimp/Overtaking-v0")
+    env.reset(seed=0)
+    scene, action = env.unwrapped.scene, env.unwrapped.action_type
+    assert (scene.vehicle_length, scene.vehicle_width, MAX_SPEED) == (Vehicle.LENGTH, Vehicle.WIDTH, Vehicle.MAX_SPEED)
+    assert scene.dt == DT and type(env.unwrapped.vehicle).MAX_SPEED == MAX_SPEED
+    assert tuple(action.acceleration_range) == ACTUATOR_ACCEL and tuple(action.steering_range) == ACTUATOR_STEER
 
 
 def test_info_carries_safety_quantities_and_constraints():

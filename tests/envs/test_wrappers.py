@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bimp import envs
+from bimp.envs.scene import bound_constraints
 from bimp.envs.wrappers import features, n_features, to_env_action, to_physical
 
 
@@ -40,7 +41,8 @@ def test_actions_map_inside_the_planning_bounds(overtaking):
         obs = obs.copy()
         obs[4:6] = [rng.uniform(*b.accel), rng.uniform(-b.steer, b.steer)]  # previous input
         u = to_physical(rng.uniform(-1.5, 1.5, 2), obs, scene)
-        assert b.input_violation(u)[0] <= 1e-9 and b.rate_violation(u - obs[4:6])[0] <= 1e-6
+        c = bound_constraints(b, u, u - scene.split_obs(obs)[1])  # eq. 4-5 as the env reports them
+        assert c[:3].max() <= 1e-9 and c[3:].max() <= 1e-6
         a = to_env_action(rng.uniform(-1, 1, 2), obs, scene)
         assert a.dtype == np.float32 and overtaking.action_space.contains(a)
     # 0 means coast straight on; +-1 reach the bounds when the rate allows.

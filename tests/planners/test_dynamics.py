@@ -42,11 +42,15 @@ def random_rows(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarra
     return x, u
 
 
-def test_constants_mirror_the_env():
-    from bimp.envs.scenarios import ACTUATOR_ACCEL, ACTUATOR_STEER, EgoVehicle
+def test_the_models_default_to_the_envs_vehicle():
+    """One definition of the vehicle (bimp.envs.scene), pinned to highway-env's in tests/envs/test_scenarios.py."""
+    from bimp.envs.scenarios import EgoVehicle
+    from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT
 
-    assert dynamics.VEHICLE_LENGTH == EgoVehicle.LENGTH and dynamics.MAX_SPEED == EgoVehicle.MAX_SPEED
-    assert dynamics.ACTUATOR_ACCEL == ACTUATOR_ACCEL and dynamics.ACTUATOR_STEER == ACTUATOR_STEER
+    for model in (BicycleModel(), load_model()):  # the shipped weights were trained on that vehicle
+        limits = (model.dt, model.max_speed, model.accel_range, model.steer_range)
+        assert limits == (DT, EgoVehicle.MAX_SPEED, ACTUATOR_ACCEL, ACTUATOR_STEER)
+    assert BicycleModel().length == EgoVehicle.LENGTH
 
 
 @pytest.mark.parametrize("v0, a, steer", [

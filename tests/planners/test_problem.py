@@ -8,15 +8,16 @@ import numpy as np
 import pytest
 
 from bimp import envs  # noqa: F401  (registers the envs)
+from bimp.envs.scene import BOUND_CONSTRAINTS, bound_constraints
 from bimp.planners.problem import (
+    N_FIRST_CONTROL,
+    BarrierShape,
     ProblemConfig,
-    input_constraints,
     load_problem,
     make_problem,
     measure,
-    n_measurements,
+    measurement_noise,
     predict_obstacles,
-    rate_constraints,
     reference_profile,
 )
 
@@ -56,7 +57,7 @@ def test_measurement_reads_zero_on_the_reference_and_flags_each_constraint(probl
     x = np.array([[10.0, 2.0, 0.0, 20.0]])
     zero_u = np.zeros((1, 2))
     h = measure(problem, x, zero_u, zero_u, zero_u, np.zeros(2), 2.0, 20.0, 0.0, far)
-    assert h.shape == (1, n_measurements(2))
+    assert h.shape == (1, len(problem.noise)) == (1, 16)  # tracking (5), one barrier per OV, nine more
     np.testing.assert_allclose(h[0, :5], 0.0, atol=1e-12)
     assert np.all(h[0, 5:] < 1e-3)
 
@@ -85,23 +86,29 @@ def test_numpy_and_jax_give_the_same_measurement(problem):
     np.testing.assert_allclose(np.asarray(h_jax), h_np, rtol=2e-3, atol=2e-4)
 
 
-def test_env_constraint_values_and_the_planner_measurement_agree_on_the_same_state():
-    """The env's info (eq. 2-5 as values <= 0) and the problem's constraint functions on the same state and input."""
+def test_the_env_reports_the_input_and_rate_constraints_the_problem_measures():
+    """Eq. 4-5 have one definition (bimp.envs.scene.bound_constraints): on the states and inputs of an episode driven
+    by random actions (many beyond the bounds), the env's ``info["constraints"]`` are its values on the problem's
+    limits, bit for bit, and the problem's barrier rows (bounds untightened) are the softplus of those same numbers,
+    for the step's input and for the first control. A second copy of the bounds on either side breaks it."""
     env = gym.make("bimp/Overtaking-v0")
-    obs, _ = env.reset(seed=4)
+    obs, info = env.reset(seed=4)
     scene = env.unwrapped.scene
-    problem = make_problem(scene, ProblemConfig())
+    problem = make_problem(scene, ProblemConfig(barrier=BarrierShape(bound_margin=0.0)))
+    bar, far = problem.barrier, (np.full(2, 1e4), np.zeros(2), np.zeros(2), np.zeros(2), np.zeros(2, bool))
     rng = np.random.default_rng(1)
     for _ in range(25):
-        action = rng.uniform(-1, 1, 2).astype(np.float32) * [0.9, 0.25]
-        prev = scene.split_obs(obs)[1]
-        obs, _, terminated, truncated, info = env.step(action)
+        prev = np.asarray(info["input"])  # the input applied last, in float64 (the observation's is float32)
+        obs, _, terminated, truncated, info = env.step(rng.uniform(-1, 1, 2).astype(np.float32) * [0.9, 0.25])
         u = np.asarray(info["input"])[None]
-        c = info["constraints"]
-        inp = input_constraints(problem.limits, u)[0]
-        rate = rate_constraints(problem.limits, u - prev[None])[0]
-        np.testing.assert_allclose(inp, [max(c["accel_min"], c["accel_max"]), c["steer"]], atol=1e-9)
-        np.testing.assert_allclose(rate, [c["accel_rate"], c["steer_rate"]], atol=1e-6)
+        reported = np.array([[info["constraints"][key] for key in BOUND_CONSTRAINTS]])
+        np.testing.assert_array_equal(bound_constraints(problem.limits, u, u - prev), reported)
+
+        x = scene.split_obs(obs)[0][None]
+        h = measure(problem, x, u, u - prev, u, prev, 0.0, 0.0, 0.0, far)
+        phi = np.column_stack([reported[:, :2].max(axis=1), reported[:, 2:]]) / bar.widths[2:6]
+        psi = np.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness
+        np.testing.assert_allclose(h[:, -2 * N_FIRST_CONTROL:], np.hstack([psi, psi]), rtol=1e-12, atol=0)
         if terminated or truncated:
             break
 
@@ -109,7 +116,7 @@ def test_env_constraint_values_and_the_planner_measurement_agree_on_the_same_sta
 def test_the_shared_tuning_loads_and_is_what_every_planner_reads():
     shared = load_problem()
     assert shared.horizon == 20 and shared.nu == 4.0 and shared.sigma_ref == (1.0, 0.05, 1.0)
-    assert n_measurements(2) == 16
+    assert len(measurement_noise(shared, 2)) == 16
 
 
 def test_first_control_barriers_watch_the_applied_input_at_every_step(problem):
