@@ -14,7 +14,8 @@ so ``du_0`` is charged against it as EnKTS does. Like every planner here it meas
 each with the input that reached it.
 
 Choices: the dynamics wrap :meth:`bimp.planners.dynamics.LearnedDynamics.predict` (numpy, tensors converted without
-copies: float64 CPU tensors share memory with numpy): the same model object as EnKTS, and the faster path at
+copies: float64 CPU tensors share memory with numpy): the same folded weights that EnKTS evaluates in JAX
+(:func:`bimp.planners.model.model_params`), and the faster path at
 N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`bimp.planners.problem.measure`,
 numpy too (the one definition of the problem, evaluated with numpy arrays). Noise: by default MPPI's action is the
 control *increment* (``sample: increments``), perturbed i.i.d. per step with ``noise_gain * sigma_du`` (the
