@@ -35,13 +35,25 @@ import sys
 import time
 from pathlib import Path
 
+import gymnasium as gym
+
+from bimp import envs
+from bimp.agents.registry import POLICIES, make_policy
+from bimp.agents.rollout import rollout
+from bimp.planners.dynamics import load_model
+
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 SCENARIO = "overtaking"
 N_VALUES, N_QUICK = (50, 500, 2000), (50, 500)
 N_LARGE = 10_000  # EnKTS and EnKS only: MPPI and the floor take seconds there
 N_DEVICE = (50, 2000, 10_000, 100_000)
 H_DEFAULT, H_VALUES = 20, (10, 20, 40)
-SAMPLED = ("enkts", "enks", "mppi")
+
+
+def sampled() -> list[str]:
+    """The planners timed at every N: those whose compute is the particle count (``n_particles`` is the frontier
+    axis of their :class:`~bimp.agents.registry.PolicySpec`), in the table's order."""
+    return [name for name, spec in POLICIES.items() if spec.frontier_axis == "n_particles"]
 
 
 def _single_threaded() -> bool:
@@ -52,12 +64,6 @@ def observations(count: int):
     """The shared observations: the overtaking env from episode seed 0 driven by EnKTS (shared tuning), the first
     ``count`` observations it acted on. Returns ``(env, [obs, ...])``; the env stays open because the planners read
     its scene (the road is fixed within an episode)."""
-    import gymnasium as gym
-
-    from bimp import envs
-    from bimp.agents.registry import make_policy
-    from bimp.agents.rollout import rollout
-
     env = gym.make(envs.env_id(SCENARIO))
     recorded: list = []
     rollout(env, make_policy("enkts", env), 0, max_steps=count, observations=recorded)
@@ -71,8 +77,6 @@ def time_policy(name: str, env, sequence: list, repeats: int, **overrides) -> di
     ``sequence[0]``."""
     import jax
     import numpy as np
-
-    from bimp.agents.registry import make_policy
 
     jax.clear_caches()  # the first call of a JAX planner then includes its compile, whatever ran before
     policy = make_policy(name, env, **overrides)
@@ -98,8 +102,6 @@ def floor_ms(n: int, repeats: int, horizon: int = H_DEFAULT) -> float:
     """Median [ms] of ``horizon`` forward passes of the shipped MLP on ``n`` rows, float32, plain numpy."""
     import numpy as np
 
-    from bimp.planners.dynamics import load_model
-
     model = load_model()
     rng = np.random.default_rng(0)
     x = np.column_stack([np.zeros((n, 3)), rng.uniform(0, 30, n)])
@@ -123,7 +125,7 @@ def run(repeats: int, quick: bool, steps: int, progress=print) -> dict:
     n_values = N_QUICK if quick else N_VALUES
     rows = []
     for n in n_values:
-        for name in SAMPLED:
+        for name in sampled():
             rows.append(time_policy(name, env, obs, repeats, n_particles=n, horizon=H_DEFAULT))
             progress(f"  {name:<6} N={n:<5} {rows[-1]['median_ms']:9.2f} ms")
     floors = {n: floor_ms(n, repeats) for n in n_values}

@@ -1,14 +1,18 @@
-"""``bimp`` console script: one sub-command per job, each module parsing its own arguments.
+"""``bimp`` console script: one sub-command per job, each module parsing its own arguments, and the argument
+helpers the commands share (``--set``, ``--label``, the backend options, ``--out``).
 
-Modules load lazily so ``bimp --help`` stays instant and a command pulls in only what it uses.
+Modules load lazily so ``bimp --help`` stays instant and a command pulls in only what it uses: this module imports
+nothing heavy and no other module of bimp at its top.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import os
 import sys
 import tempfile
+from pathlib import Path
 
 COMMANDS = {
     "demo": ("bimp.agents.demo", "small evaluation of both scenarios and planners, with table and figures"),
@@ -21,9 +25,14 @@ COMMANDS = {
     "frontier": ("bimp.agents.sweep:frontier_main", "success and violations against plan time, across N / iterations"),
     "tune": ("bimp.agents.tune", "tune a policy's config with Optuna on training seeds (best to configs/tuned/)"),
     "bench": ("bimp.agents.bench", "plan-step timing of the planners, side by side"),
-    "train-dynamics": ("bimp.planners.dynamics", "train the MLP vehicle model and print its accuracy"),
+    "train-dynamics": ("bimp.planners.dynamics_train", "train the MLP vehicle model and print its accuracy"),
     "train-rl": ("bimp.agents.rl", "train the stable-baselines3 baseline"),
 }
+
+
+class EvaluationError(ValueError):
+    """A request that cannot be run as given (unknown name, bad override, a label's config conflict, an unusable
+    folder): every command reports it in one line and exits with status 2, before anything is written."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,6 +50,86 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     module, _, function = COMMANDS[argv[0]][0].partition(":")
     return int(getattr(importlib.import_module(module), function or "main")(argv[1:]) or 0)
+
+
+# --- argument helpers shared by the commands ------------------------------------------------------------------
+def add_set_argument(parser: argparse.ArgumentParser,
+                     help: str | None = "config override for one policy, e.g. enkts.n_particles=100") -> None:
+    """``--set POLICY.KEY=VALUE ...`` (parsed by :func:`parse_overrides`)."""
+    # extend: a repeated flag adds to the earlier ones instead of silently replacing them
+    parser.add_argument("--set", dest="overrides", nargs="*", action="extend", default=[],
+                        metavar="POLICY.KEY=VALUE", help=help)
+
+
+def parse_overrides(pairs: list[str]) -> dict:
+    """``POLICY.KEY=VALUE`` (VALUE read as YAML) -> ``{policy: {key: value}}``; EvaluationError naming the pair."""
+    import yaml  # heavy for `bimp --help`, which never parses a value
+
+    result: dict[str, dict] = {}
+    for pair in pairs:
+        name, eq, value = pair.partition("=")
+        policy, dot, key = name.partition(".")
+        if not (eq and dot and policy and key):
+            raise EvaluationError(f"--set expects POLICY.KEY=VALUE, got {pair!r}")
+        if key in result.get(policy, {}):
+            raise EvaluationError(f"--set gives {policy}.{key} twice")
+        try:
+            result.setdefault(policy, {})[key] = yaml.safe_load(value)
+        except yaml.YAMLError as err:
+            raise EvaluationError(f"--set {pair!r}: the value is not valid YAML ({err})") from None
+    return result
+
+
+def parse_labels(items: list[str], policies: list[str]) -> dict:
+    """``--label NAME`` (one policy) or ``POLICY=NAME`` per policy -> ``{policy: label}``."""
+    labels = {}
+    for item in items:
+        policy, eq, name = item.rpartition("=")
+        if not eq:
+            if len(policies) != 1:
+                raise EvaluationError(f"--label {item!r} is ambiguous with several policies: use POLICY=NAME")
+            policy, name = policies[0], item
+        if not name or "/" in name:
+            raise EvaluationError(f"--label {item!r}: a label is a non-empty name without '/'")
+        labels[policy] = name
+    return labels
+
+
+def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--backend``, ``--address``, ``--ray-cpus`` (read back by :func:`backend_options`)."""
+    parser.add_argument("--backend", default="local", help="where the episodes run: local (a process pool of "
+                        "--workers) or ray (a Ray cluster: docs/scaling.md)")
+    parser.add_argument("--address", default=None, help="with --backend ray: the cluster's head HOST:PORT, "
+                        "ray://HOST:PORT or auto (default: a new local Ray instance)")
+    parser.add_argument("--ray-cpus", type=int, default=None, metavar="N",
+                        help="with --backend ray and no --address: CPUs of the new local instance (default: all)")
+
+
+def backend_options(args: argparse.Namespace) -> dict:
+    """The keyword arguments of ``evaluate`` (and of what calls it) that :func:`add_backend_arguments` parsed."""
+    return {"backend": args.backend, "address": args.address, "ray_cpus": args.ray_cpus}
+
+
+def check_out_dir(out: str | Path, create: bool = True, flag: str = "--out") -> Path:
+    """``out`` as a folder a command can write into (made, with its parents, when ``create``), or
+    :class:`EvaluationError` in one line naming it (as ``flag``): empty (``--out ""`` would write into the current
+    folder), an existing file, a path under a file, or a folder this user cannot write. ``create=False`` checks
+    without writing anything, so a command can refuse before its first episode."""
+    if not str(out).strip():
+        raise EvaluationError(f"{flag} is empty: name the folder to write into")
+    out = Path(out)
+    existing = next(p for p in (out, *out.parents) if p.exists() or p == Path(p.anchor or "."))
+    if not existing.is_dir():
+        where = "is a file" if existing == out else f"lies under {existing}, a file"
+        raise EvaluationError(f"{flag} {out} {where}, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise EvaluationError(f"{flag} {out}: {existing} is not writable")
+    if create:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:  # what the checks above cannot see (a full disk, a race)
+            raise EvaluationError(f"{flag} {out}: cannot create it ({err.strerror or err})") from None
+    return out
 
 
 if __name__ == "__main__":

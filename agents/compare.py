@@ -16,8 +16,8 @@ import json
 import sys
 from pathlib import Path
 
-from bimp.agents.evaluate import latest_records, read_records
 from bimp.agents.metrics import BINARY, METRICS
+from bimp.agents.records import latest_records, read_records
 from bimp.agents.stats import mcnemar_exact, paired_bootstrap
 
 

@@ -1,4 +1,4 @@
-"""``bimp demo``: the main job on a small default: a few episodes of both scenarios with EnKTS and EnKS,
+"""``bimp demo``: the main job on a small default: a few episodes of the default scenarios with EnKTS and EnKS,
 then a short table with intervals, the figures and one MP4 per policy and scenario. The full table (every
 metric, the failed seeds) is the run folder's ``summary.md``."""
 
@@ -7,8 +7,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from bimp import envs
 from bimp.agents.evaluate import evaluate
 from bimp.agents.plots import plot_all, render_episode
+from bimp.agents.records import format_stat
 
 # The columns a terminal shows whole: (header, summary key). Every other metric is in summary.md.
 SHORT_COLUMNS = (
@@ -20,14 +22,6 @@ SHORT_COLUMNS = (
 )
 
 
-def _cell(stat: dict | None) -> str:
-    """``mean [low, high]`` with the digits of summary.md (3 below 10, else 1); ``-`` where there is no value."""
-    if not stat or stat.get("mean") is None:
-        return "-"
-    digits = 3 if abs(stat["mean"]) < 10 else 1
-    return f"{stat['mean']:.{digits}f} [{stat['ci_low']:.{digits}f}, {stat['ci_high']:.{digits}f}]"
-
-
 def short_table(summary: dict) -> str:
     """One row per scenario and policy of a summary (``bimp.agents.metrics.summarize``): episodes, then success,
     collision, off road (Wilson 95% intervals), progress and median plan time per step (bootstrap 95%
@@ -35,7 +29,7 @@ def short_table(summary: dict) -> str:
     head = ["scenario", "policy", "episodes"] + [name for name, _ in SHORT_COLUMNS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for e in sorted(summary.values(), key=lambda e: (e["scenario"], e["policy"])):
-        cells = [e["scenario"], e["policy"], str(e["episodes"])] + [_cell(e.get(key)) for _, key in SHORT_COLUMNS]
+        cells = [e["scenario"], e["policy"], str(e["episodes"])] + [format_stat(e.get(key)) for _, key in SHORT_COLUMNS]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -47,13 +41,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", default="runs/demo")
     args = parser.parse_args(argv)
-    summary = evaluate(["overtaking", "emergency-brake"], args.policy, args.episodes, seed=0,
+    scenarios = envs.default_scenarios()
+    summary = evaluate(scenarios, args.policy, args.episodes, seed=0,
                        workers=args.workers, out=args.out, traces=1, video=1)
     print(short_table(summary))
     print(f"Intervals: 95%, Wilson for the rates, bootstrap of the mean for progress and plan time. "
           f"Every metric with its interval and the failed seeds: {Path(args.out) / 'summary.md'}")
     figures = plot_all(args.out)
-    for scenario in ("overtaking", "emergency-brake"):
+    for scenario in scenarios:
         figures.append(render_episode(scenario, args.policy[0], 0, Path(args.out) / "figures" /
                                       f"render_{scenario}.png"))
     for path in figures:

@@ -16,20 +16,19 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")  # headless: files only
+import gymnasium as gym  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bimp.agents.evaluate import EvaluationError, check_out_dir, read_records  # noqa: E402
+from bimp import envs  # noqa: E402
+from bimp.agents.cli import EvaluationError, check_out_dir  # noqa: E402
+from bimp.agents.records import read_records  # noqa: E402
+from bimp.agents.registry import make_policy, policy_color, policy_label  # noqa: E402
+from bimp.agents.rollout import rollout  # noqa: E402
 from bimp.envs.road import RoadGeometry  # noqa: E402
 from bimp.envs.scene import Bounds  # noqa: E402
 
-OV_COLORS = ("tab:cyan", "tab:olive", "tab:gray")  # kept apart from every policy's colour
-COLORS = {"enkts": "tab:red", "enks": "tab:blue", "mppi": "tab:green", "nmpc": "tab:purple",
-          "nmpc-t": "tab:pink", "ppo": "tab:orange", "sac": "tab:brown", "lane-keep": "tab:gray"}
-
-
-def policy_color(policy: str) -> str:
-    return COLORS.get(policy, "black")
+OV_COLORS = ("tab:cyan", "tab:olive", "tab:gray")  # kept apart from every policy's colour (the policy table's)
 
 
 def traced_episodes(records: list[dict]) -> dict[str, dict[str, dict]]:
@@ -71,7 +70,7 @@ def plot_trajectories(scenario: str, runs: dict[str, dict], out: Path) -> Path:
             ref_xy = road.position(np.array(t["s"], dtype=float), lane)
             ax.plot(ref_xy[:, 0], ref_xy[:, 1], "--", color=policy_color(policy), lw=0.8, alpha=0.6,
                     label="reference lane")
-        ax.plot(x, y, color=policy_color(policy), lw=2, label=f"EV ({policy})")
+        ax.plot(x, y, color=policy_color(policy), lw=2, label=f"EV ({policy_label(policy)})")
         ax.plot(x[-1], y[-1], "s", color=policy_color(policy))
         outcome = "collision" if rec["metrics"]["collision_rate"] else (
             "off road" if rec["metrics"]["offroad_rate"] else "safe")
@@ -94,7 +93,7 @@ def plot_controls(scenario: str, runs: dict[str, dict], out: Path) -> Path:
         u = np.array(rec["trace"]["input"], dtype=float)
         du = np.diff(np.vstack([np.zeros((1, 2)), u]), axis=0)
         for ax, series in zip(axes.flat, (u[:, 0], u[:, 1], du[:, 0], du[:, 1])):
-            ax.plot(series, color=policy_color(policy), label=policy)
+            ax.plot(series, color=policy_color(policy), label=policy_label(policy))
     for ax, (label, (lo, hi)) in zip(axes.flat, panels):
         ax.axhline(lo, color="k", lw=0.8)
         ax.axhline(hi, color="k", lw=0.8)
@@ -115,9 +114,9 @@ def plot_safety(scenario: str, runs: dict[str, dict], out: Path) -> Path:
         t, c = rec["trace"], policy_color(policy)
         d = np.array(t["ov_distance"], dtype=float)
         for k in range(k_ovs):
-            axes[k].plot(d[:, k], color=c, label=policy)
-        axes[k_ovs].plot(t["edge_distance"], color=c, label=policy)
-        axes[k_ovs + 1].plot(t["speed"], color=c, label=policy)
+            axes[k].plot(d[:, k], color=c, label=policy_label(policy))
+        axes[k_ovs].plot(t["edge_distance"], color=c, label=policy_label(policy))
+        axes[k_ovs + 1].plot(t["speed"], color=c, label=policy_label(policy))
     axes[k_ovs + 1].plot(first["trace"]["reference_speed"], "k--", label="reference")
     for k in range(k_ovs):
         axes[k].axhline(d_min, color="k", lw=0.8)
@@ -142,12 +141,6 @@ def _save(fig, path: Path) -> Path:
 def render_episode(scenario: str, policy: str, seed: int, path: str | Path, every: int = 30) -> Path:
     """Run one episode with highway-env's renderer and save a strip of frames (every ``every`` steps and
     the last one) as one PNG: what the simulator shows, next to the plotted trajectories."""
-    import gymnasium as gym
-
-    from bimp import envs
-    from bimp.agents.registry import make_policy
-    from bimp.agents.rollout import rollout
-
     env = gym.make(envs.env_id(scenario), render_mode="rgb_array")
     frames: list[tuple[int, np.ndarray]] = []
 
@@ -169,7 +162,7 @@ def render_episode(scenario: str, policy: str, seed: int, path: str | Path, ever
 
 def plot_all(folder: str | Path, out: str | Path | None = None) -> list[Path]:
     """Draw every figure for the evaluation in ``folder`` into ``out`` (default ``folder/figures``), made only when
-    there is something to draw. :class:`bimp.agents.evaluate.EvaluationError` for a folder or ``out`` that cannot be
+    there is something to draw. :class:`bimp.agents.cli.EvaluationError` for a folder or ``out`` that cannot be
     read or written."""
     folder = Path(folder)
     flag = "--out" if out is not None else "the figures folder"

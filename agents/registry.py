@@ -1,60 +1,177 @@
-"""``make_policy(name, env, **overrides)``: every agent by name, built lazily from its module."""
+"""The policy table: one frozen :class:`PolicySpec` per policy, and ``make_policy(name, env, **overrides)``.
+
+Everything a tool needs to know about a policy is in its spec: the factory that builds it, whether it plans batches
+(``bimp evaluate --batch``), the search space ``bimp tune`` samples, the config key ``bimp frontier`` trades compute
+along, its colour and label in the figures, its config class. The factory, the search space and the config class are
+lazy ``"module:attr"`` references, imported on first use: the table costs nothing to load (``bimp --help`` stays
+instant) and needs no import of the planners, so no cycle runs through it.
+
+A new policy is one module plus one table entry::
+
+    register_policy(PolicySpec(name="my-planner", factory="my_package.planner:make", label="Mine", color="tab:cyan"))
+"""
 
 from __future__ import annotations
 
 import importlib
+from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
+from typing import Any
 
-import gymnasium as gym
+from bimp.agents.policy import Policy, missing_members
+from bimp.configs import TUNED_DIR, load_tuned
 
-from bimp.agents.policy import Policy
 
-# Tuned configs written by `bimp tune` (configs/tuned/NAME.yaml): where one ships, it is NAME's default.
-TUNED_DIR = Path(__file__).resolve().parent.parent / "configs" / "tuned"
+def _is_reference(value: object) -> bool:
+    """``"package.module:attr"`` (``attr`` may be dotted: ``Class.method``)."""
+    return isinstance(value, str) and all(value.partition(":")[::2]) and value.count(":") == 1
 
-# name -> "module:factory"; each factory takes (env, **overrides) and returns a Policy.
-POLICIES = {
-    "enkts": "bimp.planners.enkts:make_enkts",
-    "enks": "bimp.planners.enkts:make_enks",
-    "lane-keep": "bimp.agents.baselines:LaneKeeping",
-    "zero": "bimp.agents.baselines:ZeroAction",
-    "ppo": "bimp.agents.rl:make_ppo",
-    "sac": "bimp.agents.rl:make_sac",
-    "mppi": "bimp.planners.mppi:make_mppi",
-    "nmpc": "bimp.planners.nmpc:make_nmpc",
-    "nmpc-t": "bimp.planners.nmpc:make_nmpc_t",
-}
+
+@dataclass(frozen=True, kw_only=True)
+class PolicySpec:
+    """One policy. Required: ``name`` (what ``--policy``, records and tuned configs say), ``factory`` (a lazy
+    ``"module:attr"`` reference to a callable ``(env, **overrides) -> Policy``), ``label`` and ``color`` (its line
+    and legend in the figures, a matplotlib colour). Optional: ``batched`` (the factory also takes a list of envs and
+    plans them in one call), ``search_space`` (a lazy reference to a function returning ``{config key: optuna
+    distribution}``, for ``bimp tune``), ``frontier_axis`` (the config key that buys quality with compute, for
+    ``bimp frontier``), ``config_class`` (a lazy reference to the policy's config dataclass). A missing or
+    malformed field is refused naming the policy."""
+
+    name: str = ""
+    factory: str = ""
+    label: str = ""
+    color: str = ""
+    batched: bool = False
+    search_space: str | None = None
+    frontier_axis: str | None = None
+    config_class: str | None = None
+
+    def __post_init__(self) -> None:
+        required = ("name", "factory", "label", "color")
+        missing = [key for key in required if getattr(self, key) in ("", None)]
+        if missing:
+            raise ValueError(f"policy spec {self.name or '(no name)'!r} is missing {', '.join(missing)}")
+        problems = [f"{key} must be a non-empty string, got {getattr(self, key)!r}" for key in required
+                    if not isinstance(getattr(self, key), str) or not getattr(self, key).strip()]
+        problems += [f"{key} must be a lazy 'module:attr' reference, got {getattr(self, key)!r}"
+                     for key in ("factory", "search_space", "config_class")
+                     if getattr(self, key) is not None and not _is_reference(getattr(self, key))]
+        if not isinstance(self.batched, bool):
+            problems.append(f"batched must be true or false, got {self.batched!r}")
+        if self.frontier_axis is not None and not (isinstance(self.frontier_axis, str) and self.frontier_axis):
+            problems.append(f"frontier_axis must be a config key or None, got {self.frontier_axis!r}")
+        if problems:
+            raise ValueError(f"policy spec {self.name!r}: {'; '.join(problems)}")
+
+
+def load(reference: str) -> Any:
+    """The object a lazy ``"module:attr"`` reference names (``attr`` may be dotted), importing its module."""
+    module, _, attr = reference.partition(":")
+    value: Any = importlib.import_module(module)
+    for part in attr.split("."):
+        value = getattr(value, part)
+    return value
+
+
+_POLICIES: dict[str, PolicySpec] = {}
+POLICIES = MappingProxyType(_POLICIES)  # name -> spec, read-only: register_policy is the one way in
+
+
+def register_policy(spec: PolicySpec) -> PolicySpec:
+    """Add ``spec`` to the table; ``ValueError`` naming it when its name is taken (a policy is defined once)."""
+    if not isinstance(spec, PolicySpec):
+        raise TypeError(f"register_policy expects a PolicySpec, got {spec!r}")
+    if ":" in spec.name or "/" in spec.name:  # a name with ':' means "module:factory"; '/' would split a folder
+        raise ValueError(f"policy spec {spec.name!r}: a registered name has no ':' or '/'")
+    if spec.name in _POLICIES:
+        raise ValueError(f"policy {spec.name!r} is already registered (factory {_POLICIES[spec.name].factory})")
+    _POLICIES[spec.name] = spec
+    return spec
+
+
+_ENKTS, _MPPI, _NMPC = "bimp.planners.enkts", "bimp.planners.mppi", "bimp.planners.nmpc"
+for _spec in (
+    PolicySpec(name="enkts", factory=f"{_ENKTS}:make_enkts", label="EnKTS", color="tab:red", batched=True,
+               search_space=f"{_ENKTS}:search_space", frontier_axis="n_particles",
+               config_class=f"{_ENKTS}:EnKTSConfig"),
+    PolicySpec(name="enks", factory=f"{_ENKTS}:make_enks", label="EnKS", color="tab:blue", batched=True,
+               search_space=f"{_ENKTS}:enks_search_space", frontier_axis="n_particles",
+               config_class=f"{_ENKTS}:EnKTSConfig"),
+    PolicySpec(name="mppi", factory=f"{_MPPI}:make_mppi", label="MPPI", color="tab:green",
+               search_space=f"{_MPPI}:search_space", frontier_axis="n_particles", config_class=f"{_MPPI}:MPPIConfig"),
+    PolicySpec(name="nmpc", factory=f"{_NMPC}:make_nmpc", label="NMPC", color="tab:purple",
+               search_space=f"{_NMPC}:search_space", frontier_axis="max_iter", config_class=f"{_NMPC}:NMPCConfig"),
+    PolicySpec(name="nmpc-t", factory=f"{_NMPC}:make_nmpc_t", label="NMPC-t", color="tab:pink",
+               search_space=f"{_NMPC}:nmpc_t_search_space", frontier_axis="max_iter",
+               config_class=f"{_NMPC}:NMPCConfig"),
+    PolicySpec(name="ppo", factory="bimp.agents.rl:make_ppo", label="PPO", color="tab:orange"),
+    PolicySpec(name="sac", factory="bimp.agents.rl:make_sac", label="SAC", color="tab:brown"),
+    PolicySpec(name="lane-keep", factory="bimp.agents.baselines:LaneKeeping", label="lane keeping", color="tab:gray",
+               search_space="bimp.agents.baselines:search_space",
+               config_class="bimp.agents.baselines:LaneKeepingConfig"),
+    PolicySpec(name="zero", factory="bimp.agents.baselines:ZeroAction", label="zero action", color="black"),
+):
+    register_policy(_spec)
 
 
 def is_policy_name(name: str) -> bool:
     """A registered name, or ``"package.module:factory"`` (your own policy, built like the registered ones)."""
-    return name in POLICIES or (":" in name and all(name.partition(":")[::2]))
+    return name in _POLICIES or _is_reference(name)
 
 
-def policy_class(name: str):
-    """The factory (a class or function) behind ``name``; a factory may declare ``batched = True``."""
-    if not is_policy_name(name):
-        raise ValueError(f"unknown policy {name!r}; choose from {sorted(POLICIES)} or give 'module:factory'")
-    module, factory = POLICIES.get(name, name).split(":")
-    return getattr(importlib.import_module(module), factory)
+def policy_spec(name: str) -> PolicySpec:
+    """The spec of ``name``; for a ``"module:factory"`` name, a plain one (not batched, nothing to tune, no
+    frontier axis, drawn in black under its own name). ``ValueError`` for an unknown name."""
+    if name in _POLICIES:
+        return _POLICIES[name]
+    if _is_reference(name):
+        return PolicySpec(name=name, factory=name, label=name, color="black")
+    raise ValueError(f"unknown policy {name!r}; choose from {sorted(_POLICIES)} or give 'module:factory'")
 
 
-def make_policy(name: str, env: gym.Env, config: str | Path | None = None, **overrides) -> Policy:
+def policy_factory(name: str):
+    """The factory (a class or function) behind ``name``; ``ValueError`` for an unknown name."""
+    return load(policy_spec(name).factory)
+
+
+def search_space(name: str) -> dict | None:
+    """``{config key: optuna distribution}`` that ``bimp tune`` samples for ``name``; None if it declares none."""
+    spec = policy_spec(name)
+    return None if spec.search_space is None else dict(load(spec.search_space)())
+
+
+def policy_color(name: str) -> str:
+    """The colour of ``name`` in the figures (black for a name outside the table, such as a ``--label``)."""
+    spec = _POLICIES.get(name)
+    return spec.color if spec else "black"
+
+
+def policy_label(name: str) -> str:
+    """The legend of ``name`` in the figures: its spec's label, or ``name`` itself outside the table."""
+    spec = _POLICIES.get(name)
+    return spec.label if spec else name
+
+
+def make_policy(name: str, env, config: str | Path | None = None, **overrides) -> Policy:
     """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package). ``config``: a YAML written by
     ``bimp tune`` for this policy (default: ``configs/tuned/<name>.yaml`` if one ships), or a plain YAML of
     overrides, handed to the factory as its own ``config``; ``overrides`` go on top, a nested mapping merged key by
     key (``problem={"horizon": 30}`` keeps the rest of a tuned problem), and an unknown key raises.
     ``name`` is a key of ``POLICIES`` or ``"module:factory"``. ``ValueError`` for an unknown name, or a ``config``
-    tuned for another policy."""
-    factory = policy_class(name)
+    tuned for another policy; ``TypeError`` for a factory whose policy lacks a member of :class:`Policy`."""
+    factory = policy_factory(name)
     if config is None and (TUNED_DIR / f"{name}.yaml").is_file():
         config = TUNED_DIR / f"{name}.yaml"  # a shipped tuned config is the policy's default
     if config is not None:
-        from bimp.agents.tune import load_tuned
-
         tuned = load_tuned(name, config)
         overrides = _merge(tuned, overrides) if tuned is not None else {"config": config, **overrides}
-    return factory(env, **overrides)
+    policy = factory(env, **overrides)
+    missing = missing_members(policy)
+    if missing:  # refused here, where the name is known, not as an AttributeError inside an episode
+        raise TypeError(f"policy {name!r} ({type(policy).__name__}) lacks {', '.join(missing)} of the Policy "
+                        "protocol (bimp.agents.policy)")
+    return policy
 
 
 def _merge(base: dict, top: dict) -> dict:
@@ -63,3 +180,7 @@ def _merge(base: dict, top: dict) -> dict:
     for key, value in top.items():
         out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
     return out
+
+
+__all__ = ["POLICIES", "PolicySpec", "is_policy_name", "load", "make_policy", "policy_color", "policy_factory",
+           "policy_label", "policy_spec", "register_policy", "search_space"]

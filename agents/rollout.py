@@ -1,7 +1,8 @@
 """The one episode loop: :func:`rollout` drives a :class:`~agents.policy.Policy` through one episode of a bimp env.
 
 Evaluation, figures, the benchmark's recorded observations, the RL baseline's quick check and the demo all call
-it, so every number in the project comes from the same loop and the same seeding.
+it, so every number in the project comes from the same loop and the same seeding. :func:`with_video` records the
+episodes of an env as MP4 (``bimp evaluate --video``, ``bimp render``).
 
 Seeding. One *episode seed* names an episode. The env's stream (scenario draws) and the policy's stream
 (planner noise) are derived from it independently, :func:`episode_seeds`: gymnasium's ``np_random(seed)``
@@ -12,7 +13,9 @@ planner noise consume the same random bits.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import gymnasium as gym
@@ -37,8 +40,9 @@ def episode_seeds(seed: int) -> tuple[int, int]:
 @dataclass
 class Episode:
     """What one :func:`rollout` saw. ``trace``: equal-length per-step lists (EV ``x, y, heading, speed``, OV
-    positions ``ov_xy``, ``reference_speed``, ``reward``, ``plan_ms`` (ms in ``act``) and the ``INFO_KEYS``);
-    ``params``: the scenario's drawn parameters; ``truncated``: the episode reached its time limit."""
+    positions ``ov_xy``, ``reference_speed``, ``reward``, ``plan_ms`` (ms in ``act``), the ``INFO_KEYS`` and,
+    where the policy says something, ``policy_info`` (its ``step_info``)); ``params``: the scenario's drawn
+    parameters; ``truncated``: the episode reached its time limit."""
 
     seed: int
     env_seed: int
@@ -55,7 +59,8 @@ class Episode:
 
 
 def _new_trace() -> dict[str, list]:
-    return {k: [] for k in ("x", "y", "heading", "speed", "ov_xy", "reference_speed", "reward", "plan_ms", *INFO_KEYS)}
+    return {k: [] for k in ("x", "y", "heading", "speed", "ov_xy", "reference_speed", "reward", "plan_ms", *INFO_KEYS,
+                                "policy_info")}
 
 
 def _record(episode: Episode, scene, obs, reward, terminated, truncated, info, plan_ms: float) -> None:
@@ -87,8 +92,8 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
             observations: list | None = None) -> Episode:
     """Run ``policy`` on ``env`` from the episode ``seed`` until termination, truncation or ``max_steps``.
 
-    A policy with a ``step_info`` dict (what its last ``act`` did, e.g. NMPC's solver status and fallback) has it
-    recorded per step in ``trace["policy_info"]``.
+    The policy's ``step_info`` (what its last ``act`` did, e.g. NMPC's solver status and fallback) is recorded per
+    step in ``trace["policy_info"]``, unless it said nothing at every step (``{}``: the baselines).
 
     ``on_step(env, obs, info)`` is called after the reset (``info`` of the reset) and after every step (for
     rendering); ``observations``, if given, receives every observation the policy acted on.
@@ -107,12 +112,11 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
         plan_ms = 1e3 * (time.perf_counter() - start)
         obs, reward, terminated, truncated, info = env.step(action)
         _record(episode, scene, obs, reward, terminated, truncated, info, plan_ms)
-        if hasattr(policy, "step_info"):
-            episode.trace.setdefault("policy_info", []).append(dict(policy.step_info))
+        episode.trace["policy_info"].append(dict(policy.step_info))
         done = terminated or truncated
         if on_step:
             on_step(env, obs, info)
-    return episode
+    return _said(episode)
 
 
 def rollout_batch(envs: list[gym.Env], policy, seeds: list[int]) -> list[Episode]:
@@ -142,11 +146,30 @@ def rollout_batch(envs: list[gym.Env], policy, seeds: list[int]) -> list[Episode
                 continue
             obs[i], reward, terminated, truncated, info = env.step(actions[i])
             _record(episodes[i], env.unwrapped.scene, obs[i], reward, terminated, truncated, info, plan_ms)
-            if hasattr(policy, "step_info"):  # one value per row: episode i records row i's
-                row_info = {key: value[i] for key, value in policy.step_info.items()}
-                episodes[i].trace.setdefault("policy_info", []).append(row_info)
+            # one value per row: episode i records row i's
+            episodes[i].trace["policy_info"].append({key: value[i] for key, value in policy.step_info.items()})
             done[i] = terminated or truncated
-    return episodes
+    return [_said(episode) for episode in episodes]
 
 
-__all__ = ["Episode", "INFO_KEYS", "SEEDING", "episode_seeds", "rollout", "rollout_batch"]
+def _said(episode: Episode) -> Episode:
+    """``episode`` without ``trace["policy_info"]`` when the policy said nothing at any step: a record holds no
+    column of empty entries (and a baseline's records stay as they were before every policy had ``step_info``)."""
+    if not any(episode.trace["policy_info"]):
+        del episode.trace["policy_info"]
+    return episode
+
+
+def with_video(env: gym.Env, folder: str | Path, name: str) -> gym.Env:
+    """``env`` (made with ``render_mode="rgb_array"``) wrapped to write every episode to
+    ``folder/{name}-episode-{i}.mp4`` at one frame per control step, i.e. real time (10 fps for dt = 0.1 s), through
+    gymnasium's ``RecordVideo`` (moviepy), headless."""
+    if env.render_mode != "rgb_array":
+        raise ValueError(f"video needs an env made with render_mode='rgb_array', got {env.render_mode!r}")
+    with warnings.catch_warnings():  # many episodes share one folder; each file has its own name
+        warnings.filterwarnings("ignore", message=".*Overwriting existing videos.*")
+        return gym.wrappers.RecordVideo(env, str(folder), episode_trigger=lambda _: True, name_prefix=name,
+                                        fps=env.unwrapped.config["policy_frequency"], disable_logger=True)
+
+
+__all__ = ["Episode", "INFO_KEYS", "SEEDING", "episode_seeds", "rollout", "rollout_batch", "with_video"]

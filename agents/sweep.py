@@ -15,9 +15,9 @@ request exits with status 2 and names the point, never after hours of the others
 (the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles``
 of every ``--policy``.
 
-The frontier puts quality against compute: each policy along its compute axis (``FRONTIER_AXES``: the particles N
-of EnKTS, EnKS and MPPI, the iteration cap of NMPC; one point for a policy without one, such as PPO), success
-(Wilson interval) and bound violations against the plan time per step (the per-episode median, averaged over
+The frontier puts quality against compute: each policy along its compute axis (its spec's ``frontier_axis``: the
+particles N of EnKTS, EnKS and MPPI, the iteration cap of NMPC; one point for a policy without one, such as PPO),
+success (Wilson interval) and bound violations against the plan time per step (the per-episode median, averaged over
 episodes). Episodes run one at a time (no ``--batch``): a batched plan's time is not one plan's. Run it on held-out
 seeds and an otherwise idle machine, with ``--workers 1`` (the default) so that no two episodes share a core.
 
@@ -33,24 +33,25 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from bimp.agents.evaluate import (
+import gymnasium as gym
+import matplotlib
+import yaml
+
+from bimp import envs
+from bimp.agents.cli import (
     EvaluationError,
-    _fmt,
     add_backend_arguments,
+    add_set_argument,
     backend_options,
-    check_conflicts,
     check_out_dir,
-    evaluate,
-    numbered_records,
     parse_overrides,
-    resolve_arms,
-    write_summary,
 )
+from bimp.agents.evaluate import check_conflicts, evaluate, resolve_arms
+from bimp.agents.records import format_stat, numbered_records, write_summary
+from bimp.agents.registry import is_policy_name, make_policy, policy_color, policy_label, policy_spec
+from bimp.agents.tune import TuneError, factory_kwargs, overrides_for
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
-# The config key that buys a policy quality with compute, and its default values for the frontier.
-FRONTIER_AXES = {"enkts": "n_particles", "enks": "n_particles", "mppi": "n_particles", "nmpc": "max_iter",
-                 "nmpc-t": "max_iter"}
 
 
 @dataclass(frozen=True)
@@ -67,10 +68,6 @@ class Point:
 def param_points(params: list[str], base: dict | None = None) -> list[Point]:
     """Points of ``--param POLICY.KEY=V1,V2,...`` (several params: swept together, value by value).
     ``base``: ``{policy: overrides}`` under every point. :class:`EvaluationError` naming a malformed param."""
-    import yaml
-
-    from bimp.agents.tune import TuneError, overrides_for
-
     parsed = []
     for item in params:
         name, eq, values = item.partition("=")
@@ -99,15 +96,9 @@ def param_points(params: list[str], base: dict | None = None) -> list[Point]:
 
 
 def _factory_kwargs(policy: str, overrides: dict) -> dict:
-    """The policy's complete keyword arguments under ``overrides`` (built once on the overtaking env)."""
-    import gymnasium as gym
-
-    from bimp import envs
-    from bimp.agents.registry import make_policy
-    from bimp.agents.tune import TuneError, factory_kwargs
-
+    """The policy's complete keyword arguments under ``overrides`` (built once on the first default scenario's env)."""
     try:
-        return factory_kwargs(make_policy(policy, gym.make(envs.env_id("overtaking")), **overrides))
+        return factory_kwargs(make_policy(policy, gym.make(envs.env_id(envs.default_scenarios()[0])), **overrides))
     except (TuneError, ValueError, TypeError, OSError) as err:
         raise EvaluationError(f"policy {policy!r}: {err}") from None
 
@@ -161,7 +152,7 @@ def table(rows: list[dict]) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in sorted(rows, key=lambda r: (r["scenario"], r["policy"], _order(r["value"]))):
         cells = [r["scenario"], r["policy"], r["param"] or "-", "-" if r["value"] is None else str(r["value"]),
-                 str(r["episodes"])] + [_fmt(r[m]) for m in (*RATES, "plan_time_ms_p50")]
+                 str(r["episodes"])] + [format_stat(r[m]) for m in (*RATES, "plan_time_ms_p50")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n\nIntervals: 95%, Wilson for the rates per episode, bootstrap for the plan time.\n"
 
@@ -173,12 +164,8 @@ def _order(value):
 def plot(rows: list[dict], path: Path, frontier: bool) -> Path:
     """Per scenario: success (with its interval) and the bound-violation rate, against the swept value (a sweep)
     or the plan time (the frontier), one line per policy."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from bimp.agents.plots import policy_color
+    matplotlib.use("Agg")  # headless: files only
+    import matplotlib.pyplot as plt  # heavy (and it must follow the backend's choice): only when a figure is drawn
 
     scenarios = sorted({r["scenario"] for r in rows})
     fig, axes = plt.subplots(len(scenarios), 2, figsize=(10, 3.2 * len(scenarios)), squeeze=False)
@@ -193,7 +180,7 @@ def plot(rows: list[dict], path: Path, frontier: bool) -> Path:
                 xs = list(range(len(rs)))
             s = [r["success_rate"] for r in rs]
             err = [[x["mean"] - x["ci_low"] for x in s], [x["ci_high"] - x["mean"] for x in s]]
-            style = dict(color=policy_color(policy), label=policy, marker="o", capsize=3)
+            style = dict(color=policy_color(policy), label=policy_label(policy), marker="o", capsize=3)
             axes[i, 0].errorbar(xs, [x["mean"] for x in s], yerr=err, **style)
             violation = [(r["input_violation_rate"]["mean"] + r["rate_violation_rate"]["mean"]) / 2 for r in rs]
             axes[i, 1].plot(xs, violation, **{k: v for k, v in style.items() if k != "capsize"})
@@ -226,13 +213,10 @@ def write(rows: list[dict], out: Path, name: str) -> list[Path]:
 
 # --- command line ---------------------------------------------------------------------------------------------
 def _common(parser: argparse.ArgumentParser, seed: int) -> None:
-    parser.add_argument("--scenario", nargs="+", default=["overtaking", "emergency-brake"])
+    parser.add_argument("--scenario", nargs="+", default=envs.default_scenarios())
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=seed, help="first episode seed (seeds by role: docs/evaluation.md)")
-    # extend: a repeated flag adds to the earlier ones instead of silently replacing them
-    parser.add_argument("--set", dest="overrides", nargs="*", action="extend", default=[],
-                        metavar="POLICY.KEY=VALUE",
-                        help="overrides under every point (as bimp evaluate --set)")
+    add_set_argument(parser, help="overrides under every point (as bimp evaluate --set)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--out", required=True)
     add_backend_arguments(parser)
@@ -262,7 +246,8 @@ def frontier_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--iters", nargs="+", type=int, default=[5, 10, 20, 40], help="NMPC's iteration caps")
     args = parser.parse_args(argv)
     values = {"n_particles": args.n, "max_iter": args.iters}
-    axis = {p: (FRONTIER_AXES[p], values[FRONTIER_AXES[p]]) for p in args.policies if p in FRONTIER_AXES}
+    axes = {p: policy_spec(p).frontier_axis for p in args.policies if is_policy_name(p)}
+    axis = {p: (key, values[key]) for p, key in axes.items() if key in values}
     return _run("frontier", args, lambda base: axis_points(args.policies, axis, base))
 
 
@@ -286,4 +271,4 @@ def _run(name: str, args: argparse.Namespace, points_of, batch: int = 1) -> int:
     return 0
 
 
-__all__ = ["FRONTIER_AXES", "Point", "axis_points", "param_points", "run_points", "table"]
+__all__ = ["Point", "axis_points", "param_points", "run_points", "table"]

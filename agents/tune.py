@@ -5,11 +5,11 @@
     # study: runs/tune/mppi/study.db; best config: runs/tune/mppi/best.yaml, loaded by
     # make_policy("mppi", env, config="runs/tune/mppi/best.yaml"); --yaml configs/tuned/mppi.yaml ships it
 
-Search space. Each tunable policy's factory declares ``search_space()`` beside its config: ``{key: optuna
-distribution}``, keys as its config names them (``temperature``; ``barrier.edge_margin`` in a nested config;
-``sigma_du[1]`` one entry of a list; ``problem.sigma_barrier`` the shared problem a peer planner's cost is built
-from). Every key is checked against the policy's resolved config, and the policy built at the space's bounds,
-before any trial runs.
+Search space. Each tunable policy's :class:`~bimp.agents.registry.PolicySpec` names a ``search_space`` function
+beside its config: ``{key: optuna distribution}``, keys as its config names them (``temperature``;
+``barrier.edge_margin`` in a nested config; ``sigma_du[1]`` one entry of a list; ``problem.sigma_barrier`` the shared
+problem a peer planner's cost is built from). Every key is checked against the policy's resolved config, and the
+policy built at the space's bounds, before any trial runs.
 
 Trial. The sampled values replace those keys in the policy's resolved config; the trial is an ordinary evaluation
 (:func:`bimp.agents.evaluate.evaluate`) of that config on seeds ``seed .. seed + episodes - 1`` of every scenario, in
@@ -44,23 +44,27 @@ import json
 import math
 import re
 import sys
+import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
+import numpy as np
 import yaml
 
-from bimp.agents.evaluate import (
-    EvaluationError,
-    add_backend_arguments,
-    backend_options,
-    check_out_dir,
-    evaluate,
-    read_records,
-)
-from bimp.agents.provenance import config_hash
-from bimp.configs import read_yaml
+from bimp import envs
+from bimp.agents import registry
+from bimp.agents.backends import BackendError, connect_ray, in_worker, ray_options, start_backend
+from bimp.agents.cli import EvaluationError, add_backend_arguments, backend_options, check_out_dir
+from bimp.agents.evaluate import evaluate
+from bimp.agents.provenance import config_hash, resolved_config
+from bimp.agents.records import read_records
+from bimp.agents.registry import make_policy, policy_factory
+
+# optuna (a second or so to load) is imported inside the functions that run a study: `bimp sweep` imports this module
+# for its config editing (set_value, overrides_for), which needs none of it.
 
 RESULTS_SEEDS = 1000  # seeds from here on are reported, never tuned on
 _PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
@@ -77,26 +81,20 @@ class TrialError(RuntimeError):
 
 # --- the search space and the config it edits ---------------------------------------------------------------
 def search_space(policy: str) -> dict:
-    """``{key: optuna distribution}`` the policy's factory declares; :class:`TuneError` if it has none."""
-    from bimp.agents.registry import policy_class
-
+    """``{key: optuna distribution}`` the policy's spec declares; :class:`TuneError` if it has none."""
     try:
-        factory = policy_class(policy)
+        space = registry.search_space(policy)
     except ValueError as err:
         raise TuneError(str(err)) from None
-    declare = getattr(factory, "search_space", None)
-    if declare is None:
-        raise TuneError(f"policy {policy!r} declares no search space (a `search_space()` beside its factory)")
-    return dict(declare())
+    if space is None:
+        raise TuneError(f"policy {policy!r} declares no search space (the `search_space` of its PolicySpec)")
+    return space
 
 
 def factory_kwargs(policy) -> dict:
-    """The keyword arguments that rebuild ``policy`` exactly: its resolved config, and the shared problem of a
-    peer planner under ``problem``."""
-    from bimp.agents.provenance import resolved_config
-
-    resolved = resolved_config(policy)
-    return {**resolved["config"], **({"problem": resolved["tuning"]} if "tuning" in resolved else {})}
+    """The keyword arguments that rebuild ``policy`` exactly: its resolved config (a planner's with its
+    ``problem``)."""
+    return resolved_config(policy)["config"]
 
 
 def _path(key: str) -> list[str | int]:
@@ -147,18 +145,13 @@ def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
     """Validate ``space`` for ``policy`` before any trial: every key names an entry of its config, and the policy
     builds at the low and the high end of every distribution on every scenario. Returns the base: the factory's
     own defaults (not a shipped tuned config, which a study must not drift with), as complete factory kwargs."""
-    import gymnasium as gym
-
-    from bimp import envs
-    from bimp.agents.registry import make_policy, policy_class
-
     envs_ = []
     for scenario in scenarios:
         try:
             envs_.append(gym.make(envs.env_id(scenario)))
         except ValueError as err:
             raise TuneError(str(err)) from None
-    base = factory_kwargs(policy_class(policy)(envs_[0]))
+    base = factory_kwargs(policy_factory(policy)(envs_[0]))
     for end in (0, -1):
         params = {k: _ends(d)[end] for k, d in space.items()}
         config = with_params(base, params)  # raises naming a key the config lacks
@@ -216,8 +209,6 @@ def study_name(policy: str, scenarios: list[str], episodes: int, seed: int) -> s
 
 
 def _storage(url: str):
-    import warnings
-
     import optuna
     from optuna.storages import RetryHeartbeatStaleTrialCallback
 
@@ -314,10 +305,6 @@ def run_trials_on_ray(spec: Study, n_trials: int, sampler_seed: int, parallel: i
     each a :func:`run_trials` on its share of the trials against the one storage, with its own sampler seed.
     A task whose worker dies is rerun once by Ray; its trial left running is failed and retried by the
     heartbeat, and :class:`optuna.study.MaxTrialsCallback` keeps the study's total."""
-    import numpy as np
-
-    from bimp.agents.backends import connect_ray, in_worker, ray_options
-
     ray = connect_ray(address, ray_cpus)
     n = parallel or max(1, int(ray.cluster_resources().get("CPU", 1)) // spec.workers)
     n = min(n, n_trials)
@@ -347,8 +334,6 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
     (a real cluster needs a PostgreSQL or MySQL URL and ``out`` on a shared disk: ``docs/scaling.md``).
     Raises :class:`TuneError` before any trial for an invalid request."""
     import optuna
-
-    from bimp.agents.backends import BackendError, start_backend
 
     if not scenarios:
         raise TuneError("give at least one scenario")
@@ -425,26 +410,12 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
     return path
 
 
-def load_tuned(policy: str, path: str | Path) -> dict | None:
-    """The factory kwargs of a YAML written by :func:`write_best` (``policy`` and ``config``), or None for any
-    other YAML (a plain file of overrides); ``ValueError`` if it was tuned for another policy."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no config file at {path}")
-    doc = read_yaml(path)  # ValueError naming the file for one that is not YAML text
-    if not (isinstance(doc, dict) and {"policy", "config"} <= set(doc) and isinstance(doc["config"], dict)):
-        return None
-    if doc["policy"] != policy:
-        raise ValueError(f"{path} holds a config tuned for {doc['policy']!r}, not {policy!r}")
-    return doc["config"]
-
-
 # --- command line -------------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp tune", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", required=True)
-    parser.add_argument("--scenario", nargs="+", default=["overtaking", "emergency-brake"])
+    parser.add_argument("--scenario", nargs="+", default=envs.default_scenarios())
     parser.add_argument("--trials", type=int, default=30, help="the study's total number of trials")
     parser.add_argument("--episodes", type=int, default=20, help="episodes per scenario and trial")
     parser.add_argument("--seed", type=int, default=100, help="first training seed (100-199 by convention)")
@@ -474,4 +445,4 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["Study", "TrialError", "TuneError", "check_space", "load_tuned", "objective_value", "search_space", "tune"]
+__all__ = ["Study", "TrialError", "TuneError", "check_space", "objective_value", "search_space", "tune"]

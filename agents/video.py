@@ -1,40 +1,30 @@
-"""MP4 video of episodes, through gymnasium's ``RecordVideo`` (moviepy), headless, at real time.
+"""``bimp render``: one episode as an MP4 video, through gymnasium's ``RecordVideo`` (moviepy), headless, at real time.
 
     bimp render --scenario overtaking --policy enkts --seed 0 --out runs/render
 
-``bimp evaluate --video K`` records the first K episodes of every arm the same way (:func:`with_video`).
+``bimp evaluate --video K`` records the first K episodes of every arm the same way
+(:func:`bimp.agents.rollout.with_video`).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 
 import gymnasium as gym
 
-
-def with_video(env: gym.Env, folder: str | Path, name: str) -> gym.Env:
-    """``env`` (made with ``render_mode="rgb_array"``) wrapped to write every episode to
-    ``folder/{name}-episode-{i}.mp4`` at one frame per control step, i.e. real time (10 fps for dt = 0.1 s)."""
-    if env.render_mode != "rgb_array":
-        raise ValueError(f"video needs an env made with render_mode='rgb_array', got {env.render_mode!r}")
-    with warnings.catch_warnings():  # many episodes share one folder; each file has its own name
-        warnings.filterwarnings("ignore", message=".*Overwriting existing videos.*")
-        return gym.wrappers.RecordVideo(env, str(folder), episode_trigger=lambda _: True, name_prefix=name,
-                                        fps=env.unwrapped.config["policy_frequency"], disable_logger=True)
+from bimp import envs
+from bimp.agents.cli import EvaluationError, add_set_argument, check_out_dir, parse_overrides
+from bimp.agents.evaluate import resolve_arms
+from bimp.agents.registry import make_policy
+from bimp.agents.rollout import episode_seeds, rollout, with_video
 
 
 def render_video(scenario: str, policy: str, seed: int, out: str | Path, overrides: dict | None = None) -> Path:
     """One episode of ``policy`` on ``scenario`` from episode ``seed`` as an MP4 in ``out``; returns its path.
-    :class:`bimp.agents.evaluate.EvaluationError` in one line, before anything is written, for a request that cannot run
+    :class:`bimp.agents.cli.EvaluationError` in one line, before anything is written, for a request that cannot run
     (a bad seed, scenario, policy, override or ``out``)."""
-    from bimp import envs
-    from bimp.agents.evaluate import EvaluationError, check_out_dir, resolve_arms
-    from bimp.agents.registry import make_policy
-    from bimp.agents.rollout import episode_seeds, rollout
-
     try:
         episode_seeds(seed)  # the check every episode makes, here before anything is built
     except ValueError as err:
@@ -50,14 +40,12 @@ def render_video(scenario: str, policy: str, seed: int, out: str | Path, overrid
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bimp.agents.evaluate import EvaluationError, parse_overrides
-
     parser = argparse.ArgumentParser(prog="bimp render", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenario", default="overtaking")
+    parser.add_argument("--scenario", default=envs.default_scenarios()[0])
     parser.add_argument("--policy", default="enkts")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--set", dest="overrides", nargs="*", action="extend", default=[], metavar="POLICY.KEY=VALUE")
+    add_set_argument(parser, help=None)
     parser.add_argument("--out", default="runs/render")
     args = parser.parse_args(argv)
     try:

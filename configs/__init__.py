@@ -25,6 +25,8 @@ from typing import Any, TypeVar
 import yaml
 
 CONFIG_DIR = Path(__file__).resolve().parent
+# Tuned configs written by `bimp tune` (configs/tuned/NAME.yaml): where one ships, it is policy NAME's default.
+TUNED_DIR = CONFIG_DIR / "tuned"
 T = TypeVar("T")
 
 
@@ -93,6 +95,21 @@ def load_config(cls: type[T], source: str | Path | Sequence[str | Path] | None =
     if unknown:
         raise ValueError(f"unknown {cls.__name__} key(s) {unknown}; valid keys: {sorted(fields)}")
     return cls(**values)
+
+
+def load_tuned(policy: str, path: str | Path) -> dict | None:
+    """The factory kwargs of a YAML written by ``bimp tune`` (its ``policy`` and ``config``), or None for any other
+    YAML (a plain file of overrides); ``ValueError`` if it was tuned for another policy, ``FileNotFoundError`` if
+    there is no file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no config file at {path}")
+    doc = read_yaml(path)  # ValueError naming the file for one that is not YAML text
+    if not (isinstance(doc, dict) and {"policy", "config"} <= set(doc) and isinstance(doc["config"], dict)):
+        return None
+    if doc["policy"] != policy:
+        raise ValueError(f"{path} holds a config tuned for {doc['policy']!r}, not {policy!r}")
+    return doc["config"]
 
 
 # --- field check ----------------------------------------------------------------------------------------------
@@ -224,4 +241,4 @@ def check_fields(config: Any, allow_inf: Iterable[str] = ()) -> None:
             object.__setattr__(config, f.name, checked)
 
 
-__all__ = ["CONFIG_DIR", "ConfigError", "check_fields", "load_config", "read_yaml"]
+__all__ = ["CONFIG_DIR", "TUNED_DIR", "ConfigError", "check_fields", "load_config", "load_tuned", "read_yaml"]

@@ -2,7 +2,16 @@
 
 >>> import gymnasium as gym, bimp
 >>> env = gym.make("bimp/Overtaking-v0", render_mode="rgb_array")
+
+The scenario table: one frozen :class:`ScenarioSpec` per scenario, registered with Gymnasium by
+:func:`register_scenario`. Every tool takes its scenario names, its defaults and the name <-> id mapping from it, so a
+new scenario is one env class plus one ``register_scenario(ScenarioSpec(...))``.
 """
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from types import MappingProxyType
 
 from gymnasium.envs.registration import register, registry
 
@@ -10,31 +19,100 @@ from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import Bounds, Scene
 from bimp.envs.wrappers import PlanningWrapper
 
-ENV_IDS = {"overtaking": "bimp/Overtaking-v0", "emergency-brake": "bimp/EmergencyBrake-v0"}
-# Variants of a scenario under their own id, so that `bimp evaluate --scenario NAME` and its records name them: the
-# discovery variant of overtaking (the reference keeps the EV's lane: the planner must find the pass itself).
-VARIANT_IDS = {"overtaking-keep-lane": "bimp/OvertakingKeepLane-v0"}
-_ENTRY_POINTS = {
-    "bimp/Overtaking-v0": ("bimp.envs.scenarios:OvertakingEnv", 150),
-    "bimp/EmergencyBrake-v0": ("bimp.envs.scenarios:EmergencyBrakeEnv", 120),
-    "bimp/OvertakingKeepLane-v0": ("bimp.envs.scenarios:OvertakingKeepLaneEnv", 150),
-}
 
-for _id, (_entry, _steps) in _ENTRY_POINTS.items():
-    if _id not in registry:
-        register(id=_id, entry_point=_entry, max_episode_steps=_steps)
+@dataclass(frozen=True, kw_only=True)
+class ScenarioSpec:
+    """One scenario: its short ``name`` (what ``--scenario`` and the records say), its Gymnasium ``id``, the env
+    class as a lazy ``"module:Class"`` ``entry_point``, the episode's ``max_episode_steps``, and whether it is in
+    the ``default`` set that the commands run when no ``--scenario`` is given. Every field but ``default`` is
+    required; a missing or malformed one is refused naming the scenario."""
+
+    name: str = ""
+    id: str = ""
+    entry_point: str = ""
+    max_episode_steps: int = 0
+    default: bool = False
+
+    def __post_init__(self) -> None:
+        missing = [f.name for f in fields(self) if f.name != "default" and getattr(self, f.name) in ("", 0, None)]
+        if missing:
+            raise ValueError(f"scenario spec {self.name or '(no name)'!r} is missing {', '.join(missing)}")
+        problems = [f"{key} must be a non-empty string, got {value!r}"
+                    for key, value in (("name", self.name), ("id", self.id), ("entry_point", self.entry_point))
+                    if not isinstance(value, str) or not value.strip()]
+        if isinstance(self.name, str) and "/" in self.name:
+            problems.append(f"name must not contain '/' (ids do), got {self.name!r}")
+        if isinstance(self.entry_point, str) and not all(self.entry_point.partition(":")[::2]):
+            problems.append(f"entry_point must be 'module:Class', got {self.entry_point!r}")
+        if isinstance(self.max_episode_steps, bool) or not isinstance(self.max_episode_steps, int) \
+                or self.max_episode_steps < 1:
+            problems.append(f"max_episode_steps must be an int >= 1, got {self.max_episode_steps!r}")
+        if not isinstance(self.default, bool):
+            problems.append(f"default must be true or false, got {self.default!r}")
+        if problems:
+            raise ValueError(f"scenario spec {self.name!r}: {'; '.join(problems)}")
+
+
+_SCENARIOS: dict[str, ScenarioSpec] = {}
+SCENARIOS = MappingProxyType(_SCENARIOS)  # name -> spec, read-only: register_scenario is the one way in
+
+
+def register_scenario(spec: ScenarioSpec) -> ScenarioSpec:
+    """Add ``spec`` to the table and register its id with Gymnasium. ``ValueError`` naming it when its name or id
+    is taken (a scenario is defined once)."""
+    if not isinstance(spec, ScenarioSpec):
+        raise TypeError(f"register_scenario expects a ScenarioSpec, got {spec!r}")
+    if spec.name in _SCENARIOS:
+        raise ValueError(f"scenario {spec.name!r} is already registered (as {_SCENARIOS[spec.name].id})")
+    taken = [s.name for s in _SCENARIOS.values() if s.id == spec.id]
+    if taken:
+        raise ValueError(f"scenario {spec.name!r}: id {spec.id!r} is already registered as scenario {taken[0]!r}")
+    if spec.id not in registry:  # a second copy of this package (a reload) finds its ids already in Gymnasium's
+        register(id=spec.id, entry_point=spec.entry_point, max_episode_steps=spec.max_episode_steps)
+    _SCENARIOS[spec.name] = spec
+    return spec
+
+
+# The shipped scenarios. The keep-lane variant of overtaking (the reference keeps the EV's lane: the planner must find
+# the pass itself) has its own id so that `bimp evaluate --scenario overtaking-keep-lane` and its records name it.
+for _spec in (
+    ScenarioSpec(name="overtaking", id="bimp/Overtaking-v0", entry_point="bimp.envs.scenarios:OvertakingEnv",
+                 max_episode_steps=150, default=True),
+    ScenarioSpec(name="emergency-brake", id="bimp/EmergencyBrake-v0",
+                 entry_point="bimp.envs.scenarios:EmergencyBrakeEnv", max_episode_steps=120, default=True),
+    ScenarioSpec(name="overtaking-keep-lane", id="bimp/OvertakingKeepLane-v0",
+                 entry_point="bimp.envs.scenarios:OvertakingKeepLaneEnv", max_episode_steps=150),
+):
+    register_scenario(_spec)
+
+# The shipped scenarios as fixed name -> id views of the table (the default set, and the variants).
+ENV_IDS = {s.name: s.id for s in _SCENARIOS.values() if s.default}
+VARIANT_IDS = {s.name: s.id for s in _SCENARIOS.values() if not s.default}
+
+
+def default_scenarios() -> list[str]:
+    """The names the commands run when no ``--scenario`` is given (the table's ``default`` entries)."""
+    return [s.name for s in _SCENARIOS.values() if s.default]
+
+
+def scenario_spec(scenario: str) -> ScenarioSpec:
+    """The spec of a scenario given by its name or its Gymnasium id; ``ValueError`` naming the choices."""
+    spec = _SCENARIOS.get(scenario) or next((s for s in _SCENARIOS.values() if s.id == scenario), None)
+    if spec is None:
+        raise ValueError(f"unknown scenario {scenario!r}; choose from {sorted(_SCENARIOS)}")
+    return spec
 
 
 def env_id(scenario: str) -> str:
     """Gym id of a scenario given by its short name (``overtaking``, ``emergency-brake``, a variant such as
     ``overtaking-keep-lane``) or its id."""
-    names = {**ENV_IDS, **VARIANT_IDS}
-    if scenario in names.values():
-        return scenario
-    try:
-        return names[scenario]
-    except KeyError:
-        raise ValueError(f"unknown scenario {scenario!r}; choose from {sorted(names)}") from None
+    return scenario_spec(scenario).id
 
 
-__all__ = ["ENV_IDS", "VARIANT_IDS", "Bounds", "PlanningWrapper", "RoadGeometry", "Scene", "env_id"]
+def scenario_name(gym_id: str) -> str | None:
+    """The short name of the scenario registered under ``gym_id``; None for an id outside the table."""
+    return next((s.name for s in _SCENARIOS.values() if s.id == gym_id), None)
+
+
+__all__ = ["ENV_IDS", "SCENARIOS", "VARIANT_IDS", "Bounds", "PlanningWrapper", "RoadGeometry", "Scene", "ScenarioSpec",
+           "default_scenarios", "env_id", "register_scenario", "scenario_name", "scenario_spec"]

@@ -1,5 +1,5 @@
-"""A policy that fails on purpose, for the evaluation's failure tests (importable by spawned workers as
-``tests.agents.faulty:Faulty``)."""
+"""Policies that fail on purpose, for the evaluation's failure tests: ``tests.agents.faulty:Faulty`` (importable by
+spawned workers by that name) and the registered policy ``fragile`` (registered when this module is imported)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 from bimp.agents.baselines import LaneKeeping
+from bimp.agents.registry import PolicySpec, register_policy
 
 
 class Faulty:
@@ -17,6 +18,7 @@ class Faulty:
     def __init__(self, env, flag: str, mode: str = "raise", once: bool = False):
         self.inner, self.flag, self.mode, self.once = LaneKeeping(env), Path(flag), mode, once
         self.config = {"flag": str(flag), "mode": mode, "once": once}
+        self.step_info: dict = {}
 
     def reset(self, seed=None) -> None:
         self.inner.reset(seed)
@@ -33,15 +35,20 @@ class Faulty:
 
 class Fragile(LaneKeeping):
     """Lane keeping that raises in ``act`` when its speed gain exceeds 1 (a tunable policy whose search space
-    holds configs that fail: ``tests.agents.faulty:Fragile``)."""
-
-    @staticmethod
-    def search_space() -> dict:
-        from optuna.distributions import FloatDistribution
-
-        return {"k_speed": FloatDistribution(0.1, 2.0)}
+    holds configs that fail: ``fragile``)."""
 
     def act(self, obs):
-        if self.k_speed > 1.0:
+        if self.config.k_speed > 1.0:
             raise RuntimeError("injected failure: gain too high")
         return super().act(obs)
+
+
+def fragile_space() -> dict:
+    """Fragile's search space: half of it fails."""
+    from optuna.distributions import FloatDistribution
+
+    return {"k_speed": FloatDistribution(0.1, 2.0)}
+
+
+register_policy(PolicySpec(name="fragile", factory="tests.agents.faulty:Fragile", label="fragile", color="black",
+                           search_space="tests.agents.faulty:fragile_space"))

@@ -15,7 +15,9 @@ import pytest
 
 from bimp.agents import evaluate as ev
 from bimp.agents.backends import BackendError, connect_ray
-from bimp.agents.evaluate import EvaluationError, evaluate, read_records
+from bimp.agents.cli import EvaluationError
+from bimp.agents.evaluate import evaluate
+from bimp.agents.records import read_records
 from tests.agents.test_evaluate import ARGS, FAULTY, deadline
 
 TIMING = {"plan_time_ms_p50", "plan_time_ms_p95"}  # wall-clock: the only metrics allowed to differ
@@ -77,7 +79,7 @@ def ray_local():
 @pytest.mark.slow
 def test_ray_gives_the_process_pools_per_seed_metrics(tmp_path, ray_local):
     args = {**ARGS, "policies": ["enkts", "lane-keep"], "episodes": 4, "traces": 0,
-            "overrides": {"enkts": {"n_particles": 16, "horizon": 8}}}
+            "overrides": {"enkts": {"n_particles": 16, "problem.horizon": 8}}}
     with deadline(600):
         evaluate(out=tmp_path / "pool", **{**args, "workers": 2})
         evaluate(out=tmp_path / "ray", backend="ray", **args)

@@ -7,14 +7,16 @@ import numpy as np
 import pytest
 
 from bimp.agents import evaluate as ev
-from bimp.agents.evaluate import EPISODES_FILE, EvaluationError, evaluate, folder_lock, read_records
+from bimp.agents.cli import EvaluationError
+from bimp.agents.evaluate import evaluate
 from bimp.agents.metrics import METRICS
 from bimp.agents.plots import plot_all
+from bimp.agents.records import EPISODES_FILE, folder_lock, read_records
 
 ARGS = dict(scenarios=["emergency-brake"], policies=["lane-keep"], episodes=3, seed=5, workers=1,
             traces=1, progress=False)
 FAULTY = "tests.agents.faulty:Faulty"
-SMALL_ENKTS = {"n_particles": 10, "horizon": 5}
+SMALL_ENKTS = {"n_particles": 10, "problem.horizon": 5}
 
 
 @contextmanager

@@ -3,6 +3,7 @@ import math
 import pytest
 
 from bimp.agents.metrics import METRICS, episode_metrics, summarize
+from bimp.agents.records import markdown_table
 
 OK = {"accel_min": -1.0, "accel_max": -1.0, "steer": -0.01, "accel_rate": -0.5, "steer_rate": -0.001}
 
@@ -81,8 +82,6 @@ def test_summary_intervals_and_errors_that_are_not_results():
 
 
 def test_rows_that_mix_code_versions_are_flagged():
-    from bimp.agents.evaluate import markdown_table
-
     ok = {"scenario": "s", "policy": "p", "status": "ok", "metrics": episode_metrics(trace(), dt=0.1, truncated=True)}
     same = summarize([{**ok, "seed": 0, "git_commit": "a"}, {**ok, "seed": 1, "git_commit": "a"}])
     assert "Mixed code versions" not in markdown_table(same)
@@ -99,8 +98,6 @@ def test_overtake_rate_is_the_last_step_ahead_of_ov1_and_none_elsewhere():
 
 def test_fallbacks_are_counted_and_shown_only_when_a_planner_fell_back():
     """Issue 24: six of six episodes driven on fallbacks (nu rounding to 2 in float32) showed only as collisions."""
-    from bimp.agents.evaluate import markdown_table
-
     ok = {"scenario": "s", "policy": "p", "status": "ok", "steps": 10,
           "metrics": episode_metrics(trace(), dt=0.1, truncated=True)}
     every_step = {"fallback_steps": list(range(10))}

@@ -10,7 +10,9 @@ import pytest
 
 from bimp.agents import aggregate, compare, plots
 from bimp.agents import evaluate as ev
-from bimp.agents.evaluate import EPISODES_FILE, EvaluationError, evaluate, read_records, resolve_arms
+from bimp.agents.cli import EvaluationError
+from bimp.agents.evaluate import evaluate, resolve_arms
+from bimp.agents.records import EPISODES_FILE, finite, read_records
 
 ARGS = dict(scenarios=["emergency-brake"], episodes=2, seed=5, workers=1, traces=1, progress=False)
 CLI = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5", "--workers", "1"]
@@ -36,12 +38,13 @@ def test_a_record_whose_config_does_not_hash_to_its_config_hash_is_refused_namin
 def test_a_genuine_record_resumes_even_with_infinities_written_as_null():
     """The check recomputes the hash from the record's config as it was written (JSON has no inf: null), so the
     records of an arm with an infinite value (EnKS's nu) still resume; a changed value is still refused."""
-    (arm,) = resolve_arms(["emergency-brake"], ["lane-keep"], {"lane-keep": {"k_speed": math.inf}})
-    record = json.loads(json.dumps(ev._finite({**ev._base_record(ev.Job(arm, 5)), "status": "error"})))
-    assert record["config"]["config"]["k_speed"] is None
+    toy = "tests.agents.toys:AlwaysBrake"  # a policy whose config takes any number
+    (arm,) = resolve_arms(["emergency-brake"], [toy], {toy: {"brake": math.inf}})
+    record = json.loads(json.dumps(finite({**ev._base_record(ev.Job(arm, 5)), "status": "error"})))
+    assert record["config"]["config"]["brake"] is None
     ev.check_conflicts([arm], [(1, record)])  # accepted
-    record["config"]["config"]["k_lat"] = 0.01
-    with pytest.raises(EvaluationError, match="line 7: .*k_lat"):
+    record["config"]["config"]["brake"] = 0.5
+    with pytest.raises(EvaluationError, match="line 7: .*brake"):
         ev.check_conflicts([arm], [(7, record)])
 
 

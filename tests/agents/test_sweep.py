@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from bimp.agents.cli import main
-from bimp.agents.evaluate import EvaluationError, read_records
+from bimp.agents.cli import EvaluationError, main
+from bimp.agents.records import read_records
 from bimp.agents.sweep import axis_points, param_points
 
 EB = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5"]
@@ -53,20 +53,21 @@ def test_several_params_of_a_policy_sweep_together_value_by_value():
 
 def test_the_frontier_table_has_one_row_per_policy_and_compute_value(tmp_path):
     out = tmp_path / "frontier"
-    assert main(["frontier", "--policies", "mppi", "lane-keep", "--n", "2", "4", "--set", "mppi.horizon=3",
+    assert main(["frontier", "--policies", "mppi", "lane-keep", "--n", "2", "4", "--set", "mppi.problem.horizon=3",
                  *EB, "--out", str(out)]) == 0
     rows = json.loads((out / "frontier.json").read_text())
     assert sorted((r["policy"], r["value"]) for r in rows) == [("lane-keep", None), ("mppi", 2), ("mppi", 4)]
     assert all(r["plan_time_ms_p50"]["mean"] > 0 for r in rows)
     lines = [line for line in (out / "frontier.md").read_text().splitlines() if line.startswith("| emergency")]
     assert len(lines) == 3
-    assert {r["config"]["config"]["horizon"] for r in read_records(out) if r["policy"] == "mppi"} == {3}
+    assert {r["config"]["config"]["problem"]["horizon"] for r in read_records(out) if r["policy"] == "mppi"} == {3}
 
 
 def test_axis_points_label_each_value_and_keep_a_policy_without_an_axis_whole():
-    points = axis_points(["enkts", "ppo"], {"enkts": ("n_particles", [10, 20])}, {"enkts": {"horizon": 5}})
+    points = axis_points(["enkts", "ppo"], {"enkts": ("n_particles", [10, 20])}, {"enkts": {"problem.horizon": 5}})
     assert [(p.label, p.overrides) for p in points] == [
-        ("enkts N=10", {"horizon": 5, "n_particles": 10}), ("enkts N=20", {"horizon": 5, "n_particles": 20}),
+        ("enkts N=10", {"problem.horizon": 5, "n_particles": 10}),
+        ("enkts N=20", {"problem.horizon": 5, "n_particles": 20}),
         ("ppo", {})]
 
 
@@ -75,7 +76,7 @@ def test_repeated_param_and_set_flags_add_up_instead_of_replacing_each_other(tmp
     # --param, silently ran only the second.
     out = tmp_path / "two"
     assert main(["sweep", "--param", "lane-keep.k_lat=0.01,0.02", "--param", "mppi.n_particles=2,3",
-                 "--set", "mppi.horizon=3", "--set", "lane-keep.k_head=0.1", *EB, "--episodes", "1",
+                 "--set", "mppi.problem.horizon=3", "--set", "lane-keep.k_head=0.1", *EB, "--episodes", "1",
                  "--out", str(out)]) == 0
     records = read_records(out)
     assert {r["label"] for r in records} == {"lane-keep k_lat=0.01", "lane-keep k_lat=0.02", "mppi n_particles=2",
@@ -88,7 +89,7 @@ def test_repeated_param_and_set_flags_add_up_instead_of_replacing_each_other(tmp
     (["sweep", "--param", "lane-keep.k_nope=1,2"], "k_nope"),
     (["sweep", "--param", "bogus"], "POLICY.KEY=V1"),
     (["frontier", "--policies", "nope"], "unknown policy"),
-    (["frontier", "--policies", "lane-keep", "--set", "mppi.horizon=3"], "no point evaluates"),
+    (["frontier", "--policies", "lane-keep", "--set", "mppi.problem.horizon=3"], "no point evaluates"),
     (["frontier", "--policies", "lane-keep", "--episodes", "0"], "--episodes"),
 ])
 def test_a_bad_request_exits_2_naming_it_and_writes_nothing(tmp_path, capsys, command, match):
@@ -101,7 +102,7 @@ def test_a_bad_request_exits_2_naming_it_and_writes_nothing(tmp_path, capsys, co
 def test_every_point_is_checked_before_the_first_runs(tmp_path, capsys):
     out = tmp_path / "frontier"
     # N = 4 is fine, N = 1 is not: no episode of N = 4 may run before the refusal.
-    assert main(["frontier", "--policies", "mppi", "--n", "4", "1", "--set", "mppi.horizon=3", *EB,
+    assert main(["frontier", "--policies", "mppi", "--n", "4", "1", "--set", "mppi.problem.horizon=3", *EB,
                  "--out", str(out)]) == 2
     assert "n_particles" in capsys.readouterr().err and read_records(out) == []
     assert main(["sweep", "--param", "lane-keep.k_speed=0.2", *EB, "--out", str(out)]) == 0

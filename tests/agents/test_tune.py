@@ -1,13 +1,17 @@
 """``bimp tune``: Optuna studies over a policy's declared search space, on training seeds only."""
 
+import dataclasses
+
 import gymnasium as gym
 import optuna
 import pytest
 import yaml
 
+import bimp.agents.baselines
+import tests.agents.faulty  # noqa: F401  (registers the policy "fragile")
 from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents.baselines import LaneKeeping
-from bimp.agents.registry import POLICIES, TUNED_DIR, make_policy, policy_class
+from bimp.agents.registry import POLICIES, TUNED_DIR, make_policy
 from bimp.agents.tune import TuneError, check_space, objective_value, search_space, set_value, tune
 
 EB = ["emergency-brake"]
@@ -26,10 +30,10 @@ def test_a_two_trial_study_writes_a_study_and_a_config_that_make_policy_loads(tm
     doc = yaml.safe_load((tmp_path / "best.yaml").read_text())
     assert doc["policy"] == "lane-keep" and doc["tuning"]["trial"] == study.best_trial.number
     policy = make_policy("lane-keep", gym.make("bimp/EmergencyBrake-v0"), config=tmp_path / "best.yaml")
-    assert policy.config == pytest.approx(study.best_trial.params)
+    assert dataclasses.asdict(policy.config) == pytest.approx(study.best_trial.params)
     # An override still wins over the tuned value.
     policy = make_policy("lane-keep", gym.make("bimp/EmergencyBrake-v0"), config=tmp_path / "best.yaml", k_lat=0.01)
-    assert policy.k_lat == 0.01
+    assert policy.config.k_lat == 0.01
 
 
 def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
@@ -42,7 +46,7 @@ def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
 
 
 def test_a_trial_whose_episodes_raise_fails_with_its_error_and_the_study_goes_on(tmp_path):
-    study = _run(tmp_path, 6, policy="tests.agents.faulty:Fragile")
+    study = _run(tmp_path, 6, policy="fragile")
     states = {t.state for t in study.trials}
     assert len(study.trials) == 6 and states == {optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL}
     for t in study.trials:
@@ -52,7 +56,7 @@ def test_a_trial_whose_episodes_raise_fails_with_its_error_and_the_study_goes_on
     assert study.best_trial.params["k_speed"] <= 1.0
 
 
-TUNABLE = sorted(p for p in POLICIES if hasattr(policy_class(p), "search_space"))
+TUNABLE = sorted(name for name, spec in POLICIES.items() if spec.search_space and name != "fragile")
 
 
 def test_every_planner_declares_a_search_space():
@@ -73,10 +77,10 @@ def test_a_shipped_tuned_config_is_the_default_and_a_study_does_not_drift_with_i
     monkeypatch.setattr(bimp.agents.registry, "TUNED_DIR", tmp_path)
     (tmp_path / "best.yaml").rename(tmp_path / "lane-keep.yaml")
     env = gym.make("bimp/EmergencyBrake-v0")
-    assert make_policy("lane-keep", env).config == pytest.approx(study.best_trial.params)
+    assert dataclasses.asdict(make_policy("lane-keep", env).config) == pytest.approx(study.best_trial.params)
     # The study's base is the factory's own defaults: a resumed study runs its trials as before.
     base = check_space("lane-keep", EB, search_space("lane-keep"))
-    assert base == LaneKeeping(env).config
+    assert base == dataclasses.asdict(LaneKeeping(env).config)
 
 
 def test_make_policy_refuses_a_config_tuned_for_another_policy_and_passes_a_plain_one_on(tmp_path):
@@ -89,14 +93,13 @@ def test_make_policy_refuses_a_config_tuned_for_another_policy_and_passes_a_plai
 
 
 def test_an_override_of_a_nested_entry_keeps_the_rest_of_the_tuned_config():
-    from bimp.agents.registry import TUNED_DIR
-    from bimp.agents.tune import load_tuned
+    from bimp.configs import load_tuned
 
     tuned = load_tuned("mppi", TUNED_DIR / "mppi.yaml")["problem"]
     policy = make_policy("mppi", gym.make("bimp/Overtaking-v0"), problem={"horizon": 30})
-    assert policy.tuning.horizon == 30
-    assert policy.tuning.sigma_barrier == tuned["sigma_barrier"] != 0.1  # tuned, not the shared problem's
-    assert policy.tuning.barrier.headway == tuned["barrier"]["headway"]
+    assert policy.config.problem.horizon == 30
+    assert policy.config.problem.sigma_barrier == tuned["sigma_barrier"] != 0.1  # tuned, not the shared problem's
+    assert policy.config.problem.barrier.headway == tuned["barrier"]["headway"]
 
 
 def test_bad_requests_fail_before_any_trial(tmp_path, monkeypatch):
@@ -106,8 +109,8 @@ def test_bad_requests_fail_before_any_trial(tmp_path, monkeypatch):
         _run(tmp_path, 1, policy="zero")
     with pytest.raises(TuneError, match="never tuned on"):
         _run(tmp_path, 1, seed=999)  # seeds 999 and 1000: the second is a results seed
-    space = {**LaneKeeping.search_space(), "k_nope": optuna.distributions.FloatDistribution(0, 1)}
-    monkeypatch.setattr(LaneKeeping, "search_space", staticmethod(lambda: space))
+    space = {**bimp.agents.baselines.search_space(), "k_nope": optuna.distributions.FloatDistribution(0, 1)}
+    monkeypatch.setattr(bimp.agents.baselines, "search_space", lambda: space)
     with pytest.raises(TuneError, match="k_nope"):
         _run(tmp_path, 1)
     assert not (tmp_path / "study").exists()

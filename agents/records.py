@@ -1,0 +1,214 @@
+"""An evaluation folder: its episode records (``episodes.jsonl``), its lock, and its summary files.
+
+Every command that reads or writes a folder goes through here: ``bimp evaluate`` appends records under the lock and
+writes the summary; ``compare``, ``aggregate``, ``plot``, ``sweep`` and ``tune`` read the records. A line that is not
+a record is reported once with its number and skipped, never a traceback (``docs/evaluation.md``).
+"""
+
+from __future__ import annotations
+
+import csv
+import fcntl
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from bimp.agents.cli import EvaluationError
+from bimp.agents.metrics import BINARY, METRICS
+
+EPISODES_FILE = "episodes.jsonl"
+LOCK_FILE = ".lock"
+
+
+def record_key(record: dict) -> tuple[str, str, str | None, int]:
+    """``(scenario, label, config_hash, seed)`` of a record (records older than labels use the policy name)."""
+    return record["scenario"], record.get("label", record["policy"]), record.get("config_hash"), record["seed"]
+
+
+# --- reading records ---------------------------------------------------------------------------------------
+# What every reader relies on; a JSON line without them is not a record (and never a traceback).
+REQUIRED = {"scenario": str, "policy": str, "seed": int, "status": str}
+OUTCOMES = ("success_rate", "collision_rate", "offroad_rate")  # what every reader takes from an ok record's metrics
+_JSON_TYPES = {dict: "an object", list: "an array", str: "a string", int: "a number", float: "a number",
+               bool: "a bool", type(None): "null"}
+
+
+def record_problem(value: object) -> str | None:
+    """Why a parsed JSON line is not an episode record (``None`` when it is one)."""
+    if not isinstance(value, dict):
+        return f"{_JSON_TYPES.get(type(value), type(value).__name__)}, not a record"
+    missing = [k for k in REQUIRED if k not in value]
+    if missing:
+        return f"a record without {', '.join(missing)}"
+    wrong = [k for k, kind in REQUIRED.items() if not isinstance(value[k], kind) or isinstance(value[k], bool)]
+    wrong += [k for k in ("label", "config_hash") if not isinstance(value.get(k, ""), str)]
+    wrong += [k for k in ("config",) if not isinstance(value.get(k, {}), dict)]
+    if wrong:
+        return f"a record whose {', '.join(wrong)} {'is' if len(wrong) == 1 else 'are'} of the wrong type"
+    if value["status"] == "ok" and not (isinstance(value.get("metrics"), dict)
+                                        and all(k in value["metrics"] for k in OUTCOMES)):
+        return f"an ok record without metrics ({', '.join(OUTCOMES)})"
+    return None
+
+
+_reported: set[tuple[str, tuple[int, ...]]] = set()  # said once per process: evaluate reads a folder three times
+
+
+def numbered_records(out: str | Path) -> list[tuple[int, dict]]:
+    """``(line number, record)`` of every record in ``out/episodes.jsonl``, in file order. A line that is not a
+    record (not JSON, not an object, lacking a key every reader needs: :func:`record_problem`) is skipped and
+    reported on stderr with its number; the last line, when no newline ends it, is a record cut by an interruption
+    and skipped silently. :class:`EvaluationError` when the file cannot be read."""
+    path = Path(out) / EPISODES_FILE
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return []
+    except OSError as err:
+        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
+    lines = data.split(b"\n")
+    cut = lines.pop()  # b"" after a final newline, else the line an interruption cut
+    records, skipped = [], []
+    for number, line in enumerate(lines + [cut], start=1):
+        if not line.strip():
+            continue
+        try:
+            value = json.loads(line)
+        except ValueError:  # bad JSON or not UTF-8
+            value, problem = None, "not JSON"
+        else:
+            problem = record_problem(value)
+        if problem is None:
+            records.append((number, value))
+        elif number <= len(lines):
+            skipped.append(f"line {number} ({problem})")
+    if skipped and (str(path), tuple(skipped)) not in _reported:
+        _reported.add((str(path), tuple(skipped)))
+        shown = "; ".join(skipped[:5]) + ("; ..." if len(skipped) > 5 else "")
+        print(f"bimp: warning: {path}: skipped {len(skipped)} line(s) that are not episode records: {shown}",
+              file=sys.stderr)
+    return records
+
+
+def read_records(out: str | Path) -> list[dict]:
+    """Every record in ``out/episodes.jsonl``, in file order (:func:`numbered_records` without the numbers)."""
+    return [record for _, record in numbered_records(out)]
+
+
+def latest_records(records: list[dict]) -> list[dict]:
+    """One record per ``(scenario, label, config_hash, seed)``: the last successful one, else the last error
+    (an error that a later run retried successfully is no longer shown)."""
+    chosen: dict[tuple, dict] = {}
+    for r in records:
+        key = record_key(r)
+        if r["status"] == "ok" or chosen.get(key, {}).get("status") != "ok":
+            chosen[key] = r
+    return list(chosen.values())
+
+
+# --- the lock ----------------------------------------------------------------------------------------------
+@contextmanager
+def folder_lock(out: Path) -> Iterator[None]:
+    """Hold ``out/.lock`` for the run; a second run into the same folder refuses at once. The lock is an
+    ``flock``, so the kernel releases it when the holder dies: no stale locks."""
+    handle = open(out / LOCK_FILE, "a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "another process"
+        handle.close()
+        raise EvaluationError(f"{out} is in use by another bimp run ({holder}); wait for it to end or choose "
+                              "another --out") from None
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        handle.flush()
+        yield
+    finally:
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
+
+
+# --- writing records and summaries ------------------------------------------------------------------------
+def finite(value: Any) -> Any:
+    """JSON has no inf: infinities and NaN become None."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite(v) for v in value]
+    return value
+
+
+STATS = ("mean", "ci_low", "ci_high")  # the columns of every metric in summary.csv
+
+
+def write_summary(summary: dict, out: Path) -> None:
+    """``summary.json`` (every statistic), ``summary.csv`` (mean and interval columns), ``summary.md``."""
+    (out / "summary.json").write_text(json.dumps(finite(summary), indent=2))
+    columns = ["policy", "scenario", "episodes", "errors"]
+    with open(out / "summary.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(columns + ["error_seeds", "failed_seeds"] + [f"{m}_{s}" for m in METRICS for s in STATS]
+                   + ["fallback_seeds", "fallback_steps"])
+        for e in summary.values():
+            w.writerow([e[c] for c in columns] + [" ".join(map(str, e["error_seeds"])),
+                                                  " ".join(map(str, e["failed_seeds"]["success"]))]
+                       + [e[m][s] for m in METRICS for s in STATS]
+                       + [" ".join(map(str, e["fallback_seeds"])), e["fallback_steps"]])
+    (out / "summary.md").write_text(markdown_table(summary))
+
+
+def format_stat(stat: dict | None) -> str:
+    """``mean [low, high]`` of a summary statistic, 3 digits below 10, else 1; ``-`` where there is no value."""
+    if not stat or stat.get("mean") is None:
+        return "-"
+    digits = 3 if abs(stat["mean"]) < 10 else 1
+    return f"{stat['mean']:.{digits}f} [{stat['ci_low']:.{digits}f}, {stat['ci_high']:.{digits}f}]"
+
+
+def _seeds(seeds: list[int], most: int = 8) -> str:
+    if not seeds:
+        return "0"
+    shown = ", ".join(map(str, seeds[:most])) + (", ..." if len(seeds) > most else "")
+    return f"{len(seeds)} ({shown})"
+
+
+def markdown_table(summary: dict) -> str:
+    """Scenario-by-arm rows: every metric as ``mean [95% interval]`` (Wilson for the episode outcomes,
+    bootstrap for the rest), the errors and the failed episodes with their seeds."""
+    fallbacks = any(e.get("fallback_steps") for e in summary.values())  # a column only where a planner fell back
+    head = ["scenario", "policy", "episodes", "errors", "failed"] + ["fallbacks"] * fallbacks + list(METRICS)
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for e in sorted(summary.values(), key=lambda e: (e["scenario"], e["policy"])):
+        cells = [e["scenario"], e["policy"], str(e["episodes"]), _seeds(e["error_seeds"]),
+                 _seeds(e["failed_seeds"]["success"])]
+        if fallbacks:
+            cells.append(f"{_seeds(e['fallback_seeds'])}; {e['fallback_steps']} of {e['steps']} steps"
+                         if e.get("fallback_steps") else "0")
+        lines.append("| " + " | ".join(cells + [format_stat(e[m]) for m in METRICS]) + " |")
+    notes = (f"\nIntervals: 95%, Wilson for {', '.join(BINARY)} (per episode), bootstrap of the mean for the "
+             "rest. `errors`: episodes that raised (not results; retried by the next run). `failed`: episodes "
+             "without success. Seeds in parentheses.\n")
+    if fallbacks:
+        notes += ("`fallbacks`: episodes where the planner found no usable plan on at least one step and fell back "
+                  "(held or braked), and those steps out of all steps: what the outcomes of these rows rest on.\n")
+    mixed = [f"{e['policy']}/{e['scenario']}" for e in summary.values() if len(e.get("code_versions", ())) > 1]
+    if mixed:
+        notes += (f"\n**Mixed code versions** in {', '.join(mixed)}: these rows hold records made by different "
+                  "commits (a resumed run after a code change); rerun into a fresh folder to compare one version.\n")
+    return "\n".join(lines) + "\n" + notes
+
+
+__all__ = ["EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "finite", "folder_lock", "format_stat",
+           "latest_records", "markdown_table", "numbered_records", "read_records", "record_key", "record_problem",
+           "write_summary"]
