@@ -72,14 +72,14 @@ def observations(count: int):
     return env, recorded
 
 
-def time_policy(name: str, env, sequence: list, repeats: int, **overrides) -> dict:
+def time_policy(name: str, env, sequence: list, repeats: int, horizon: int = H_DEFAULT, **overrides) -> dict:
     """Median and 95th percentile [ms] of ``act`` on ``sequence[1:repeats + 1]`` after an untimed call on
-    ``sequence[0]``."""
+    ``sequence[0]``, planning ``horizon`` steps ahead (the problem's horizon, the same key for every planner)."""
     import jax
     import numpy as np
 
     jax.clear_caches()  # the first call of a JAX planner then includes its compile, whatever ran before
-    policy = make_policy(name, env, **overrides)
+    policy = make_policy(name, env, problem={"horizon": horizon}, **overrides)
     policy.reset(0)
     start = time.perf_counter()
     policy.act(sequence[0])  # JAX planners compile here
@@ -90,7 +90,7 @@ def time_policy(name: str, env, sequence: list, repeats: int, **overrides) -> di
         start = time.perf_counter()
         policy.act(obs)
         times[i] = 1e3 * (time.perf_counter() - start)
-    row = {"planner": name, **overrides, "repeats": repeats, "median_ms": float(np.median(times)),
+    row = {"planner": name, **overrides, "horizon": horizon, "repeats": repeats, "median_ms": float(np.median(times)),
            "p95_ms": float(np.percentile(times, 95)), "first_call_ms": first}
     if hasattr(policy, "failures"):  # NMPC: how the timed solves ended
         row["solver_failures"] = int(policy.failures)
