@@ -18,20 +18,16 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
 def resolved_config(policy) -> dict:
-    """The policy's complete configuration as plain JSON-able data: its ``config`` (and ``tuning``, the
-    shared problem tuning of the peers), dataclasses or dicts. ``TypeError`` for a policy that exposes
-    neither: its results could not be attributed."""
-    parts = {}
-    for attr in ("config", "tuning"):
-        value = getattr(policy, attr, None)
-        if dataclasses.is_dataclass(value):
-            parts[attr] = dataclasses.asdict(value)
-        elif isinstance(value, dict):
-            parts[attr] = dict(value)
-    if "config" not in parts:
+    """The policy's complete configuration as plain JSON-able data, ``{"config": ...}``: its ``config``, a
+    dataclass (a planner's holds its ``problem``) or a dict. ``TypeError`` for a policy that exposes neither: its
+    results could not be attributed."""
+    config = getattr(policy, "config", None)
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        config = dataclasses.asdict(config)
+    if not isinstance(config, dict):
         raise TypeError(f"{type(policy).__name__} exposes no `config` (a dataclass or dict): "
                         "evaluation cannot record what produced its episodes")
-    return json.loads(json.dumps(parts, default=str))  # tuples -> lists, paths -> str: what a record holds
+    return json.loads(json.dumps({"config": config}, default=str))  # tuples -> lists, paths -> str: as recorded
 
 
 def config_hash(policy_name: str, config: dict) -> str:

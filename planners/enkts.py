@@ -10,7 +10,7 @@ PRNG key, and counts fallbacks. The same policy plans a batch: ``reset(seed=[s1,
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -18,21 +18,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bimp.configs import ConfigError, check_fields, load_config
+from bimp.configs import ConfigError, check_fields
 from bimp.envs.scene import Scene, real_array
 from bimp.planners import core
 from bimp.planners.model import model_params
-from bimp.planners.problem import PROBLEM_FILE, BarrierShape, Problem, ProblemConfig, Road, make_problem
+from bimp.planners.problem import BarrierShape, Problem, ProblemConfig, Road, load_planner_config, make_problem
 from bimp.planners.problem import search_space as problem_search_space
 
 
 @dataclass(frozen=True)
-class EnKTSConfig(ProblemConfig):
-    """Planner settings beside the problem's tuning (:class:`bimp.planners.problem.ProblemConfig`: horizon, nu,
-    sigma_du, sigma_ref, sigma_input, sigma_barrier, barrier, dynamics; ``nu = inf`` is EnKS). Units: m, rad, s,
-    m/s, m/s^2; increments per control step.
+class EnKTSConfig:
+    """EnKTS's settings and its planning problem. Units: m, rad, s, m/s, m/s^2; increments per control step.
 
-    n_particles: ensemble size N >= 2; adapt_spread: rescale the posterior
+    problem: the virtual system (:class:`bimp.planners.problem.ProblemConfig`: horizon, nu, sigma_du, sigma_ref,
+    sigma_input, sigma_barrier, lane_change_rate, barrier, dynamics; ``problem.nu = inf`` is EnKS), as every
+    planner holds it; n_particles: ensemble size N >= 2; adapt_spread: rescale the posterior
     anomalies by the Student's-t factor; grow_nu: ``nu <- nu + m`` after each update (eq. 19); max_spread: cap on
     that factor (``inf``: none); max_innovation: how many predicted standard deviations the virtual observation may
     lie from the predicted mean, per row and step; relaxation: share of the spread an update removed that is given
@@ -57,9 +57,10 @@ class EnKTSConfig(ProblemConfig):
     first_control_barriers: bool = True
     update: str = "perturbed"
     seed: int = 0
+    problem: ProblemConfig = field(default_factory=ProblemConfig)
 
     def __post_init__(self) -> None:
-        check_fields(self, allow_inf=(*self.INF_OK, "max_spread"))  # types, lengths; a barrier mapping -> BarrierShape
+        check_fields(self, allow_inf=("max_spread",))  # types, lengths; a problem mapping -> ProblemConfig
         if self.n_particles < 2:
             raise ConfigError("n_particles", "an int >= 2", self.n_particles)
         if self.iterations < 1:
@@ -74,14 +75,14 @@ class EnKTSConfig(ProblemConfig):
             raise ConfigError("seed", "an int >= 0", self.seed)
         if self.update not in core.READINGS:
             raise ConfigError("update", f"one of {', '.join(core.READINGS)}", self.update)
-        self._check_problem()
 
     def settings(self, n_obstacles: int) -> core.Settings:
         """The static part for :func:`bimp.planners.core.plan_step`."""
-        return core.Settings(self.n_particles, self.horizon, n_obstacles, float(self.nu),
-                             self.adapt_spread and not math.isinf(self.nu), self.grow_nu, float(self.max_spread),
+        problem = self.problem
+        return core.Settings(self.n_particles, problem.horizon, n_obstacles, float(problem.nu),
+                             self.adapt_spread and not math.isinf(problem.nu), self.grow_nu, float(self.max_spread),
                              float(self.max_innovation), float(self.relaxation), self.iterations,
-                             tuple(float(s) for s in self.sigma_du), self.gate_barriers,
+                             tuple(float(s) for s in problem.sigma_du), self.gate_barriers,
                              self.first_control_barriers, self.update)
 
 
@@ -118,7 +119,7 @@ class EnKTSPlanner:
     def __init__(self, scene: Scene | Callable[[], Scene | Sequence[Scene]], config: EnKTSConfig = EnKTSConfig()):
         self.config = config
         self._scene = scene if callable(scene) else (lambda: scene)
-        self._model = jax.device_put(model_params(config.dynamics))
+        self._model = jax.device_put(model_params(config.problem.dynamics))
         self._problem_scenes: list[Scene] = []
         self._problem: Problem | None = None
         self.fallbacks = 0  # plans that came out non-finite and were replaced by holding the last input
@@ -130,13 +131,13 @@ class EnKTSPlanner:
         self.batch = None if isinstance(seed, (int, np.integer)) else len(seed)
         if self.batch is None:
             self._keys = _key(seed)
-            self._carry = core.initial_carry(self.config.horizon)
+            self._carry = core.initial_carry(self.config.problem.horizon)
         else:
             if self.batch < 1:
                 raise ValueError("reset(seed=[...]) needs at least one seed")
             self._keys = jnp.stack([_key(s) for s in seed])
             self._carry = jax.tree.map(lambda a: jnp.broadcast_to(a, (self.batch, *a.shape)),
-                                       core.initial_carry(self.config.horizon))
+                                       core.initial_carry(self.config.problem.horizon))
         self._step = 0
         self._last: tuple | None = None  # (current states, PlanOut)
         self.step_info: dict = {}
@@ -188,7 +189,7 @@ class EnKTSPlanner:
         """The problem of the current scene(s), rebuilt only when a scene changes (the env redraws it at reset).
         Compared by value, not ``id``: a freed scene's id can be reused by the next one."""
         if scenes != self._problem_scenes:
-            problems = [make_problem(s, self.config, self._model) for s in scenes]
+            problems = [make_problem(s, self.config.problem, self._model) for s in scenes]
             problem = problems[0]
             if self.batch is not None:  # the roads differ per episode; everything else is shared
                 roads = zip(*(p.road for p in problems))
@@ -204,32 +205,37 @@ CONFIG_FILE = "planner.yaml"
 
 def make_enkts(env, config: str | Path | None = None, **overrides) -> EnKTSPlanner:
     """EnKTS for ``env`` (or a list of envs: a batched planner, one row per env), configured in layers, each on top
-    of the one before: the shared problem (``configs/problem.yaml``), the shipped settings (``configs/planner.yaml``),
-    the YAML ``config`` if given (a file of overrides: a key it leaves out keeps its shipped value, so
-    ``horizon: 20`` alone keeps ``n_particles`` at the shipped 100), then ``overrides``."""
-    sources = [PROBLEM_FILE, CONFIG_FILE] + ([config] if config else [])
-    scenes = (lambda: [e.unwrapped.scene for e in env]) if isinstance(env, (list, tuple)) else \
-        (lambda: env.unwrapped.scene)
-    return EnKTSPlanner(scenes, load_config(EnKTSConfig, sources, **overrides))
+    of the one before (:func:`bimp.planners.problem.load_planner_config`): the shared problem
+    (``configs/problem.yaml``) as ``problem``, the shipped settings (``configs/planner.yaml``), the YAML ``config``
+    if given (a file of overrides: a key it leaves out keeps its shipped value, so ``problem: {horizon: 30}`` alone
+    keeps ``n_particles`` at the shipped 100 and the rest of the problem), then ``overrides``
+    (``problem={"horizon": 30}`` or ``**{"problem.horizon": 30}``)."""
+    return _planner(env, CONFIG_FILE, config, overrides)
 
 
 def make_enks(env, config: str | Path | None = None, **overrides) -> EnKTSPlanner:
-    """EnKS: the same tuning as EnKTS except ``nu = inf`` (paper: "all other parameters the same"); ``config`` goes
-    on top of the shipped files as for :func:`make_enkts`."""
-    return make_enkts(env, config, **{"nu": math.inf, **overrides})
+    """EnKS: the same tuning as EnKTS except ``problem.nu = inf`` (paper: "all other parameters the same"), set
+    after ``config`` (so a config file shared with EnKTS keeps EnKS Gaussian) and before ``overrides``."""
+    return _planner(env, CONFIG_FILE, config, {"problem": {"nu": math.inf}}, overrides)
+
+
+def _planner(env, *layers) -> EnKTSPlanner:
+    scenes = (lambda: [e.unwrapped.scene for e in env]) if isinstance(env, (list, tuple)) else \
+        (lambda: env.unwrapped.scene)
+    return EnKTSPlanner(scenes, load_planner_config(EnKTSConfig, *layers))
 
 
 def search_space() -> dict:
     """What ``bimp tune`` searches for EnKTS (optuna distributions; keys as in :class:`EnKTSConfig`): the noise
-    scales of the virtual system, the barriers' tightness and margins, the update's safeguards, nu. N and H are
-    not tuned: they set the compute, compared across values by ``bimp frontier``."""
+    scales of the virtual system, the barriers' tightness and margins, nu (``problem.*``), the update's safeguards.
+    N and H are not tuned: they set the compute, compared across values by ``bimp frontier``."""
     from optuna.distributions import FloatDistribution as Float
 
     return {
         **problem_search_space(),
-        "nu": Float(2.5, 30.0, log=True),
-        "sigma_barrier": Float(0.03, 0.5, log=True),
-        "lane_change_rate": Float(1.0, 4.0),
+        "problem.nu": Float(2.5, 30.0, log=True),
+        "problem.sigma_barrier": Float(0.03, 0.5, log=True),
+        "problem.lane_change_rate": Float(1.0, 4.0),
         "max_innovation": Float(1.0, 4.0),
         "relaxation": Float(0.0, 0.9),
     }
@@ -237,11 +243,8 @@ def search_space() -> dict:
 
 def enks_search_space() -> dict:
     """EnKTS's search space without nu (EnKS is its Gaussian case)."""
-    return {k: v for k, v in search_space().items() if k != "nu"}
+    return {k: v for k, v in search_space().items() if k != "problem.nu"}
 
 
-make_enkts.batched = make_enks.batched = True
-make_enkts.search_space, make_enks.search_space = search_space, enks_search_space
-
-
-__all__ = ["BarrierShape", "EnKTSConfig", "EnKTSPlanner", "Plan", "make_enkts", "make_enks"]
+__all__ = ["BarrierShape", "EnKTSConfig", "EnKTSPlanner", "Plan", "enks_search_space", "make_enkts", "make_enks",
+           "search_space"]

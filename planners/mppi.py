@@ -4,7 +4,7 @@ MPPI (Williams et al. 2017) samples ``N`` control sequences around a nominal one
 them with weights ``exp(-cost / lambda)``. Here it optimizes exactly what EnKTS infers, in the Gaussian case:
 
     running cost  c_t = 0.5 * sum_i (h_i(xb_t) / sigma_i)^2,   h = planners.problem.measure   (eq. 8, observed 0)
-    sigma = [sigma_ref (3), sigma_input (2), sigma_barrier (one per barrier)]  of the shared problem tuning
+    sigma = [sigma_ref (3), sigma_input (2), sigma_barrier (one per barrier)]  of the config's problem
 
 MPPI's state is the virtual system's block plus the first control: ``xb_t = [x_t (4), u_t (2), du_t (2), u_0 (2)]``
 (eq. 7): ``u`` and ``du`` so the cost can charge input and rate terms, ``u_0`` because the virtual system observes the
@@ -46,20 +46,19 @@ Cost per plan: H steps of O(N) model and cost work: linear in N and in H.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import numpy as np
 import torch
 from pytorch_mppi import MPPI
 
-from bimp.configs import ConfigError, check_fields, load_config
+from bimp.configs import ConfigError, check_fields
 from bimp.envs.scene import Scene
 from bimp.planners.problem import (
-    PROBLEM_FILE,
     Problem,
     ProblemConfig,
-    load_problem,
+    load_planner_config,
     make_problem,
     measure,
     predict_obstacles,
@@ -73,12 +72,15 @@ NX = 10  # [x (4), u (2), du (2), u_0 (2)]
 
 @dataclass(frozen=True)
 class MPPIConfig:
-    """MPPI settings; the cost (noise scales, barriers) and the horizon come from the shared problem
-    (:class:`bimp.planners.problem.ProblemConfig`).
+    """MPPI's settings and its planning problem.
 
-    n_particles: samples N >= 2 (EnKTS's default, 50); horizon: H >= 1 steps (``None``: the shared problem's,
-    as every planner); temperature: MPPI's lambda > 0, in units of the cost (a negative log-likelihood);
-    noise_gain: std of the i.i.d. control perturbation per step as a multiple of the tuning's ``sigma_du``, > 0;
+    problem: the virtual system (:class:`bimp.planners.problem.ProblemConfig`), as every planner holds it: its
+    horizon is MPPI's, its noise scales and barriers make the cost, ``sigma_du`` the sampling noise and
+    ``barrier.bound_margin`` tightens the rate bounds the increments are clamped to. The cost is the Gaussian
+    negative log-likelihood, so ``problem.nu`` is not read (it stays the shared problem's, as recorded);
+    n_particles: samples N >= 2 (EnKTS's default, 50); temperature: MPPI's lambda > 0, in units of the cost (a
+    negative log-likelihood);
+    noise_gain: std of the i.i.d. control perturbation per step as a multiple of ``problem.sigma_du``, > 0;
     control_cost: weight >= 0 of MPPI's control cost ``lambda U' Sigma^-1 eps`` (``1 - alpha`` of Williams et al.
     2018; 1 = pytorch_mppi's default). That term is the log-prior of controls that are zero-mean a priori; the
     virtual system's prior is on the increments and its input and rate terms are already in the running cost,
@@ -91,19 +93,17 @@ class MPPIConfig:
     """
 
     n_particles: int = 50
-    horizon: int | None = None
     temperature: float = 1.0
     noise_gain: float = 1.0
     control_cost: float = 0.0
     sample: Literal["increments", "inputs"] = "increments"
     seed: int = 0
+    problem: ProblemConfig = field(default_factory=ProblemConfig)
 
     def __post_init__(self) -> None:
-        check_fields(self)
+        check_fields(self)  # a problem mapping -> ProblemConfig, checked
         if self.n_particles < 2:
             raise ConfigError("n_particles", "an int >= 2", self.n_particles)
-        if self.horizon is not None and self.horizon < 1:
-            raise ConfigError("horizon", "an int >= 1 or None", self.horizon)
         if not self.temperature > 0:
             raise ConfigError("temperature", "a finite number > 0", self.temperature)
         if not self.noise_gain > 0:
@@ -161,8 +161,8 @@ class MPPIPlanner:
     """MPPI as an :class:`bimp.agents.Policy`.
 
     scene: a :class:`bimp.envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
-    config: MPPI settings; tuning: the shared problem (noise scales, barriers, horizon); dynamics:
-    any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the model ``tuning.dynamics`` names, as
+    config: MPPI's settings and problem (noise scales, barriers, horizon); dynamics:
+    any batched numpy ``f(x (N, 4), u (N, 2)) -> (N, 4)`` (default: the model ``config.problem.dynamics`` names, as
     EnKTS: the shipped MLP, the bicycle model or a weights file).
 
     ``fallbacks`` counts plans that came out non-finite and were replaced by holding the last input;
@@ -170,17 +170,17 @@ class MPPIPlanner:
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: MPPIConfig = MPPIConfig(),
-                 tuning: ProblemConfig = ProblemConfig(), dynamics: Dynamics | None = None):
-        self.config, self.tuning = config, tuning
-        self.n_particles, self.horizon = config.n_particles, config.horizon or tuning.horizon
+                 dynamics: Dynamics | None = None):
+        self.config = config
+        self.n_particles, self.horizon = config.n_particles, config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         if dynamics is None:
             from bimp.planners.dynamics import model_from_name
 
-            dynamics = model_from_name(tuning.dynamics)
+            dynamics = model_from_name(config.problem.dynamics)
         self.dynamics = dynamics
         self.generator = torch.Generator()
-        noise_std = config.noise_gain * torch.tensor(tuning.sigma_du, dtype=torch.float64)
+        noise_std = config.noise_gain * torch.tensor(config.problem.sigma_du, dtype=torch.float64)
         self._mppi = _SeededMPPI(
             self.generator, config.control_cost, self._step, self.running_cost, nx=NX,
             noise_sigma=torch.diag(noise_std**2),
@@ -210,7 +210,8 @@ class MPPIPlanner:
         mppi = self._mppi
         increments = self.config.sample == "increments"
         if increments:  # the rate bounds, tightened as the barriers tighten them
-            rate = np.array([scene.bounds.accel_rate, scene.bounds.steer_rate]) * (1 - self.tuning.barrier.bound_margin)
+            keep = 1 - self.config.problem.barrier.bound_margin
+            rate = np.array([scene.bounds.accel_rate, scene.bounds.steer_rate]) * keep
             mppi.u_min, mppi.u_max = torch.from_numpy(-rate), torch.from_numpy(rate)
         else:
             mppi.u_min, mppi.u_max = torch.from_numpy(lo), torch.from_numpy(hi)
@@ -219,7 +220,7 @@ class MPPIPlanner:
             torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
         if not self._warm:
             mppi.U = hold
-        problem = make_problem(scene, self.tuning)
+        problem = make_problem(scene, self.config.problem)
         v_ref, a_ref, lane = reference_profile(problem, ref, ego, self.horizon)
         self._context = _Context(problem, u_prev, lane, v_ref, a_ref,
                                  predict_obstacles(problem, ovs, self.horizon))
@@ -263,24 +264,22 @@ class MPPIPlanner:
         return torch.from_numpy(0.5 * np.sum((h / ctx.problem.noise) ** 2, axis=1))
 
 
-def make_mppi(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
-              **overrides) -> MPPIPlanner:
-    """MPPI for ``env``: settings from :class:`MPPIConfig`'s defaults, the YAML ``config`` on top if given (a file
-    of overrides: a key it leaves out keeps its default), then ``overrides`` (an unknown key raises naming it); cost
-    and horizon from the shared problem ``tuning`` (``configs/problem.yaml``) plus ``problem``, overrides of it for
-    this planner alone (a tuned cost). ``bimp.agents.make_policy("mppi", ...)`` starts from the shipped tuned config
-    (``configs/tuned/mppi.yaml``) instead."""
-    return MPPIPlanner(lambda: env.unwrapped.scene, load_config(MPPIConfig, config, **overrides),
-                       load_problem(tuning, **(problem or {})))
+def make_mppi(env, config: str | None = None, **overrides) -> MPPIPlanner:
+    """MPPI for ``env``, configured in layers (:func:`bimp.planners.problem.load_planner_config`): the shared
+    problem (``configs/problem.yaml``) as ``problem`` and :class:`MPPIConfig`'s defaults, the YAML ``config`` on top
+    if given (a file of overrides: a key it leaves out keeps its default), then ``overrides`` (``problem=`` a
+    mapping merged key by key; an unknown key raises naming it). ``bimp.agents.make_policy("mppi", ...)`` starts
+    from the shipped tuned config (``configs/tuned/mppi.yaml``) instead."""
+    return MPPIPlanner(lambda: env.unwrapped.scene, load_planner_config(MPPIConfig, config, overrides))
 
 
 def search_space() -> dict:
     """What ``bimp tune`` searches for MPPI: its temperature, sampling noise and control cost, and the weights and
-    margins of its cost (``problem.*``, this planner's copy of the shared problem). N is not tuned."""
+    margins of its cost (``problem.*``). N is not tuned."""
     from optuna.distributions import FloatDistribution as Float
 
     # The increments' noise is noise_gain's to set; the barriers' noise is a cost weight here, searched wider.
-    shared = {k: v for k, v in problem_search_space("problem.").items() if not k.startswith("problem.sigma_du")}
+    shared = {k: v for k, v in problem_search_space().items() if not k.startswith("problem.sigma_du")}
     return {
         "temperature": Float(0.01, 100.0, log=True),
         "noise_gain": Float(0.3, 10.0, log=True),
@@ -290,7 +289,4 @@ def search_space() -> dict:
     }
 
 
-make_mppi.search_space = search_space
-
-
-__all__ = ["MPPIConfig", "MPPIPlanner", "generator_seed", "make_mppi"]
+__all__ = ["MPPIConfig", "MPPIPlanner", "generator_seed", "make_mppi", "search_space"]

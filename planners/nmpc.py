@@ -13,7 +13,7 @@ directly with a gradient-based solver, so the EnKTS planner can be compared agai
 - ``nmpc`` (``nu = inf``): rho_n(q) = q / 2, the quadratic tracking cost of eq. 21 as a negative log-likelihood;
   weights are the inverse squared noise scales ``sigma_ref``, ``sigma_input``, ``sigma_du`` of the shared planner
   problem (``configs/problem.yaml``), so all planners trade tracking against smoothness the same way.
-- ``nmpc-t`` (``nu`` = the tuning's ``nu``): rho_n(q) = (nu + n) / 2 log(1 + q / nu), the Student's-t log cost
+- ``nmpc-t`` (``nu`` = the problem's ``nu``): rho_n(q) = (nu + n) / 2 log(1 + q / nu), the Student's-t log cost
   of section IV (it tends to q / 2 as nu -> inf).
 
 The residuals are those of :func:`bimp.planners.problem.measure` (road frame: lateral offset to the reference lane,
@@ -50,21 +50,19 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import casadi as ca
 import numpy as np
 
-from bimp.configs import ConfigError, check_fields, load_config
+from bimp.configs import ConfigError, check_fields
 from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import Scene
 from bimp.planners.problem import (
-    NU_MIN,
-    PROBLEM_FILE,
     BarrierShape,
     ProblemConfig,
-    load_problem,
+    load_planner_config,
     make_problem,
     predict_obstacles,
     reference_profile,
@@ -76,45 +74,53 @@ _CAPPED = ("Maximum_Iterations_Exceeded", "Maximum_CpuTime_Exceeded", "Maximum_W
 _ABSENT = 1e3  # added to an absent OV's keep-out value: the constraint can never bind
 
 
+# NMPC's bounds are hard constraints: the margin only keeps IPOPT's tolerance and the float32 action inside the
+# env's bounds (the soft barriers of EnKTS and MPPI need the shared problem's 0.05).
+HARD_BOUND_MARGIN = 1e-3
+HARD_BOUNDS = {"problem": {"barrier": {"bound_margin": HARD_BOUND_MARGIN}}}  # the layer over the shared problem
+
+
 @dataclass(frozen=True)
 class NMPCConfig:
-    """Solver settings; the cost weights, barrier margins and horizon come from the shared problem
-    (:class:`bimp.planners.problem.ProblemConfig`).
+    """NMPC's solver settings and its planning problem.
 
-    horizon: H >= 1 steps (``None``: the shared tuning's); nu: degrees of freedom of the Student's-t log cost, >=
-    ``bimp.planners.problem.NU_MIN`` = 2.1 (``inf``: the quadratic cost of eq. 21): the shared problem's floor, as
-    ``nmpc-t`` takes that nu (one virtual system, one range of nu whichever planner solves it); max_iter: IPOPT
-    iteration cap per warm-started solve (>= 0); max_cpu_time [s]: IPOPT CPU-time cap per warm-started solve;
-    cold_max_iter, cold_max_cpu_time: the same for the first solve of an episode; tol: IPOPT's convergence
-    tolerance; hessian: ``"exact"`` (CasADi AD) or ``"limited-memory"`` (L-BFGS); bound_tightening: relative margin
-    on the input and rate bounds, so that IPOPT's tolerance and the float32 action never cross the env's bound;
-    feasibility_tol: largest constraint violation of a capped iterate that is still used; keep_out_power: even
-    exponent p >= 2 of the keep-out superellipse (2: an ellipse); slack_penalty: weight > 0 of the exact (L1)
-    penalty on slack variables that soften the keep-out and road-edge constraints (``inf``: hard constraints, the
-    paper's eq. 21; with them a sudden brake ahead makes the problem infeasible, IPOPT fails at every step and the
-    fallback drives into the OV). A bad value raises :class:`bimp.configs.ConfigError` naming the key and the value
-    (types by :func:`bimp.configs.check_fields`).
+    problem: the virtual system (:class:`bimp.planners.problem.ProblemConfig`), as every planner holds it: its
+    horizon is NMPC's, its noise scales the cost's weights (inverse squares), its barrier margins the constraints'.
+    ``problem.nu`` is the degrees of freedom of the Student's-t log cost (``inf``: the quadratic cost of eq. 21,
+    ``nmpc``'s default; ``nmpc-t`` takes the shared problem's): the same Student's-t as the virtual system's
+    noise, one range of nu whichever planner solves it. ``problem.barrier.bound_margin`` is the relative margin by
+    which NMPC tightens the input and rate bounds, as the barriers of the other planners do; NMPC's bounds are hard
+    constraints, so it only has to keep IPOPT's tolerance and the float32 action inside the env's bounds: NMPC's
+    default is :data:`HARD_BOUND_MARGIN` = 1e-3 (this field was ``bound_tightening``), not the shared problem's 0.05.
+
+    max_iter: IPOPT iteration cap per warm-started solve (>= 0); max_cpu_time [s]: IPOPT CPU-time cap per
+    warm-started solve; cold_max_iter, cold_max_cpu_time: the same for the first solve of an episode; tol: IPOPT's
+    convergence tolerance; hessian: ``"exact"`` (CasADi AD) or ``"limited-memory"`` (L-BFGS); feasibility_tol:
+    largest constraint violation of a capped iterate that is still used; keep_out_power: even exponent p >= 2 of
+    the keep-out superellipse (2: an ellipse); slack_penalty: weight > 0 of the exact (L1) penalty on slack
+    variables that soften the keep-out and road-edge constraints (``inf``: hard constraints, the paper's eq. 21;
+    with them a sudden brake ahead makes the problem infeasible, IPOPT fails at every step and the fallback drives
+    into the OV). A bad value raises :class:`bimp.configs.ConfigError` naming the key and the value (types by
+    :func:`bimp.configs.check_fields`).
     """
 
-    horizon: int | None = None
-    nu: float = math.inf
     max_iter: int = 30
     max_cpu_time: float = 1.0
     cold_max_iter: int = 200
     cold_max_cpu_time: float = 5.0
     tol: float = 1e-6
     hessian: str = "exact"
-    bound_tightening: float = 1e-3
     feasibility_tol: float = 1e-4
     keep_out_power: int = 4
     slack_penalty: float = 1e4
+    problem: ProblemConfig = field(default_factory=lambda: ProblemConfig(
+        nu=math.inf, barrier=BarrierShape(bound_margin=HARD_BOUND_MARGIN)))
+
+    # Old keys, refused naming their new place (bimp.planners.problem.load_planner_config).
+    MOVED = {"bound_tightening": "problem.barrier.bound_margin"}
 
     def __post_init__(self) -> None:
-        check_fields(self, allow_inf=("nu", "slack_penalty"))
-        if self.horizon is not None and self.horizon < 1:
-            raise ConfigError("horizon", "an int >= 1 or None", self.horizon)
-        if not self.nu >= NU_MIN:
-            raise ConfigError("nu", f">= {NU_MIN} (inf for the quadratic cost)", self.nu)
+        check_fields(self, allow_inf=("slack_penalty",))  # a problem mapping -> ProblemConfig, checked
         for key in ("max_iter", "cold_max_iter"):
             if getattr(self, key) < 0:
                 raise ConfigError(key, "an int >= 0", getattr(self, key))
@@ -125,8 +131,6 @@ class NMPCConfig:
             raise ConfigError("hessian", "'exact' or 'limited-memory'", self.hessian)
         if self.keep_out_power < 2 or self.keep_out_power % 2:
             raise ConfigError("keep_out_power", "an even int >= 2", self.keep_out_power)
-        if not 0 <= self.bound_tightening < 1:
-            raise ConfigError("bound_tightening", "in [0, 1)", self.bound_tightening)
         if not self.slack_penalty > 0:
             raise ConfigError("slack_penalty", "> 0 (inf for hard constraints)", self.slack_penalty)
 
@@ -278,9 +282,9 @@ class NMPCPlanner:
     """NMPC (eq. 21) as an :class:`bimp.agents.Policy`.
 
     scene: a :class:`bimp.envs.Scene` or a callable returning the current one (``lambda: env.unwrapped.scene``);
-    config: solver settings; tuning: the shared planner tuning (cost weights = inverse squared noise scales,
-    barrier margins); dynamics: a CasADi ``Function f(x (4,), u (2,)) -> (4,)`` (default: the model
-    ``tuning.dynamics`` names, as EnKTS: :func:`mlp_function` of the shipped MLP or of a weights file, or
+    config: solver settings and the problem (cost weights = inverse squared noise scales, barrier margins,
+    horizon); dynamics: a CasADi ``Function f(x (4,), u (2,)) -> (4,)`` (default: the model
+    ``config.problem.dynamics`` names, as EnKTS: :func:`mlp_function` of the shipped MLP or of a weights file, or
     :func:`bicycle_function`).
 
     Attributes after ``act``: ``failures`` (fallback actions), ``capped`` (cap-stopped but feasible solves used),
@@ -290,15 +294,15 @@ class NMPCPlanner:
     """
 
     def __init__(self, scene: Scene | Callable[[], Scene], config: NMPCConfig = NMPCConfig(),
-                 tuning: ProblemConfig = ProblemConfig(), dynamics: ca.Function | None = None):
-        self.config, self.tuning = config, tuning
-        self.horizon = config.horizon or tuning.horizon
+                 dynamics: ca.Function | None = None):
+        self.config = config
+        self.horizon = config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
         if dynamics is None:
             from bimp.planners.dynamics import BicycleModel, model_from_name
 
-            model = model_from_name(tuning.dynamics)
+            model = model_from_name(config.problem.dynamics)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
             dynamics, self._model_dt = build(model), model.dt
         self.f = dynamics
@@ -314,6 +318,7 @@ class NMPCPlanner:
         self._guess: tuple[np.ndarray, np.ndarray] | None = None  # last iterate: X (H, 4) = x_1..x_H, U (H, 2)
         self._controls: np.ndarray | None = None  # the last usable plan's controls (H, 2), shifted at every step
         self.plan: tuple[np.ndarray, np.ndarray] | None = None
+        self.step_info: dict = {}  # this step's solve, set by act
 
     # --- Policy ------------------------------------------------------------------------------------------
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -400,7 +405,7 @@ class NMPCPlanner:
     def _params(self, scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
         """NLP parameters, in the order :meth:`_build` declares them."""
         H = self.horizon
-        problem = make_problem(scene, self.tuning)
+        problem = make_problem(scene, self.config.problem)
         s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
         v_ref, a_ref, lane = reference_profile(problem, ref, ego, H)
         return np.concatenate([ego, u_prev, lane, v_ref, a_ref, road_params(scene.road),
@@ -418,7 +423,7 @@ class NMPCPlanner:
         """Formulate eq. 21 (multiple shooting) for ``scene``'s layout and compile IPOPT on it."""
         if self._model_dt is not None and abs(self._model_dt - scene.dt) > 1e-9:
             raise ValueError(f"the dynamics model steps {self._model_dt} s but the scene's dt is {scene.dt} s")
-        cfg, tun, H, K = self.config, self.tuning, self.horizon, scene.n_obstacles
+        cfg, tun, H, K = self.config, self.config.problem, self.horizon, scene.n_obstacles
         shape, b = tun.barrier, scene.bounds
         X = ca.MX.sym("X", 4, H)  # x_1 .. x_H (columns)
         U = ca.MX.sym("U", 2, H)  # u_0 .. u_{H-1}
@@ -446,8 +451,8 @@ class NMPCPlanner:
         feedforward = ca.atan(scene.vehicle_length * curvature_at(s[:, 1:], road))
         q_in = ((U[0, :] - a_ref[:, 1:]) / si[0]) ** 2 + ((U[1, :] - feedforward) / si[1]) ** 2
         q_du = (du[0, :] / sw[0]) ** 2 + (du[1, :] / sw[1]) ** 2
-        J = ca.sum2(robust_cost(q_ref[:, 1:], 3, cfg.nu) + robust_cost(q_in, 2, cfg.nu)
-                    + robust_cost(q_du, 2, cfg.nu))
+        J = ca.sum2(robust_cost(q_ref[:, 1:], 3, tun.nu) + robust_cost(q_in, 2, tun.nu)
+                    + robust_cost(q_du, 2, tun.nu))
 
         # Soft constraints (keep-out and road edges) take a slack each, charged at an exact (L1) penalty: a problem
         # that a sudden brake ahead makes infeasible becomes one that minimizes the violation, and as long as the
@@ -467,7 +472,7 @@ class NMPCPlanner:
             lbg.append(np.broadcast_to(lower, (n,))), ubg.append(np.broadcast_to(upper, (n,)))
 
         add(self.f.map(H)(states[:, :H], U) - X, 0.0, 0.0)  # multiple shooting
-        keep = 1.0 - cfg.bound_tightening
+        keep = 1.0 - shape.bound_margin  # hard bounds: HARD_BOUND_MARGIN by default
         rate = np.tile([keep * b.accel_rate, keep * b.steer_rate], H)
         add(du, -rate, rate)
         # Road edges: |l| + L/2 |sin dpsi| + W/2 cos dpsi is the largest of the four corners' +-l +- L/2 sin dpsi
@@ -504,36 +509,34 @@ class NMPCPlanner:
                         lbx, ubx, np.concatenate(lbg), np.concatenate(ubg), n_slack)
 
 
-def make_nmpc(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
-              **overrides) -> NMPCPlanner:
-    """NMPC with the quadratic cost of eq. 21 for ``env``: solver settings from :class:`NMPCConfig`'s defaults, the
-    YAML ``config`` on top if given (a file of overrides: a key it leaves out keeps its default), then
-    ``overrides`` (an unknown key raises naming it); weights, margins and horizon from the shared problem
-    (``tuning``, ``configs/problem.yaml``) plus ``problem``, overrides of it for this planner alone (a tuned
-    cost)."""
-    return NMPCPlanner(lambda: env.unwrapped.scene, load_config(NMPCConfig, config, **overrides),
-                       load_problem(tuning, **(problem or {})))
-
-
-def make_nmpc_t(env, config: str | None = None, tuning: str | None = PROBLEM_FILE, problem: dict | None = None,
-                **overrides) -> NMPCPlanner:
-    """NMPC with the Student's-t log cost of section IV, ``nu`` from the shared problem (EnKTS's); configured in
-    layers as :func:`make_nmpc`. ``bimp.agents.make_policy("nmpc-t", ...)`` starts from the shipped tuned config
-    (``configs/tuned/nmpc-t.yaml``) instead."""
-    shared = load_problem(tuning, **(problem or {}))
+def make_nmpc(env, config: str | None = None, **overrides) -> NMPCPlanner:
+    """NMPC with the quadratic cost of eq. 21 for ``env``, configured in layers
+    (:func:`bimp.planners.problem.load_planner_config`): the shared problem (``configs/problem.yaml``) as
+    ``problem`` and :class:`NMPCConfig`'s defaults, NMPC's own problem values (``problem.nu = inf``,
+    ``problem.barrier.bound_margin =`` :data:`HARD_BOUND_MARGIN`), the YAML ``config`` on top if given (a file of
+    overrides: a key it leaves out keeps its default), then ``overrides`` (``problem=`` a mapping merged key by
+    key; an unknown key raises naming it)."""
+    nu_inf = {"problem": {"nu": math.inf}}
     return NMPCPlanner(lambda: env.unwrapped.scene,
-                       load_config(NMPCConfig, config, **{"nu": shared.nu, **overrides}), shared)
+                       load_planner_config(NMPCConfig, HARD_BOUNDS, nu_inf, config, overrides))
+
+
+def make_nmpc_t(env, config: str | None = None, **overrides) -> NMPCPlanner:
+    """NMPC with the Student's-t log cost of section IV, ``problem.nu`` the shared problem's (EnKTS's); configured
+    in layers as :func:`make_nmpc`. ``bimp.agents.make_policy("nmpc-t", ...)`` starts from the shipped tuned config
+    (``configs/tuned/nmpc-t.yaml``) instead."""
+    return NMPCPlanner(lambda: env.unwrapped.scene, load_planner_config(NMPCConfig, HARD_BOUNDS, config, overrides))
 
 
 def search_space() -> dict:
     """What ``bimp tune`` searches for NMPC: the weights of its cost and the margins of its constraints
-    (``problem.*``, this planner's copy of the shared problem), the keep-out's shape and the slack penalty. Not the
+    (``problem.*``), the keep-out's shape and the slack penalty. Not the
     iteration cap: it buys quality with compute, compared across values by ``bimp frontier``."""
     from optuna.distributions import CategoricalDistribution
     from optuna.distributions import FloatDistribution as Float
 
     return {
-        **problem_search_space("problem."),
+        **problem_search_space(),
         "keep_out_power": CategoricalDistribution([2, 4, 6]),
         "slack_penalty": Float(1e2, 1e5, log=True),
     }
@@ -543,11 +546,8 @@ def nmpc_t_search_space() -> dict:
     """NMPC's search space and the Student's-t cost's nu."""
     from optuna.distributions import FloatDistribution as Float
 
-    return {**search_space(), "nu": Float(2.5, 30.0, log=True)}
+    return {**search_space(), "problem.nu": Float(2.5, 30.0, log=True)}
 
 
-make_nmpc.search_space, make_nmpc_t.search_space = search_space, nmpc_t_search_space
-
-
-__all__ = ["NMPCConfig", "NMPCPlanner", "make_nmpc", "make_nmpc_t", "mlp_function", "bicycle_function", "frenet",
-           "keep_out_semi_axes", "robust_cost"]
+__all__ = ["HARD_BOUND_MARGIN", "NMPCConfig", "NMPCPlanner", "make_nmpc", "make_nmpc_t", "mlp_function",
+           "bicycle_function", "frenet", "keep_out_semi_axes", "nmpc_t_search_space", "robust_cost", "search_space"]

@@ -30,13 +30,16 @@ Every planner measures the states ``x_1 .. x_H``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from pathlib import Path
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
-from bimp.configs import ConfigError, check_fields
+from bimp.configs import CONFIG_DIR, ConfigError, check_fields, load_config, read_yaml
 from bimp.envs.road import array_module, corner_edge_distance, curvature_at, heading_at, to_frenet
 from bimp.envs.scene import Scene, bound_constraints
 
@@ -110,6 +113,9 @@ class ProblemConfig:
     barrier: margins and widths (:class:`BarrierShape`); dynamics: ``"mlp"`` (the shipped model), ``"bicycle"``
     (the exact model) or the path of a weights file written by ``bimp train-dynamics`` (checked when the config is
     built). A bad value raises :class:`bimp.configs.ConfigError` naming the key and the value.
+
+    Every planner's config holds one as its ``problem`` (``--set POLICY.problem.horizon=30`` means the same for
+    each); :func:`load_planner_config` builds them in layers from ``configs/problem.yaml``.
     """
 
     horizon: int = 20
@@ -122,13 +128,8 @@ class ProblemConfig:
     barrier: BarrierShape = field(default_factory=BarrierShape)
     dynamics: str = "mlp"
 
-    INF_OK = ("nu", "lane_change_rate")  # the keys that take inf (subclasses add theirs)
-
     def __post_init__(self) -> None:
-        check_fields(self, allow_inf=self.INF_OK)
-        self._check_problem()
-
-    def _check_problem(self) -> None:
+        check_fields(self, allow_inf=("nu", "lane_change_rate"))
         if self.horizon < 1:
             raise ConfigError("horizon", "an int >= 1", self.horizon)
         if not self.nu >= NU_MIN:
@@ -201,28 +202,75 @@ def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
                     + [config.sigma_barrier] * (n_obstacles + N_BOUND_BARRIERS))
 
 
-def search_space(prefix: str = "") -> dict:
+def search_space() -> dict:
     """The planning problem's numbers ``bimp tune`` searches, for every planner built on it (optuna
-    distributions): the noise of the increments and of the tracked reference (lateral, speed), the edge margin and
-    the headway. ``prefix``: ``"problem."`` for a peer's own copy of the problem."""
+    distributions), keyed as in a planner's config (``problem.*``): the noise of the increments and of the tracked
+    reference (lateral, speed), the edge margin and the headway."""
     from optuna.distributions import FloatDistribution as Float
 
-    space = {
-        "sigma_du[0]": Float(0.2, 1.5, log=True),
-        "sigma_du[1]": Float(0.0005, 0.005, log=True),
-        "sigma_ref[0]": Float(0.3, 3.0, log=True),
-        "sigma_ref[2]": Float(0.3, 3.0, log=True),
-        "barrier.edge_margin": Float(0.1, 0.8),
-        "barrier.headway": Float(0.3, 1.2),
+    return {
+        "problem.sigma_du[0]": Float(0.2, 1.5, log=True),
+        "problem.sigma_du[1]": Float(0.0005, 0.005, log=True),
+        "problem.sigma_ref[0]": Float(0.3, 3.0, log=True),
+        "problem.sigma_ref[2]": Float(0.3, 3.0, log=True),
+        "problem.barrier.edge_margin": Float(0.1, 0.8),
+        "problem.barrier.headway": Float(0.3, 1.2),
     }
-    return {prefix + key: value for key, value in space.items()}
 
 
 def load_problem(source=PROBLEM_FILE, **overrides) -> ProblemConfig:
     """The shared problem tuning: ``configs/problem.yaml`` (or ``source``) plus ``overrides``."""
-    from bimp.configs import load_config
-
     return load_config(ProblemConfig, source, **overrides)
+
+
+C = TypeVar("C")
+Layer = str | Path | Mapping[str, Any] | None
+
+
+def load_planner_config(cls: type[C], *layers: Layer) -> C:
+    """A planner's config ``cls`` (its own fields and ``problem``, a :class:`ProblemConfig`) built in layers, each
+    over the one before: ``cls``'s defaults, the shared problem (``configs/problem.yaml``) as its ``problem``, then
+    ``layers`` in order, each a YAML file of overrides (a path, or a name under ``configs/``), a mapping, or None
+    (skipped). Nested mappings merge key by key, so ``problem: {horizon: 30}`` keeps the rest of the problem, and a
+    dotted key is the nested one (``{"problem.horizon": 30}``: what ``--set POLICY.problem.horizon=30`` gives).
+
+    A key of the problem given at the top level (``horizon``, ``nu``, ``sigma_du``, ..., the flat keys of EnKTS's
+    old config) or one that ``cls.MOVED`` names (``{old key: new dotted key}``) raises ``ValueError`` naming its
+    new place: one name per setting, no aliases. Other unknown keys and bad values raise as
+    :func:`bimp.configs.load_config` does (:class:`bimp.configs.ConfigError` naming the dotted key)."""
+    tree: dict[str, Any] = {"problem": dataclasses.asdict(load_problem())}
+    own = {f.name for f in dataclasses.fields(cls)}
+    moved = {f.name: f"problem.{f.name}" for f in dataclasses.fields(ProblemConfig) if f.name not in own}
+    moved.update(getattr(cls, "MOVED", {}))
+    for layer in layers:
+        if layer is None:
+            continue
+        if not isinstance(layer, Mapping):
+            path = Path(layer) if Path(layer).is_file() else CONFIG_DIR / layer
+            layer = read_yaml(path) or {}
+            if not isinstance(layer, Mapping):
+                raise ValueError(f"{path}: expected a mapping of overrides, got {type(layer).__name__}")
+        for key, value in layer.items():
+            head, dot, rest = str(key).partition(".")
+            if head in moved:
+                new = moved[head] + dot + rest
+                raise ValueError(f"{key} is now {new} (a planner's problem settings sit under problem: "
+                                 f"--set POLICY.{new}=...)")
+            for name in reversed(str(key).split(".")):
+                value = {name: value}
+            tree = _merged(tree, value)
+    return load_config(cls, None, **tree)
+
+
+def _merged(base: dict, top: Mapping) -> dict:
+    """``top`` over ``base``, nested mappings (and configs, taken as their mappings) merged key by key."""
+    out = dict(base)
+    for key, value in top.items():
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            value = dataclasses.asdict(value)
+        nested = isinstance(value, Mapping) and isinstance(out.get(key), dict)
+        out[key] = _merged(out[key], value) if nested else value
+    return out
 
 
 def make_problem(scene: Scene, config: ProblemConfig, model: tuple = ()) -> Problem:
@@ -345,6 +393,6 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
 
 
 __all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance", "edge_distance_local", "frenet",
-           "Limits", "load_problem", "make_problem", "measure", "measurement_noise",
-           "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles", "Problem", "PROBLEM_FILE",
-           "ProblemConfig", "reference_profile", "Road"]
+           "Limits", "load_planner_config", "load_problem", "make_problem", "measure",
+           "measurement_noise", "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles",
+           "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road"]

@@ -39,7 +39,7 @@ def yaml_file(tmp_path, text: str):
 # --- the three reported cases, from YAML as users wrote them -------------------------------------------------
 def test_one_entry_sigma_du_is_rejected_not_applied_to_steering(tmp_path):
     with raises_naming("sigma_du", "(0.5,)"):
-        load_config(EnKTSConfig, yaml_file(tmp_path, "sigma_du: [0.5]\n"))
+        load_config(EnKTSConfig, yaml_file(tmp_path, "problem: {sigma_du: [0.5]}\n"))
 
 
 def test_fractional_particle_count_is_rejected_at_load(tmp_path):
@@ -71,17 +71,17 @@ def tuple_fields(cls) -> list[tuple[str, int]]:
             if typing.get_origin(hints[f.name]) is tuple]
 
 
-@pytest.mark.parametrize("key,length", tuple_fields(EnKTSConfig))
+@pytest.mark.parametrize("key,length", tuple_fields(ProblemConfig))
 @pytest.mark.parametrize("delta", [-1, 1])
-def test_every_tuple_field_of_enkts_rejects_a_wrong_length(key, length, delta):
+def test_every_tuple_field_of_the_problem_rejects_a_wrong_length(key, length, delta):
     value = [0.1] * (length + delta)
     with raises_naming(key, repr(tuple(value))):
-        load_config(EnKTSConfig, None, **{key: value})
-    assert getattr(load_config(EnKTSConfig, None, **{key: [0.1] * length}), key) == (0.1,) * length
+        load_config(ProblemConfig, None, **{key: value})
+    assert getattr(load_config(ProblemConfig, None, **{key: [0.1] * length}), key) == (0.1,) * length
 
 
 def test_tuple_fields_found():
-    assert dict(tuple_fields(EnKTSConfig)) == {"sigma_du": 2, "sigma_ref": 3, "sigma_input": 2}
+    assert dict(tuple_fields(ProblemConfig)) == {"sigma_du": 2, "sigma_ref": 3, "sigma_input": 2}
 
 
 @pytest.mark.parametrize("bad,key", [((0.5, "x"), "sigma_du[1]"), ((0.5, True), "sigma_du[1]"),
@@ -89,12 +89,12 @@ def test_tuple_fields_found():
                                      ("0.5 0.1", "sigma_du"), (0.5, "sigma_du")])
 def test_tuple_entries_are_checked(bad, key):
     with raises_naming(key, "got"):
-        EnKTSConfig(sigma_du=bad)
+        ProblemConfig(sigma_du=bad)
 
 
 def test_lists_become_tuples_and_ints_floats():
-    cfg = EnKTSConfig(sigma_du=[1, np.float32(0.5)], max_spread=np.int64(10), n_particles=np.int64(30))
-    assert cfg.sigma_du == (1.0, 0.5) and all(type(v) is float for v in cfg.sigma_du)
+    cfg = EnKTSConfig(problem={"sigma_du": [1, np.float32(0.5)]}, max_spread=np.int64(10), n_particles=np.int64(30))
+    assert cfg.problem.sigma_du == (1.0, 0.5) and all(type(v) is float for v in cfg.problem.sigma_du)
     assert type(cfg.max_spread) is float and type(cfg.n_particles) is int
     hash(cfg)
 
@@ -108,17 +108,19 @@ def test_lists_become_tuples_and_ints_floats():
 def test_nested_barrier_errors_name_barrier(tmp_path, barrier, named):
     text = yaml.safe_dump({"barrier": barrier})
     with pytest.raises(ValueError, match=r"barrier") as info:
-        load_config(EnKTSConfig, yaml_file(tmp_path, text))
+        load_config(ProblemConfig, yaml_file(tmp_path, text))
     assert named in str(info.value)
     with pytest.raises(ValueError, match=r"barrier"):
-        EnKTSConfig(barrier=barrier)
+        ProblemConfig(barrier=barrier)
+    with pytest.raises(ValueError, match=r"problem.*barrier"):  # two levels down: both named
+        EnKTSConfig(problem={"barrier": barrier})
 
 
 def test_nested_barrier_from_mapping_and_wrong_kind():
-    cfg = EnKTSConfig(barrier={"headway": 1})
-    assert cfg.barrier == BarrierShape(headway=1.0) and isinstance(cfg.barrier, BarrierShape)
-    with raises_naming("barrier", "'tight'"):
-        EnKTSConfig(barrier="tight")
+    cfg = EnKTSConfig(problem={"barrier": {"headway": 1}})
+    assert cfg.problem.barrier == BarrierShape(headway=1.0) and isinstance(cfg.problem.barrier, BarrierShape)
+    with raises_naming("problem.barrier", "'tight'"):
+        EnKTSConfig(problem={"barrier": "tight"})
 
 
 # --- every config: types checked, defaults and the shipped file load -------------------------------------------
@@ -152,22 +154,22 @@ def test_every_field_of_every_config_is_type_checked(cls):
 
 
 def test_inf_only_where_documented():
-    assert math.isinf(EnKTSConfig(nu=math.inf).nu) and math.isinf(NMPCConfig(nu=math.inf).nu)
+    assert math.isinf(ProblemConfig(nu=math.inf).nu) and math.isinf(NMPCConfig(problem={"nu": math.inf}).problem.nu)
     assert math.isinf(EnKTSConfig(max_spread=math.inf).max_spread)
-    for cls, key in ((EnKTSConfig, "sigma_barrier"), (EnKTSConfig, "relaxation"), (MPPIConfig, "temperature"),
+    for cls, key in ((ProblemConfig, "sigma_barrier"), (EnKTSConfig, "relaxation"), (MPPIConfig, "temperature"),
                      (NMPCConfig, "tol"), (TrainConfig, "lr"), (BarrierShape, "headway")):
         with raises_naming(key, "inf"):
             cls(**{key: math.inf})
 
 
 @pytest.mark.parametrize("cls,key,value", [
-    (EnKTSConfig, "n_particles", 1), (EnKTSConfig, "horizon", 0), (EnKTSConfig, "nu", 2.0),
+    (EnKTSConfig, "n_particles", 1), (ProblemConfig, "horizon", 0), (ProblemConfig, "nu", 2.0),
     (EnKTSConfig, "iterations", 0), (EnKTSConfig, "max_spread", 0.5), (EnKTSConfig, "max_innovation", 0.0),
-    (EnKTSConfig, "relaxation", 1.0), (EnKTSConfig, "sigma_ref", (1.0, 0.0, 1.0)),
-    (EnKTSConfig, "sigma_barrier", -0.1), (BarrierShape, "bound_margin", 1.0), (BarrierShape, "brake_decel", 0.0),
+    (EnKTSConfig, "relaxation", 1.0), (ProblemConfig, "sigma_ref", (1.0, 0.0, 1.0)),
+    (ProblemConfig, "sigma_barrier", -0.1), (BarrierShape, "bound_margin", 1.0), (BarrierShape, "brake_decel", 0.0),
     (MPPIConfig, "n_particles", 1), (MPPIConfig, "temperature", 0.0), (MPPIConfig, "control_cost", -1.0),
     (NMPCConfig, "keep_out_power", 3), (NMPCConfig, "hessian", "bfgs"), (NMPCConfig, "max_iter", -1),
-    (NMPCConfig, "nu", 0.0), (DataConfig, "sequence_steps", 0), (DataConfig, "n_stop", -1),
+    (ProblemConfig, "nu", 0.0), (DataConfig, "sequence_steps", 0), (DataConfig, "n_stop", -1),
     (TrainConfig, "steps", 0), (TrainConfig, "lr_final", 0.0), (TrainConfig, "lr", 1e-6)])
 def test_range_errors_name_key_and_value(cls, key, value):
     with pytest.raises(ConfigError, match=f"^{re.escape(key)} must be .*, got {re.escape(repr(value))}"):
@@ -177,9 +179,11 @@ def test_range_errors_name_key_and_value(cls, key, value):
 # --- reconstruction from the resolved dict -----------------------------------------------------------------------
 def sample_configs():
     return [EnKTSConfig(), load_config(EnKTSConfig, "planner.yaml"),
-            load_config(EnKTSConfig, "planner.yaml", nu=math.inf, barrier={"widths": [0.2] * 6}, dynamics="bicycle"),
+            load_config(EnKTSConfig, "planner.yaml",
+                        problem={"nu": math.inf, "barrier": {"widths": [0.2] * 6}, "dynamics": "bicycle"}),
             BarrierShape(headway=1), MPPIConfig(), MPPIConfig(n_particles=20, temperature=2), NMPCConfig(),
-            NMPCConfig(horizon=7, nu=4.0, hessian="limited-memory"), DataConfig(n_uniform=10), TrainConfig(lr=1e-3)]
+            NMPCConfig(problem={"horizon": 7, "nu": 4.0}, hessian="limited-memory"), DataConfig(n_uniform=10),
+            TrainConfig(lr=1e-3)]
 
 
 @pytest.mark.parametrize("config", sample_configs(), ids=lambda c: type(c).__name__)

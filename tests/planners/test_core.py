@@ -109,7 +109,7 @@ def test_every_reading_plans_a_finite_action_and_the_readings_differ(nu):
     env, obs = episode("bimp/Overtaking-v0", seed=1)
     actions = {}
     for r in core.READINGS:
-        planner = EnKTSPlanner(env.unwrapped.scene, small(update=r, nu=nu))
+        planner = EnKTSPlanner(env.unwrapped.scene, small(update=r, problem={"nu": nu}))
         actions[r] = np.stack([planner.act(obs) for _ in range(3)])
     for reading, a in actions.items():
         assert np.all(np.isfinite(a)) and np.all(np.abs(a) <= 1), reading
@@ -181,8 +181,8 @@ def episode(scenario="bimp/EmergencyBrake-v0", seed=0):
     return env, obs
 
 
-def small(**kw):
-    return EnKTSConfig(n_particles=16, horizon=6, **kw)
+def small(problem: dict | None = None, **kw):
+    return EnKTSConfig(n_particles=16, problem={"horizon": 6, **(problem or {})}, **kw)
 
 
 def test_batched_plan_equals_single_plans_row_by_row():
@@ -219,9 +219,9 @@ def test_a_redrawn_road_reuses_the_program_and_acts_as_a_fresh_compile():
     action = planner.act(obs)
     assert core.plan_step._cache_size() == compiled
     fresh = jax.jit(core._plan, static_argnums=1)
-    problem = make_problem(env.unwrapped.scene, cfg, jax.device_put(model_params(cfg.dynamics)))
-    expected, _, _ = fresh(problem, cfg.settings(2), core.initial_carry(cfg.horizon), jnp.asarray(obs, jnp.float32),
-                           jax.random.fold_in(jax.random.key(3), 0))
+    problem = make_problem(env.unwrapped.scene, cfg.problem, jax.device_put(model_params(cfg.problem.dynamics)))
+    expected, _, _ = fresh(problem, cfg.settings(2), core.initial_carry(cfg.problem.horizon),
+                           jnp.asarray(obs, jnp.float32), jax.random.fold_in(jax.random.key(3), 0))
     np.testing.assert_allclose(action, np.asarray(expected), atol=1e-6)
 
 
@@ -251,8 +251,8 @@ def test_float32_plan_agrees_with_float64():
     """The precision choice: the float64 program (x64 on) moves the applied action by far less than the spread."""
     env, obs = episode("bimp/Overtaking-v0", seed=2)
     cfg = small()
-    problem = make_problem(env.unwrapped.scene, cfg, model_params(cfg.dynamics))
-    args = (cfg.settings(2), core.initial_carry(cfg.horizon), obs, jax.random.key(0))
+    problem = make_problem(env.unwrapped.scene, cfg.problem, model_params(cfg.problem.dynamics))
+    args = (cfg.settings(2), core.initial_carry(cfg.problem.horizon), obs, jax.random.key(0))
     a32, _, plan32 = core.plan_step(jax.tree.map(lambda a: np.asarray(a, np.float32), problem), *args)
     with jax.enable_x64(True):
         p64 = jax.tree.map(lambda a: np.asarray(a, np.float64), problem)

@@ -180,16 +180,16 @@ def test_model_from_name(model, tmp_path):
 def test_planner_config_rejects_a_bad_weights_file_when_built(tmp_path):
     missing = tmp_path / "nope.pt"
     with pytest.raises(ValueError, match=r"dynamics must be .*nope\.pt.*no such file"):
-        EnKTSConfig(dynamics=str(missing))
-    (tmp_path / "p.yaml").write_text(f"dynamics: {missing}\n")
+        EnKTSConfig(problem={"dynamics": str(missing)})
+    (tmp_path / "p.yaml").write_text(f"problem: {{dynamics: {missing}}}\n")
     with pytest.raises(ValueError, match=r"dynamics .*nope\.pt"):
         load_config(EnKTSConfig, tmp_path / "p.yaml")
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"not a model")
     with pytest.raises(ValueError, match=r"dynamics .*garbage\.pt"):
-        EnKTSConfig(dynamics=str(garbage))
+        EnKTSConfig(problem={"dynamics": str(garbage)})
     with pytest.raises(ValueError, match="dynamics"):
-        EnKTSConfig(dynamics="")
+        EnKTSConfig(problem={"dynamics": ""})
 
 
 def test_train_dynamics_writes_under_runs_by_default_not_the_shipped_file():

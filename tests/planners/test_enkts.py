@@ -21,9 +21,9 @@ def env_at(env_id="bimp/EmergencyBrake-v0", seed=0, **config):
     return env, obs
 
 
-@pytest.mark.parametrize("bad", [dict(n_particles=1), dict(horizon=0), dict(nu=2.0), dict(nu=1.5),
-                                 dict(sigma_du=(0.5, 0.0)), dict(relaxation=1.0), dict(dynamics="magic"),
-                                 dict(update="printed")])
+@pytest.mark.parametrize("bad", [dict(n_particles=1), dict(problem={"horizon": 0}), dict(problem={"nu": 2.0}),
+                                 dict(problem={"nu": 1.5}), dict(problem={"sigma_du": (0.5, 0.0)}),
+                                 dict(relaxation=1.0), dict(problem={"dynamics": "magic"}), dict(update="printed")])
 def test_invalid_config_raises_at_construction(bad):
     with pytest.raises(ValueError):
         EnKTSConfig(**bad)
@@ -31,23 +31,24 @@ def test_invalid_config_raises_at_construction(bad):
 
 def test_yaml_overrides_load_and_unknown_keys_raise(tmp_path):
     path = tmp_path / "p.yaml"
-    path.write_text("n_particles: 30\nnu: .inf\nbarrier: {headway: 0.8}\nsigma_du: [0.4, 0.003]\n")
+    path.write_text("n_particles: 30\nproblem: {nu: .inf, barrier: {headway: 0.8}, sigma_du: [0.4, 0.003]}\n")
     cfg = load_config(EnKTSConfig, path)
-    assert cfg.n_particles == 30 and math.isinf(cfg.nu) and cfg.barrier.headway == 0.8
-    assert cfg.sigma_du == (0.4, 0.003)
+    assert cfg.n_particles == 30 and math.isinf(cfg.problem.nu) and cfg.problem.barrier.headway == 0.8
+    assert cfg.problem.sigma_du == (0.4, 0.003)
     path.write_text("n_particle: 30\n")
     with pytest.raises(ValueError, match="n_particle"):
         load_config(EnKTSConfig, path)
     with pytest.raises(ValueError, match="hedway"):
-        load_config(EnKTSConfig, None, barrier={"hedway": 1.0})
+        load_config(EnKTSConfig, None, problem={"barrier": {"hedway": 1.0}})
 
 
 def test_enks_is_enkts_with_infinite_nu_and_nothing_else():
     env, _ = env_at()
     a, b = make_enkts(env), make_enks(env)
-    assert math.isinf(b.config.nu) and not math.isinf(a.config.nu)
-    assert {k: v for k, v in vars(a.config).items() if k != "nu"} == \
-        {k: v for k, v in vars(b.config).items() if k != "nu"}
+    assert math.isinf(b.config.problem.nu) and not math.isinf(a.config.problem.nu)
+    assert vars(a.config.problem) | {"nu": None} == vars(b.config.problem) | {"nu": None}
+    assert {k: v for k, v in vars(a.config).items() if k != "problem"} == \
+        {k: v for k, v in vars(b.config).items() if k != "problem"}
 
 
 @pytest.mark.parametrize("name", ["enkts", "enks"])
@@ -72,7 +73,7 @@ def test_same_seed_same_actions_and_actions_in_space(name):
 
 def test_bad_observations_raise_value_errors_that_name_the_problem():
     env, obs = env_at()
-    planner = make_enkts(env, n_particles=10, horizon=3)
+    planner = make_enkts(env, n_particles=10, problem={"horizon": 3})
     with pytest.raises(ValueError, match="shape"):
         planner.act(obs[:-1])
     for value in (np.nan, np.inf):
@@ -88,7 +89,7 @@ def test_degenerate_situations_never_give_non_finite_actions():
     crashed = obs.copy()
     crashed[7:9] = obs[0:2]  # OV1 on top of the EV: every barrier deep in violation for every particle
     crashed[11] = -50.0  # an absurd deceleration
-    planner = make_enkts(env, n_particles=5, horizon=20)
+    planner = make_enkts(env, n_particles=5, problem={"horizon": 20})
     for o in (crashed, obs):
         action = planner.act(o)
         assert np.all(np.isfinite(action)) and env.action_space.contains(action)
@@ -96,7 +97,8 @@ def test_degenerate_situations_never_give_non_finite_actions():
 
 def test_plan_is_readable_for_plotting():
     env, obs = env_at()
-    planner = EnKTSPlanner(env.unwrapped.scene, EnKTSConfig(n_particles=20, horizon=6, dynamics="bicycle"))
+    config = EnKTSConfig(n_particles=20, problem={"horizon": 6, "dynamics": "bicycle"})
+    planner = EnKTSPlanner(env.unwrapped.scene, config)
     assert planner.plan is None
     planner.act(obs)
     plan = planner.plan
@@ -136,9 +138,9 @@ def test_enkts_completes_each_scenario_on_the_default_seed_safely(scenario):
 
 def test_dynamics_may_be_a_weights_file_a_copy_acts_like_the_shipped_model(tmp_path):
     copy = save_model(load_model(), tmp_path / "copy.pt")
-    (tmp_path / "p.yaml").write_text(f"n_particles: 10\nhorizon: 5\ndynamics: {copy}\n")
+    (tmp_path / "p.yaml").write_text(f"n_particles: 10\nproblem: {{horizon: 5, dynamics: {copy}}}\n")
     runs = []
-    for config in (load_config(EnKTSConfig, tmp_path / "p.yaml"), EnKTSConfig(n_particles=10, horizon=5)):
+    for config in (load_config(EnKTSConfig, tmp_path / "p.yaml"), EnKTSConfig(n_particles=10, problem={"horizon": 5})):
         env, obs = env_at("bimp/Overtaking-v0", seed=2)
         planner = EnKTSPlanner(env.unwrapped.scene, config)
         actions = []
@@ -147,7 +149,8 @@ def test_dynamics_may_be_a_weights_file_a_copy_acts_like_the_shipped_model(tmp_p
             obs, *_ = env.step(actions[-1])
         runs.append(np.array(actions))
     np.testing.assert_array_equal(*runs)
-    assert isinstance(EnKTSPlanner(env.unwrapped.scene, EnKTSConfig(dynamics="bicycle"))._model, BicycleParams)
+    bicycle = EnKTSConfig(problem={"dynamics": "bicycle"})
+    assert isinstance(EnKTSPlanner(env.unwrapped.scene, bicycle)._model, BicycleParams)
 
 
 def test_jax_forward_equals_the_torch_forward():
@@ -192,15 +195,15 @@ def test_nu_below_the_float32_floor_is_refused_naming_nu(nu):
     """nu = 2.000000000001 passed the old ``nu > 2`` and rounds to 2 in float32: every plan was non-finite."""
     env, _ = env_at()
     with pytest.raises(ConfigError, match="nu") as err:
-        make_enkts(env, nu=nu)
-    assert err.value.key == "nu"
+        make_enkts(env, problem={"nu": nu})
+    assert err.value.key == "problem.nu"
     with pytest.raises(ConfigError, match="nu"):
-        make_policy("enkts", env, nu=nu)
-    assert make_enkts(env, nu=2.1, n_particles=4, horizon=2).config.nu == 2.1
+        make_policy("enkts", env, problem={"nu": nu})
+    assert make_enkts(env, n_particles=4, problem={"nu": 2.1, "horizon": 2}).config.problem.nu == 2.1
 
 
 def small_planner(env, **config):
-    return EnKTSPlanner(lambda: env.unwrapped.scene, EnKTSConfig(n_particles=8, horizon=4, **config))
+    return EnKTSPlanner(lambda: env.unwrapped.scene, EnKTSConfig(n_particles=8, problem={"horizon": 4}, **config))
 
 
 def test_a_fallback_is_reported_per_step_and_recorded_in_the_trace():
@@ -218,7 +221,8 @@ def test_a_fallback_is_reported_per_step_and_recorded_in_the_trace():
 
 def test_a_batch_reports_the_fallback_of_each_row(monkeypatch):
     envs_ = [env_at(seed=s)[0] for s in (0, 1)]
-    planner = EnKTSPlanner(lambda: [e.unwrapped.scene for e in envs_], EnKTSConfig(n_particles=8, horizon=4))
+    config = EnKTSConfig(n_particles=8, problem={"horizon": 4})
+    planner = EnKTSPlanner(lambda: [e.unwrapped.scene for e in envs_], config)
     plan_batch = core.plan_batch
 
     def second_row_fails(*args):  # the core reports row 1's plan as non-finite
@@ -236,10 +240,11 @@ def test_config_file_goes_on_top_of_the_shipped_settings(tmp_path):
     env, _ = env_at()
     shipped = make_enkts(env).config
     path = tmp_path / "mine.yaml"
-    path.write_text("horizon: 20\n")
+    path.write_text("problem: {horizon: 20}\n")
     for name in ("enkts", "enks"):
         assert make_policy(name, env, config=path).config.n_particles == shipped.n_particles == 100
-    path.write_text("horizon: 12\n")
+    path.write_text("problem: {horizon: 12}\n")
     mine = make_enkts(env, config=path, max_innovation=3.0).config
-    assert (mine.horizon, mine.n_particles, mine.max_innovation) == (12, 100, 3.0)
-    assert mine.sigma_du == shipped.sigma_du  # configs/problem.yaml still under it
+    assert (mine.problem.horizon, mine.n_particles, mine.max_innovation) == (12, 100, 3.0)
+    assert mine.problem.sigma_du == shipped.problem.sigma_du  # configs/problem.yaml still under it, key by key
+    assert math.isinf(make_enks(env, config=path).config.problem.nu)  # EnKS's nu over the file

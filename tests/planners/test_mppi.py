@@ -4,6 +4,8 @@ on both scenarios, config validation."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -36,7 +38,8 @@ def obs_of(scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
 
 def planner_with_context(scene: Scene, obs: np.ndarray, tuning: ProblemConfig = ProblemConfig()) -> MPPIPlanner:
     """A planner that has planned once on ``obs``, so its running cost knows the references and OVs."""
-    planner = MPPIPlanner(scene, MPPIConfig(n_particles=8, horizon=3), tuning, dynamics=load_model())
+    config = MPPIConfig(n_particles=8, problem=dataclasses.replace(tuning, horizon=3))
+    planner = MPPIPlanner(scene, config, dynamics=load_model())
     planner.act(obs)
     return planner
 
@@ -76,20 +79,22 @@ def test_running_cost_is_the_nll_of_measure_on_random_blocks():
     u, du, u0 = rng.normal(0, 1, (n, 2)) * [3.0, 0.05], rng.normal(0, 1, (n, 2)) * [1.0, 0.005], \
         rng.normal(0, 1, (n, 2)) * [3.0, 0.05]
     block = torch.from_numpy(np.column_stack([x, u, du, u0]))
-    problem = make_problem(scene, planner.tuning)
+    problem = make_problem(scene, planner.config.problem)
     s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, 3)
     v_ref, a_ref, lane = reference_profile(problem, ref, ego, 3)
     # the block after step t holds x_{t+1}: it is measured against the references and OVs of time t + 1
     h = measure(problem, x, u, du, u0, u_prev, lane[t + 1], v_ref[t + 1], a_ref[t + 1],
                 (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
-    sigma = np.array([*planner.tuning.sigma_ref, *planner.tuning.sigma_input] + [planner.tuning.sigma_barrier] * 11)
+    tun = planner.config.problem
+    sigma = np.array([*tun.sigma_ref, *tun.sigma_input] + [tun.sigma_barrier] * 11)
     np.testing.assert_allclose(planner.running_cost(block, block[:, 4:6], t).numpy(),
                                0.5 * np.sum((h / sigma) ** 2, axis=1), rtol=1e-12)
 
 
 def test_transition_is_the_virtual_system():
     model = load_model()
-    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3, sample="inputs"), dynamics=model)
+    config = MPPIConfig(n_particles=4, sample="inputs", problem={"horizon": 3})
+    planner = MPPIPlanner(straight_scene(), config, dynamics=model)
     start = torch.tensor([[10.0, 2.0, 0.01, 20.0, -1.0, 0.01, 0.0, 0.0, -1.0, 0.01]], dtype=torch.float64)
     u0 = torch.tensor([[-1.5, 0.012]], dtype=torch.float64)
     b0 = planner._step(start, u0, 0).numpy()  # x_1 = f(x_0, u_0): the state the step's input reaches
@@ -104,7 +109,7 @@ def test_transition_is_the_virtual_system():
 def test_with_increments_the_action_is_added_to_the_input_within_the_actuator_range():
     model = load_model()
     scene = straight_scene()
-    planner = MPPIPlanner(scene, MPPIConfig(n_particles=4, horizon=3), dynamics=model)
+    planner = MPPIPlanner(scene, MPPIConfig(n_particles=4, problem={"horizon": 3}), dynamics=model)
     start = torch.tensor([[10.0, 2.0, 0.01, 20.0, -1.0, 0.01, 0.0, 0.0, -1.0, 0.01]], dtype=torch.float64)
     b0 = planner._step(start, torch.tensor([[-0.5, 0.002]], dtype=torch.float64), 0).numpy()
     np.testing.assert_allclose(b0[:, 4:], [[-1.5, 0.012, -0.5, 0.002, -1.5, 0.012]], atol=1e-15)
@@ -152,7 +157,7 @@ def test_non_finite_plan_falls_back_to_the_last_input():
     scene = straight_scene()
     lane = float(scene.road.lane_offset(1))
     broken = lambda x, u: np.full_like(x, np.nan)  # noqa: E731 - a model that has gone wrong
-    planner = MPPIPlanner(scene, MPPIConfig(n_particles=8, horizon=3), dynamics=broken)
+    planner = MPPIPlanner(scene, MPPIConfig(n_particles=8, problem={"horizon": 3}), dynamics=broken)
     u_prev = np.array([-2.0, 0.01])
     action = planner.act(obs_of(scene, [0.0, lane, 0.0, 20.0], u_prev, np.zeros((2, 6)), [20.0, 0.0, lane]))
     assert planner.fallbacks == 1 and np.all(np.isfinite(action))
@@ -160,24 +165,26 @@ def test_non_finite_plan_falls_back_to_the_last_input():
 
 
 def test_config_validation_and_unknown_overrides():
-    for bad in ({"n_particles": 1}, {"horizon": 0}, {"temperature": 0.0}, {"noise_gain": -1.0},
+    for bad in ({"n_particles": 1}, {"problem": {"horizon": 0}}, {"temperature": 0.0}, {"noise_gain": -1.0},
                 {"control_cost": float("nan")}):
         with pytest.raises(ValueError):
             MPPIConfig(**bad)
     env = gym.make(envs.env_id("overtaking"))
     with pytest.raises(ValueError, match="lambda_"):
         make_mppi(env, lambda_=2.0)
-    planner = make_mppi(env, n_particles=20, horizon=5)
-    assert (planner.n_particles, planner.horizon) == (20, 5)
+    planner = make_mppi(env, n_particles=20, problem={"horizon": 5})
+    assert (planner.n_particles, planner.horizon, planner.config.problem.horizon) == (20, 5, 5)
+    with pytest.raises(ValueError, match="horizon is now problem.horizon"):  # one name, no alias
+        make_mppi(env, horizon=5)
 
 
-def test_default_dynamics_follow_the_tuning_key(tmp_path):
+def test_default_dynamics_follow_the_problem_key(tmp_path):
     copy = save_model(load_model(), tmp_path / "copy.pt")
     x = np.column_stack([np.zeros(5), np.zeros(5), np.linspace(-1, 1, 5), np.linspace(0, 35, 5)])
     u = np.column_stack([np.linspace(-8, 3, 5), np.linspace(-0.2, 0.2, 5)])
-    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), ProblemConfig(dynamics=str(copy)))
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, problem={"horizon": 3, "dynamics": str(copy)}))
     np.testing.assert_array_equal(planner.dynamics(x, u), load_model()(x, u))
-    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, horizon=3), ProblemConfig(dynamics="bicycle"))
+    planner = MPPIPlanner(straight_scene(), MPPIConfig(n_particles=4, problem={"horizon": 3, "dynamics": "bicycle"}))
     assert isinstance(planner.dynamics, BicycleModel)
 
 
@@ -185,7 +192,7 @@ def small_mppi(**config) -> tuple[MPPIPlanner, np.ndarray]:
     scene = straight_scene()
     lane = float(scene.road.lane_offset(1))
     obs = obs_of(scene, [0.0, lane, 0.0, 20.0], [0.0, 0.0], np.zeros((2, 6)), [25.0, 0.0, lane])
-    return MPPIPlanner(scene, MPPIConfig(n_particles=8, horizon=3, **config), dynamics=load_model()), obs
+    return MPPIPlanner(scene, MPPIConfig(n_particles=8, problem={"horizon": 3}, **config), dynamics=load_model()), obs
 
 
 def test_the_generator_is_seeded_from_the_whole_seed():
@@ -215,7 +222,7 @@ def test_a_negative_config_seed_is_refused_naming_it():
 @pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
 def test_a_fallback_is_reported_per_step_and_recorded_in_the_trace():
     env = gym.make(envs.env_id("emergency-brake"))
-    planner = make_mppi(env, n_particles=8, horizon=3)
+    planner = make_mppi(env, n_particles=8, problem={"horizon": 3})
     episode = rollout(env, planner, 3, max_steps=2)
     assert episode.trace["policy_info"] == [{"fallback": False}] * 2
     planner.dynamics = lambda x, u: np.full_like(x, np.nan)  # a model that has gone wrong

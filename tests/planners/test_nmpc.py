@@ -5,6 +5,7 @@ Policy contract on both scenarios, config validation."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import casadi as ca
@@ -18,6 +19,7 @@ from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import Bounds, Scene
 from bimp.planners.dynamics import BicycleModel, load_model, save_model
 from bimp.planners.nmpc import (
+    HARD_BOUND_MARGIN,
     NMPCConfig,
     NMPCPlanner,
     bicycle_function,
@@ -46,6 +48,13 @@ from bimp.planners.problem import (
 from bimp.planners.problem import frenet as problem_frenet
 
 DT = 0.1
+
+
+def nmpc(horizon: int, problem: ProblemConfig = ProblemConfig(), nu: float = math.inf, **config) -> NMPCConfig:
+    """An NMPCConfig on ``problem`` at ``horizon``, with NMPC's own nu (``inf``: the quadratic cost) and hard-bound
+    margin, as :func:`make_nmpc` sets them over the shared problem."""
+    barrier = dataclasses.replace(problem.barrier, bound_margin=HARD_BOUND_MARGIN)
+    return NMPCConfig(problem=dataclasses.replace(problem, horizon=horizon, nu=nu, barrier=barrier), **config)
 
 
 def toy_scene() -> Scene:
@@ -95,16 +104,16 @@ def test_casadi_bicycle_equals_bicycle_model():
         np.testing.assert_allclose(got, bicycle.predict(x, u), rtol=0, atol=1e-12)
 
 
-def test_default_dynamics_follow_the_tuning_key(model, tmp_path):
+def test_default_dynamics_follow_the_problem_key(model, tmp_path):
     copy = save_model(model, tmp_path / "copy.pt")
     rng = np.random.default_rng(6)
     x = np.column_stack([rng.uniform(-50, 50, (20, 2)), rng.uniform(-1, 1, 20), rng.uniform(0, 35, 20)])
     u = np.column_stack([rng.uniform(-8, 3, 20), rng.uniform(-0.2, 0.2, 20)])
     shipped = np.asarray(mlp_function(model).map(20)(x.T, u.T)).T
     for name, expected in ((str(copy), shipped), ("mlp", shipped)):
-        planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), ProblemConfig(dynamics=name))
+        planner = NMPCPlanner(toy_scene(), nmpc(2, ProblemConfig(dynamics=name)))
         np.testing.assert_array_equal(np.asarray(planner.f.map(20)(x.T, u.T)).T, expected)
-    planner = NMPCPlanner(toy_scene(), NMPCConfig(horizon=2), ProblemConfig(dynamics="bicycle"))
+    planner = NMPCPlanner(toy_scene(), nmpc(2, ProblemConfig(dynamics="bicycle")))
     np.testing.assert_allclose(np.asarray(planner.f.map(20)(x.T, u.T)).T, BicycleModel()(x, u), atol=1e-12)
 
 
@@ -134,7 +143,7 @@ def curved_nlp(horizon: int, seed: int, ref=None):
     obs, _ = env.reset(seed=seed)
     scene = env.unwrapped.scene
     assert scene.road.radius == 180.0 and scene.road.arc_angle != 0
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=horizon), ProblemConfig(dynamics="bicycle"))
+    planner = NMPCPlanner(scene, nmpc(horizon, ProblemConfig(dynamics="bicycle")))
     ego, u_prev, ovs, obs_ref = scene.split_obs(obs)
     params = planner._params(scene, ego, u_prev, ovs, obs_ref if ref is None else np.asarray(ref, float))
     return scene, planner, planner._problem(scene), params, (ego, u_prev, ovs)
@@ -158,10 +167,10 @@ def test_road_edge_rows_are_the_problem_edge_distance():
     problem's exact one."""
     H, n_batches = 10, 30
     scene, planner, nlp, params, _ = curved_nlp(H, seed=3)
-    problem = make_problem(scene, planner.tuning)
+    problem = make_problem(scene, planner.config.problem)
     g = nlp.solver.get_function("nlp_g")
     rows = slice(6 * H, 10 * H)  # after the shooting (4 H) and rate (2 H) rows: four corner blocks of H
-    np.testing.assert_allclose(nlp.ubg[rows], scene.road.half_width - planner.tuning.barrier.edge_margin)
+    np.testing.assert_allclose(nlp.ubg[rows], scene.road.half_width - planner.config.problem.barrier.edge_margin)
     assert np.all(nlp.lbg[rows] == -np.inf)
     rng = np.random.default_rng(4)
     x = random_states_near_the_road(scene, rng, H * n_batches)
@@ -192,8 +201,8 @@ def test_cost_is_the_nll_of_the_problem_tracking_rows():
     H = 6
     ref_lane = 2.0
     scene, planner, nlp, params, (ego, u_prev, ovs) = curved_nlp(H, seed=5, ref=[0.5, -2.0, ref_lane])
-    problem = make_problem(scene, planner.tuning)
-    tun = planner.tuning
+    tun = planner.config.problem
+    problem = make_problem(scene, tun)
     v_ref, a_ref, lane = reference_profile(problem, np.array([0.5, -2.0, ref_lane]), ego, H)
     assert len(set(a_ref.tolist())) == 2  # the rate switches to 0 where the reference stops
     s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
@@ -243,7 +252,7 @@ def test_keep_out_semi_axes_are_those_of_the_virtual_barrier():
 
 def solve_toy(tuning: ProblemConfig, obs: np.ndarray, nu: float = math.inf, **config) -> tuple[NMPCPlanner, np.ndarray]:
     scene = toy_scene()
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=1, nu=nu, tol=1e-10, **config), tuning, toy_dynamics())
+    planner = NMPCPlanner(scene, nmpc(1, tuning, nu, tol=1e-10, **config), toy_dynamics())
     action = planner.act(obs)
     return planner, scene.to_physical(action)
 
@@ -300,8 +309,8 @@ def test_student_t_toy_matches_a_grid_search():
 
 def test_infeasible_problem_falls_back_and_counts():
     scene = toy_scene()
-    hard = NMPCConfig(horizon=3, max_iter=50, cold_max_iter=50, slack_penalty=math.inf)
-    planner = NMPCPlanner(scene, hard, ProblemConfig(), toy_dynamics())
+    hard = nmpc(3, max_iter=50, cold_max_iter=50, slack_penalty=math.inf)
+    planner = NMPCPlanner(scene, hard, toy_dynamics())
     u_prev = np.array([-1.0, 0.002])
     lane = float(scene.road.lane_offset(1))
     blocked = [[1.0, 1.0, lane, 0.0, 20.0, 0.0], [0.0] * 6]  # an OV 1 m ahead: every plan is inside its keep-out
@@ -326,8 +335,7 @@ def test_soft_constraints_turn_an_infeasible_problem_into_the_least_violation():
     obs = toy_obs(scene, 20.0, np.array([0.0, 0.0]), 20.0, [[1.0, 10.0, lane, 0.0, 20.0, 0.0], [0.0] * 6])
     actions = {}
     for penalty in (math.inf, 1e4):
-        planner = NMPCPlanner(scene, NMPCConfig(horizon=3, max_iter=100, cold_max_iter=100, slack_penalty=penalty),
-                              ProblemConfig(), toy_dynamics())
+        planner = NMPCPlanner(scene, nmpc(3, max_iter=100, cold_max_iter=100, slack_penalty=penalty), toy_dynamics())
         actions[penalty] = scene.to_physical(planner.act(obs))
         assert planner.step_info["fallback"] == math.isinf(penalty), planner.step_info
     assert actions[math.inf][0] == pytest.approx(0.0, abs=1e-6)
@@ -336,7 +344,7 @@ def test_soft_constraints_turn_an_infeasible_problem_into_the_least_violation():
 
 def test_iteration_cap_uses_a_feasible_iterate():
     scene = toy_scene()
-    planner = NMPCPlanner(scene, NMPCConfig(horizon=3, cold_max_iter=0), ProblemConfig(), toy_dynamics())
+    planner = NMPCPlanner(scene, nmpc(3, cold_max_iter=0), toy_dynamics())
     action = planner.act(toy_obs(scene, 20.0, np.array([0.5, 0.0]), 25.0))
     assert planner.statuses["Maximum_Iterations_Exceeded"] == 1 and planner.capped == 1 and planner.failures == 0
     np.testing.assert_allclose(scene.to_physical(action), [0.5, 0.0], atol=1e-3)  # the initial guess holds u_prev
@@ -356,18 +364,41 @@ def test_actions_are_finite_and_in_the_action_space(scenario, factory):
     # (failures are not asserted: a cold first solve may hit the CPU-time cap on a loaded machine)
     assert sum(planner.statuses.values()) == 3
     if factory is make_nmpc_t:
-        assert planner.config.nu == load_problem().nu
+        assert planner.config.problem.nu == load_problem().nu
 
 
 def test_config_validation_and_unknown_overrides():
-    for bad in ({"horizon": 0}, {"nu": 0.0}, {"max_iter": -1}, {"hessian": "bfgs"}, {"keep_out_power": 3},
-                {"bound_tightening": 1.0}, {"max_cpu_time": 0.0}, {"cold_max_iter": -1}, {"cold_max_cpu_time": 0.0}):
+    for bad in ({"problem": {"horizon": 0}}, {"problem": {"nu": 0.0}}, {"max_iter": -1}, {"hessian": "bfgs"},
+                {"keep_out_power": 3}, {"problem": {"barrier": {"bound_margin": 1.0}}}, {"max_cpu_time": 0.0},
+                {"cold_max_iter": -1}, {"cold_max_cpu_time": 0.0}):
         with pytest.raises(ValueError):
             NMPCConfig(**bad)
     env = gym.make(envs.env_id("overtaking"))
     with pytest.raises(ValueError, match="max_iters"):
         make_nmpc(env, max_iters=5)
-    assert make_nmpc(env, horizon=7).horizon == 7
+    assert make_nmpc(env, problem={"horizon": 7}).horizon == 7
+
+
+@pytest.mark.parametrize("old, new", [("horizon", "problem.horizon"), ("nu", "problem.nu"),
+                                      ("bound_tightening", "problem.barrier.bound_margin")])
+def test_the_old_keys_are_refused_naming_the_new_one(old, new):
+    env = gym.make(envs.env_id("overtaking"))
+    for factory in (make_nmpc, make_nmpc_t):
+        with pytest.raises(ValueError, match=f"{old} is now {new}"):
+            factory(env, **{old: 7})
+
+
+def test_nmpc_keeps_its_own_nu_and_hard_bound_margin_over_the_shared_problem():
+    """One name each: what were NMPCConfig.nu and .bound_tightening are the problem's nu and bound_margin, at the
+    values NMPC had (nu inf for nmpc, the shared problem's for nmpc-t; a 1e-3 margin on its hard bounds)."""
+    env = gym.make(envs.env_id("overtaking"))
+    shared = load_problem()
+    nmpc_, nmpc_t = make_nmpc(env).config.problem, make_nmpc_t(env).config.problem
+    assert math.isinf(nmpc_.nu) and nmpc_t.nu == shared.nu
+    assert nmpc_.barrier.bound_margin == nmpc_t.barrier.bound_margin == HARD_BOUND_MARGIN == 1e-3
+    assert NMPCConfig().problem.barrier.bound_margin == HARD_BOUND_MARGIN and math.isinf(NMPCConfig().problem.nu)
+    assert dataclasses.replace(nmpc_t, barrier=shared.barrier) == shared  # nothing else differs
+    assert make_nmpc(env, problem={"nu": 5.0}).config.problem.nu == 5.0
 
 
 def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
@@ -375,7 +406,7 @@ def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
     from bimp.agents.evaluate import evaluate, read_records
 
     evaluate(["emergency-brake"], ["nmpc"], 1, 3, out=tmp_path, traces=1, progress=False,
-             overrides={"nmpc": {"max_iter": 0, "cold_max_iter": 0, "horizon": 3}})
+             overrides={"nmpc": {"max_iter": 0, "cold_max_iter": 0, "problem.horizon": 3}})
     (record,) = read_records(tmp_path)
     infos = record["trace"]["policy_info"]
     assert len(infos) == record["steps"]
@@ -389,6 +420,6 @@ def test_nu_below_the_float32_floor_is_refused_naming_nu():
     """The same floor as the shared problem's nu (planners.problem.NU_MIN), which nmpc-t takes."""
     for nu in (2.000000000001, 1.0):
         with pytest.raises(ConfigError, match="nu") as err:
-            NMPCConfig(nu=nu)
-        assert err.value.key == "nu"
-    assert NMPCConfig(nu=2.1).nu == 2.1
+            NMPCConfig(problem={"nu": nu})
+        assert err.value.key == "problem.nu"
+    assert NMPCConfig(problem={"nu": 2.1}).problem.nu == 2.1
