@@ -38,6 +38,7 @@ from pathlib import Path
 import gymnasium as gym
 
 from bimp import envs
+from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.registry import POLICIES, make_policy
 from bimp.agents.rollout import rollout
 from bimp.planners.dynamics import load_model
@@ -238,6 +239,14 @@ def main(argv: list[str] | None = None) -> int:
     repeats = args.repeats if args.repeats is not None else (5 if args.quick else 30)
     if repeats < 1 or args.steps < 0:
         parser.error("--repeats must be >= 1 and --steps >= 0")
+    if args.out is not None:  # before minutes of timing, not after
+        try:
+            if args.out.is_dir() or not args.out.name:
+                raise EvaluationError(f"--out {args.out} is a folder: name the JSON file to write")
+            check_out_dir(args.out.parent, create=False)
+        except EvaluationError as err:
+            print(f"bimp bench: error: {err}", file=sys.stderr)
+            return 2
     if not _single_threaded():
         env = {**os.environ, **{v: "1" for v in THREAD_VARS}}
         forwarded = list(sys.argv[1:] if argv is None else argv)

@@ -5,9 +5,11 @@ metric, the failed seeds) is the run folder's ``summary.md``."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from bimp import envs
+from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate
 from bimp.agents.plots import plot_all, render_episode
 from bimp.agents.records import format_stat
@@ -42,8 +44,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/demo")
     args = parser.parse_args(argv)
     scenarios = envs.default_scenarios()
-    summary = evaluate(scenarios, args.policy, args.episodes, seed=0,
-                       workers=args.workers, out=args.out, traces=1, video=1)
+    try:
+        summary = evaluate(scenarios, args.policy, args.episodes, seed=0,
+                           workers=args.workers, out=args.out, traces=1, video=1)
+    except EvaluationError as err:
+        print(f"bimp demo: error: {err}", file=sys.stderr)
+        return 2
     print(short_table(summary))
     print(f"Intervals: 95%, Wilson for the rates, bootstrap of the mean for progress and plan time. "
           f"Every metric with its interval and the failed seeds: {Path(args.out) / 'summary.md'}")

@@ -169,8 +169,10 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
             continue
         if r.get("config_hash") != arm.config_hash:
             others.setdefault(arm, []).append(r)
-        elif "config" in r and config_hash(r["policy"], r["config"]) != written[arm]:  # older records carry none
-            diff = config_diff(r["config"], finite(arm.resolved)) or [f"policy: {r['policy']!r} -> {arm.policy!r}"]
+        elif not isinstance(r.get("config"), dict) or config_hash(r["policy"], r["config"]) != written[arm]:
+            # A hash without the config it names proves nothing: such a record is foreign too.
+            diff = (config_diff(r["config"], finite(arm.resolved)) if isinstance(r.get("config"), dict)
+                    else ["the record carries no config"]) or [f"policy: {r['policy']!r} -> {arm.policy!r}"]
             raise EvaluationError(
                 f"{Path(out) / EPISODES_FILE} line {number}: a record of {arm.label!r} on {arm.scenario} carries "
                 f"config hash {arm.config_hash}, but its own config hashes otherwise ({'; '.join(diff[:4])}): it was "

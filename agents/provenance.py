@@ -54,12 +54,14 @@ CODE_PATHS = ("agents", "envs", "planners", "configs", "pyproject.toml")
 
 def git_state(root: Path = REPO_ROOT) -> tuple[str | None, bool | None]:
     """``(commit, dirty)`` of the checkout at ``root``: dirty when a tracked file under ``CODE_PATHS`` differs
-    from the commit; ``(None, None)`` outside a git checkout."""
+    from the commit; ``(None, None)`` when ``root`` is not the top of a git checkout (an installed wheel inside some
+    other repository, a project's ``.venv`` say, must not record that repository's commit)."""
     try:
         run = functools.partial(subprocess.run, cwd=root, capture_output=True, text=True, timeout=10)
-        head = run(["git", "rev-parse", "HEAD"])
-        if head.returncode != 0:
+        top = run(["git", "rev-parse", "--show-toplevel"])
+        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != Path(root).resolve():
             return None, None
+        head = run(["git", "rev-parse", "HEAD"])
         status = run(["git", "status", "--porcelain", "--untracked-files=no", "--", *CODE_PATHS])
         return head.stdout.strip(), bool(status.stdout.strip())
     except (OSError, subprocess.SubprocessError):

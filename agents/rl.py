@@ -40,7 +40,7 @@ import time
 import zipfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import gymnasium as gym
 import numpy as np
@@ -49,8 +49,9 @@ from stable_baselines3.sac.policies import SACPolicy
 
 from bimp import envs
 from bimp.agents.baselines import ZeroAction
+from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.rollout import rollout
-from bimp.configs import check_fields
+from bimp.configs import check_fields, read_yaml
 from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
@@ -670,11 +671,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
 
+    def fail(error: object) -> NoReturn:
+        parser.exit(2, f"bimp train-rl: error: {error}\n")
+
     values: dict[str, Any] = {}
     if args.config:
-        import yaml
-
-        values.update(yaml.safe_load(args.config.read_text()) or {})
+        try:
+            data = read_yaml(args.config)
+        except ValueError as err:
+            fail(err)
+        if data is not None and not isinstance(data, dict):
+            fail(f"{args.config}: expected a mapping of RLConfig overrides, got {type(data).__name__}")
+        values.update(data or {})
     values.update(scenario=args.scenario, algo=args.algo)
     for key in ("timesteps", "seed", "n_envs", "vec_env"):
         if getattr(args, key) is not None:
@@ -682,12 +690,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = RLConfig.from_mapping(values)
     except (TypeError, ValueError) as err:
-        parser.error(str(err))
+        fail(err)
     out = args.out or Path("runs/rl") / f"{cfg.algo}_{cfg.scenario}_s{cfg.seed}"
     try:
+        check_out_dir(out, create=False)
         path = train(cfg, out, progress=not args.no_progress)
-    except ValueError as err:  # another run's folder, or a checkpoint or replay buffer that does not fit
-        parser.exit(2, f"bimp train-rl: error: {err}\n")
+    except (EvaluationError, ValueError) as err:  # a bad --out, another run's folder, a checkpoint that does not fit
+        fail(err)
     print(f"model: {path}\ncurve: {out / 'curve.png'}\n"
           f"train wall time: {json.loads((out / 'train_time.json').read_text())['wall_s']} s")
     if args.eval_seeds:

@@ -94,3 +94,35 @@ def test_compare_json_that_cannot_be_written_exits_2(tmp_path, capsys):
              progress=False)
     assert main(["compare", str(tmp_path), "--policies", "zero", "lane-keep", "--json", str(tmp_path)]) == 2
     one_line_error(capsys, "--json", str(tmp_path))
+
+
+@pytest.mark.parametrize("command", [["demo", "--policy", "zero", "--episodes", "1"], ["bench", "--quick"]])
+def test_demo_and_bench_refuse_a_bad_out_before_running(tmp_path, monkeypatch, capsys, command):
+    """demo tracebacked on a refused request; bench checked its --out only after minutes of timing (review)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("mine\n")
+    out = "afile" if command[0] == "demo" else "afile/result.json"
+    assert main([*command, "--out", out]) == 2
+    one_line_error(capsys, "--out", "afile")
+    assert tree(tmp_path) == ["afile"]
+
+
+@pytest.mark.parametrize("config, out, named", [
+    (b"timesteps: [1\n", None, "not valid YAML"),
+    (b"- 1\n- 2\n", None, "expected a mapping"),
+    (None, None, "cannot be read"),
+    (b"timesteps: 100\n", "afile", "is a file"),
+    (b"timesteps: 100\n", "afile/sub", "under"),
+])
+def test_train_rl_file_errors_exit_2_in_one_line(tmp_path, monkeypatch, capsys, config, out, named):
+    """train-rl read its --config with a bare yaml.safe_load and never checked --out (review finding)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("mine\n")
+    if config is not None:
+        (tmp_path / "rl.yaml").write_bytes(config)
+    command = ["train-rl", "--scenario", "overtaking", "--config", "rl.yaml", "--no-progress"]
+    with pytest.raises(SystemExit) as exit_:
+        main([*command, *(["--out", out] if out else ["--out", "run"])])
+    assert exit_.value.code == 2
+    one_line_error(capsys, named)
+    assert sorted(tree(tmp_path)) == sorted(["afile"] + (["rl.yaml"] if config is not None else []))

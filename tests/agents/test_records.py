@@ -48,6 +48,15 @@ def test_a_genuine_record_resumes_even_with_infinities_written_as_null():
         ev.check_conflicts([arm], [(7, record)])
 
 
+def test_a_record_with_the_arms_hash_but_no_config_is_refused():
+    """A forged record that drops its config (so there is nothing to recompute) is foreign too (review finding)."""
+    (arm,) = resolve_arms(["emergency-brake"], ["lane-keep"])
+    record = {**ev._base_record(ev.Job(arm, 5)), "status": "ok"}
+    del record["config"]
+    with pytest.raises(EvaluationError, match="line 3: .*carries no config"):
+        ev.check_conflicts([arm], [(3, record)])
+
+
 BAD_LINES = {
     "empty object": b"{}",
     "null": b"null",
