@@ -38,7 +38,7 @@ test-ray: install-ray
 # The built wheel in a fresh virtualenv beside PyPI's `envs`: both importable, only `bimp` installed, the CLI runs.
 WHEEL_DIR := build/check-wheel
 check-wheel: $(STAMP)
-	rm -rf $(WHEEL_DIR)
+	rm -rf $(WHEEL_DIR) build/lib build/bdist.*  # setuptools' staging: a deleted module must not ship
 	$(PY) -m pip wheel -q --no-deps --no-build-isolation -w $(WHEEL_DIR) .
 	rm -rf bimp.egg-info  # the build leaves it in the checkout, where it would pass for the installed metadata
 	$(PYTHON) -m venv $(WHEEL_DIR)/venv

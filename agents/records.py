@@ -63,8 +63,9 @@ _reported: set[tuple[str, tuple[int, ...]]] = set()  # said once per process: ev
 def numbered_records(out: str | Path) -> list[tuple[int, dict]]:
     """``(line number, record)`` of every record in ``out/episodes.jsonl``, in file order. A line that is not a
     record (not JSON, not an object, lacking a key every reader needs: :func:`record_problem`) is skipped and
-    reported on stderr with its number; the last line, when no newline ends it, is a record cut by an interruption
-    and skipped silently. :class:`EvaluationError` when the file cannot be read."""
+    reported on stderr with its number; the last line, when no newline ends it, may be a record cut by an
+    interruption: kept when it parses as a whole record, else skipped silently. :class:`EvaluationError` when the
+    file cannot be read."""
     path = Path(out) / EPISODES_FILE
     try:
         data = path.read_bytes()

@@ -151,8 +151,8 @@ class _FeaturesOnly:
         if x.shape[-1:] == box.shape and not np.all((x >= box.low - 1e-5) & (x <= box.high + 1e-5)):
             raise ValueError(
                 "this bimp model acts on the planning features, not the raw observation: evaluate it on "
-                "envs.PlanningWrapper(gym.make(...)) (SB3's evaluate_policy), or use "
-                "agents.make_policy('ppo', env), which applies the features itself")
+                "bimp.envs.PlanningWrapper(gym.make(...)) (SB3's evaluate_policy), or use "
+                "bimp.make_policy('ppo', env), which applies the features itself")
         return super().obs_to_tensor(observation)
 
 

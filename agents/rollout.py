@@ -1,4 +1,4 @@
-"""The one episode loop: :func:`rollout` drives a :class:`~agents.policy.Policy` through one episode of a bimp env.
+"""The one episode loop: :func:`rollout` drives a :class:`~bimp.agents.policy.Policy` through one episode of a bimp env.
 
 Evaluation, figures, the benchmark's recorded observations, the RL baseline's quick check and the demo all call
 it, so every number in the project comes from the same loop and the same seeding. :func:`with_video` records the

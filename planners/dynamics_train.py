@@ -24,10 +24,12 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import torch
 
 from bimp.configs import ConfigError, check_fields
+from bimp.envs.scenarios import EgoVehicle
 from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED
 from bimp.planners.dynamics import MLP, BicycleModel, LearnedDynamics, features, save_model
 
@@ -85,8 +87,6 @@ def simulate_vehicle(x0: np.ndarray, inputs: np.ndarray, dt: float = DT) -> np.n
     """Step :class:`bimp.envs.scenarios.EgoVehicle` (no road) from states ``x0 (M, 4)`` under physical inputs
     ``inputs (M, T, 2)``; returns the states ``(M, T + 1, 4)``. One Python vehicle per row: this *is* the env's
     model, not a re-implementation of it."""
-    from bimp.envs.scenarios import EgoVehicle
-
     m, t_steps = inputs.shape[:2]
     out = np.empty((m, t_steps + 1, 4))
     out[:, 0] = x0
@@ -224,10 +224,6 @@ def rollout_scenarios(rng: np.random.Generator, episodes: int = 6,
     rate bounds of ``scene.bounds``) and record the EV. The steering carries a weak lane-keeping term so runs last
     long enough to give windows; an episode ends early on collision or leaving the road, and the transitions at a
     collision are dropped (highway-env pushes colliding vehicles apart, which no dynamics model predicts)."""
-    import gymnasium as gym
-
-    from bimp import envs  # noqa: F401  (registers the ids)
-
     out = []
     for env_id in scenarios:
         env = gym.make(env_id)

@@ -3,7 +3,7 @@
 MPPI (Williams et al. 2017) samples ``N`` control sequences around a nominal one, rolls them out and averages
 them with weights ``exp(-cost / lambda)``. Here it optimizes exactly what EnKTS infers, in the Gaussian case:
 
-    running cost  c_t = 0.5 * sum_i (h_i(xb_t) / sigma_i)^2,   h = planners.problem.measure   (eq. 8, observed 0)
+    running cost  c_t = 0.5 * sum_i (h_i(xb_t) / sigma_i)^2,   h = bimp.planners.problem.measure (eq. 8, observed 0)
     sigma = [sigma_ref (3), sigma_input (2), sigma_barrier (one per barrier)]  of the config's problem
 
 MPPI's state is the virtual system's block plus the first control: ``xb_t = [x_t (4), u_t (2), du_t (2), u_0 (2)]``
@@ -55,6 +55,7 @@ from pytorch_mppi import MPPI
 
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.scene import Scene
+from bimp.planners.dynamics import model_from_name
 from bimp.planners.problem import (
     Problem,
     ProblemConfig,
@@ -175,8 +176,6 @@ class MPPIPlanner:
         self.n_particles, self.horizon = config.n_particles, config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         if dynamics is None:
-            from bimp.planners.dynamics import model_from_name
-
             dynamics = model_from_name(config.problem.dynamics)
         self.dynamics = dynamics
         self.generator = torch.Generator()

@@ -59,6 +59,7 @@ import numpy as np
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import Scene
+from bimp.planners.dynamics import BicycleModel, load_model, model_from_name
 from bimp.planners.problem import (
     BarrierShape,
     ProblemConfig,
@@ -148,8 +149,6 @@ def mlp_function(model=None) -> ca.Function:
     (default: the shipped one).
     """
     if model is None:
-        from bimp.planners.dynamics import load_model
-
         model = load_model()
     x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
     v = x[3]
@@ -172,8 +171,6 @@ def bicycle_function(model=None) -> ca.Function:
     math as :meth:`bimp.planners.dynamics.BicycleModel.predict` (tests check they agree). ``model``: a
     ``BicycleModel`` (default: the env's vehicle)."""
     if model is None:
-        from bimp.planners.dynamics import BicycleModel
-
         model = BicycleModel()
     x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
     h, v = x[2], x[3]
@@ -300,8 +297,6 @@ class NMPCPlanner:
         self._scene = scene if callable(scene) else (lambda: scene)
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
         if dynamics is None:
-            from bimp.planners.dynamics import BicycleModel, model_from_name
-
             model = model_from_name(config.problem.dynamics)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
             dynamics, self._model_dt = build(model), model.dt
@@ -443,7 +438,7 @@ class NMPCPlanner:
         v = states[3, :]
         du = U - ca.horzcat(u_prev, U[:, :-1])
 
-        # Cost (eq. 21, or its Student's-t form): residuals of planners.problem.measure, weights 1 / sigma^2.
+        # Cost (eq. 21, or its Student's-t form): residuals of bimp.planners.problem.measure, weights 1 / sigma^2.
         sr, si, sw = tun.sigma_ref, tun.sigma_input, tun.sigma_du
         q_ref = ((lat - ref_lane) / sr[0]) ** 2 + (dpsi / sr[1]) ** 2 + ((v - v_ref) / sr[2]) ** 2
         # u_t is measured with the state x_{t+1} it reaches, at that state's time (as measure's rows): the

@@ -40,8 +40,9 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 
 from bimp.configs import CONFIG_DIR, ConfigError, check_fields, load_config, read_yaml
-from bimp.envs.road import array_module, corner_edge_distance, curvature_at, heading_at, to_frenet
+from bimp.envs.road import array_module, curvature_at, heading_at, to_frenet
 from bimp.envs.scene import Scene, bound_constraints
+from bimp.planners.dynamics import check_dynamics
 
 N_TRACK = 5  # r (3) + s (2)
 N_BOUND_BARRIERS = 9  # road edge, accel, steer, accel rate, steer rate, and the four of the first control
@@ -140,7 +141,6 @@ class ProblemConfig:
             value = getattr(self, key)
             if min(np.atleast_1d(value)) <= 0:
                 raise ConfigError(key, "> 0" if key == "sigma_barrier" else "a list of numbers > 0", value)
-        from bimp.planners.dynamics import check_dynamics
 
         check_dynamics(self.dynamics)
 
@@ -296,15 +296,9 @@ def frenet(road: Road, xy):
     return to_frenet(xy, road.straight_in, road.radius, road.arc_angle)
 
 
-def edge_distance(road: Road, limits: Limits, x):
-    """Least signed distance [m] of the body corners to the road edge (eq. 3), ``(...)`` for states ``x (..., 4)``:
-    > 0 on the road. Exact for the rectangle: the env measures the same function."""
-    return corner_edge_distance(x, limits.length, limits.width, road.straight_in, road.radius, road.arc_angle,
-                                road.half_width)
-
-
 def edge_distance_local(road: Road, limits: Limits, lat, dpsi):
-    """:func:`edge_distance` from the centre's road coordinates: the body corners' lateral offsets in the road
+    """The edge distance (eq. 3; exact for the rectangle: :meth:`bimp.envs.scene.Scene.edge_distance`) from the
+    centre's road coordinates: the body corners' lateral offsets in the road
     frame at the centre, ``|lat| + L/2 |sin dpsi| + W/2 cos dpsi``, taken as straight over the car's length.
     What the planners measure (NMPC too, as four smooth rows): a quarter of the transcendental work of the exact
     corners, and within 2 cm of them on the scenarios' curves (the road bends by (L/2)^2 / 2R = 1.7 cm over half a
@@ -392,7 +386,7 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     return xp.concatenate([tracking, xp.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness], axis=1)
 
 
-__all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance", "edge_distance_local", "frenet",
+__all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance_local", "frenet",
            "Limits", "load_planner_config", "load_problem", "make_problem", "measure",
            "measurement_noise", "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles",
            "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road"]

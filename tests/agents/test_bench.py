@@ -1,4 +1,4 @@
-"""agents.bench: the report of a synthetic result (no timing here: benchmarks are never timed tests) and the
+"""bimp.agents.bench: the report of a synthetic result (no timing here: benchmarks are never timed tests) and the
 argument checks."""
 
 from __future__ import annotations

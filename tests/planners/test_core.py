@@ -1,4 +1,4 @@
-"""planners.core: the update against closed forms, masking, sampling, and the compiled plan's contracts (batch ==
+"""bimp.planners.core: the update against closed forms, masking, sampling, and the compiled plan's contracts (batch ==
 single, a redrawn road reuses the program, non-finite plans never reach the action)."""
 
 import math

@@ -1,4 +1,4 @@
-"""planners.dynamics: the exact bicycle model against the env's vehicle, the shipped MLP's accuracy on fresh
+"""bimp.planners.dynamics: the exact bicycle model against the env's vehicle, the shipped MLP's accuracy on fresh
 scenario runs, batching, numpy/torch agreement, the loader's errors, a short training run, weights files named by a
 planner config, and where ``bimp train-dynamics`` writes."""
 

@@ -1,4 +1,4 @@
-"""planners.mppi: the running cost is the virtual measurements' negative log-likelihood (by hand and against
+"""bimp.planners.mppi: the running cost is the virtual measurements' negative log-likelihood (by hand and against
 ``measure``), the virtual-system transition, seeding without the global RNG, the fallback, the Policy contract
 on both scenarios, config validation."""
 

@@ -1,4 +1,4 @@
-"""planners.nmpc: the CasADi pieces against their numpy originals (MLP, Frenet frame, keep-out semi-axes), the
+"""bimp.planners.nmpc: the CasADi pieces against their numpy originals (MLP, Frenet frame, keep-out semi-axes), the
 compiled NLP's road-edge rows and cost against planners.problem (edge distance, measure's tracking rows), known
 optima of toy instances (quadratic and Student's-t cost, interior and active bounds), failure fallbacks, the
 Policy contract on both scenarios, config validation."""
@@ -37,7 +37,6 @@ from bimp.planners.problem import (
     N_TRACK,
     BarrierShape,
     ProblemConfig,
-    edge_distance,
     edge_distance_local,
     load_problem,
     make_problem,
@@ -183,13 +182,12 @@ def test_road_edge_rows_are_the_problem_edge_distance():
         np.testing.assert_allclose(scene.road.half_width - corners.max(axis=0), local, rtol=0, atol=1e-9)
     s_f, l_f = problem_frenet(problem.road, x[:, :2])
     local = edge_distance_local(problem.road, problem.limits, l_f, x[:, 2] - scene.road.heading_at(s_f))
-    exact = edge_distance(problem.road, problem.limits, x)
+    exact = scene.edge_distance(x)  # the exact corners, as the env measures them
     assert np.any(np.abs(local - exact) > 0.01)  # the curve's bend is there, and bounded:
     np.testing.assert_allclose(local, exact, rtol=0, atol=0.02)
     on_straights = (s_f < scene.road.straight_in - 3) | (s_f > scene.road.straight_in + scene.road.arc_length + 3)
     assert on_straights.sum() > 50
     np.testing.assert_allclose(local[on_straights], exact[on_straights], rtol=0, atol=1e-9)  # exact where straight
-    np.testing.assert_array_equal(scene.edge_distance(x), exact)
 
 
 def test_cost_is_the_nll_of_the_problem_tracking_rows():
@@ -417,7 +415,7 @@ def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
 
 
 def test_nu_below_the_float32_floor_is_refused_naming_nu():
-    """The same floor as the shared problem's nu (planners.problem.NU_MIN), which nmpc-t takes."""
+    """The same floor as the shared problem's nu (bimp.planners.problem.NU_MIN), which nmpc-t takes."""
     for nu in (2.000000000001, 1.0):
         with pytest.raises(ConfigError, match="nu") as err:
             NMPCConfig(problem={"nu": nu})

@@ -1,4 +1,4 @@
-"""planners.problem: the one definition of the planning problem, in numpy and JAX alike, and the env's agreement
+"""bimp.planners.problem: the one definition of the planning problem, in numpy and JAX alike, and the env's agreement
 with it."""
 
 import gymnasium as gym
