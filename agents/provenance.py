@@ -10,9 +10,13 @@ import dataclasses
 import functools
 import hashlib
 import json
+import math
 import subprocess
 from importlib import metadata
 from pathlib import Path
+from typing import Any
+
+from bimp.agents.registry import load, policy_spec
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -30,9 +34,63 @@ def resolved_config(policy) -> dict:
     return json.loads(json.dumps({"config": config}, default=str))  # tuples -> lists, paths -> str: as recorded
 
 
+def plain(value: Any) -> Any:
+    """``value`` as a record holds it: JSON data (tuples as lists, paths as strings), infinities and NaN as None
+    (JSON has no inf)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    return json.loads(json.dumps(value, default=str))
+
+
+@functools.lru_cache(maxsize=None)
+def _class_defaults(policy_name: str) -> str | None:
+    # JSON text, so that the cache hands out no mutable dict.
+    try:
+        reference = policy_spec(policy_name).config_class
+    except ValueError:  # not a policy: a hash of something else (a tuning study's space, say)
+        return None
+    return None if reference is None else json.dumps(plain(dataclasses.asdict(load(reference)())))
+
+
+def class_defaults(policy_name: str) -> dict | None:
+    """The ``config`` part of :func:`resolved_config` for the policy's config class at its class defaults, as a
+    record holds it (:func:`plain`); None when the policy's spec names no config class."""
+    text = _class_defaults(policy_name)
+    return None if text is None else json.loads(text)
+
+
+def without_defaults(value: dict, defaults: dict) -> dict:
+    """``value`` without the entries equal to ``defaults``' (nested mappings key by key)."""
+    out = {}
+    for key, item in value.items():
+        default = defaults.get(key, _ABSENT)
+        if item == default:
+            continue
+        out[key] = without_defaults(item, default) if isinstance(item, dict) and isinstance(default, dict) else item
+    return out
+
+
+_ABSENT = object()
+
+
 def config_hash(policy_name: str, config: dict) -> str:
-    """16 hex digits of SHA-256 over the policy name and its resolved config (canonical JSON)."""
-    blob = json.dumps({"policy": policy_name, "config": config}, sort_keys=True, default=str)
+    """16 hex digits of SHA-256 over the policy name and the config, canonical JSON as a record holds it
+    (:func:`plain`: a record's own config hashes to its arm's), with every field of the policy's config
+    (``config["config"]``) that equals its class default left out.
+
+    Leaving the defaults out is what lets a config grow: a field added later, whose default reproduces the behaviour
+    from before it existed, leaves every hash unchanged, so old records keep resuming (``docs/evaluation.md``). A
+    changed default changes what an old record's config hashes to, so the resume check refuses those records
+    instead of taking them for the new default's."""
+    config = plain(config)
+    defaults = class_defaults(policy_name)
+    if defaults is not None and isinstance(config.get("config"), dict):
+        config = {**config, "config": without_defaults(config["config"], defaults)}
+    blob = json.dumps({"policy": policy_name, "config": config}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -79,4 +137,5 @@ def code_version() -> dict:
     return {"bimp_version": version, "git_commit": commit, "git_dirty": dirty}
 
 
-__all__ = ["CODE_PATHS", "code_version", "git_state", "config_diff", "config_hash", "resolved_config"]
+__all__ = ["CODE_PATHS", "class_defaults", "code_version", "config_diff", "config_hash", "git_state", "plain",
+           "resolved_config", "without_defaults"]

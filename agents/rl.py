@@ -561,11 +561,13 @@ class SB3Policy:
             raise ValueError(f"trust_model must be true or false, got {trust_model!r}")
         self.env, self.algo, self.model_path = env, algo, path
         self.step_info: dict = {}  # a deterministic network: nothing to say about a step
-        # trust_model enters the config only when set: the default config (and the records' hashes) are as
-        # they were before it existed.
-        self.config = {"algo": algo, "model_path": str(path), "model_sha256": _sha256(path)}
+        # The file is identified by its content, never by where it lies: a path would tie the config's hash (and
+        # every record) to the machine and folder it was made in. Where it lies is shown apart, as an artifact.
+        # trust_model enters the config only when set: the default config is as it was before it existed.
+        self.config = {"algo": algo, "model_sha256": _sha256(path)}
         if trust_model:
             self.config["trust_model"] = True
+        self.artifacts = {"model": artifact_name(path, model_path)}
         # The SB3 policy (an ActorCriticPolicy or SACPolicy); its predict is the algorithm's.
         self.model = _load_trusted(path, algo, env) if trust_model else _load_safe(path, algo, env)
 
@@ -577,6 +579,14 @@ class SB3Policy:
 
     def reset(self, seed: int | None = None) -> None:
         pass
+
+
+def artifact_name(path: Path, given: str | Path) -> str:
+    """How a record names a model file: ``bimp:agents/models/NAME`` for a shipped one (relative to the package, the
+    same on every machine), else the path as the user gave it."""
+    if path.resolve().parent == MODEL_DIR.resolve():
+        return f"bimp:agents/models/{path.name}"
+    return str(given)
 
 
 def _sha256(path: Path) -> str:

@@ -85,8 +85,10 @@ def test_shipped_models_act_as_sb3_loads_them(path):
     x = np.random.default_rng(0).uniform(box.low, box.high, size=(32, *box.shape)).astype(np.float32)
     np.testing.assert_array_equal(safe.model.predict(x, deterministic=True)[0],
                                   trusted.model.predict(x, deterministic=True)[0])
-    # The default config (and so the committed records' hashes) is as before; the switch is recorded when on.
-    assert sorted(safe.config) == ["algo", "model_path", "model_sha256"]
+    # The file by its content, never by where it lies (issue 28); shipped, it is named relative to the package.
+    # The switch is recorded when on.
+    assert sorted(safe.config) == ["algo", "model_sha256"]
+    assert safe.artifacts == {"model": f"bimp:agents/models/{path.name}"}
     assert trusted.config == {**safe.config, "trust_model": True}
     env.close()
 
@@ -257,3 +259,18 @@ def test_a_crafted_or_missing_replay_buffer_is_refused_and_runs_no_code(tmp_path
     np.savez(buffer, **{**arrays, "observations": arrays["observations"][:, :1]})
     with pytest.raises(ValueError, match=r"observations has shape \(47, 1, 21\), this run's buffer \(47, 2, 21\)"):
         rl.train(cfg, out, progress=False)
+
+
+def test_a_model_is_identified_by_its_content_not_where_it_lies(overtaking, tmp_path):
+    """Issue 28: a config (and its hash) holds no path; a user's file is named as given, apart from the config."""
+    from bimp.agents.provenance import config_hash, resolved_config
+
+    shipped = rl._shipped_model(overtaking, "ppo", None)
+    here, there = tmp_path / "a" / "m.zip", tmp_path / "b" / "c" / "m.zip"
+    for copy in (here, there):
+        copy.parent.mkdir(parents=True)
+        copy.write_bytes(shipped.read_bytes())
+    policies = [make_policy("ppo", overtaking, model=m) for m in (shipped, here, str(there))]
+    assert len({config_hash("ppo", resolved_config(p)) for p in policies}) == 1
+    assert [p.artifacts["model"] for p in policies] == [f"bimp:agents/models/{shipped.name}", str(here), str(there)]
+    assert str(tmp_path) not in json.dumps(resolved_config(policies[1]))

@@ -183,5 +183,5 @@ def test_default_resolved_configs_are_unchanged():
     env = gym.make("bimp/Overtaking-v0")
     hashes = {name: config_hash(name, resolved_config(make_policy(name, env)))
               for name in ("enkts", "enks", "mppi", "nmpc", "nmpc-t")}
-    assert hashes == {"enkts": "2de2e9195205087a", "enks": "6e4d9d18a1ac7578", "mppi": "eee4fffdfb2b4dec",
-                      "nmpc": "f22b574b3d8c87bd", "nmpc-t": "762bb56b515ec887"}
+    assert hashes == {"enkts": "65d8f06fdae2b713", "enks": "e2b81d2a23a7e656", "mppi": "a51c94c1cd9e0d6d",
+                      "nmpc": "4a28b7b9252e851e", "nmpc-t": "2dfab0e2ab2ea514"}
