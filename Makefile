@@ -6,7 +6,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= runs/demo
 
-.PHONY: install install-ray demo test test-slow test-ray check-wheel bench clean
+.PHONY: install install-ray demo test test-slow test-ray check-results check-wheel bench clean
 
 install: $(STAMP)
 
@@ -34,6 +34,10 @@ test-slow: $(STAMP)
 
 test-ray: install-ray
 	$(PY) -m pytest -q -m slow tests/agents/test_backends.py
+
+# Every results command of the README and docs/ with --dry-run against its committed folder: none may run an episode.
+check-results: $(STAMP)
+	$(PY) -m pytest -q tests/test_results_commands.py
 
 # The built wheel in a fresh virtualenv beside PyPI's `envs`: both importable, only `bimp` installed, the CLI runs.
 WHEEL_DIR := build/check-wheel
