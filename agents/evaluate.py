@@ -3,16 +3,20 @@
     bimp evaluate --scenario overtaking emergency-brake --policy enkts enks --episodes 50 --seed 1000 \\
                   --workers 2 --out runs/eval
     bimp evaluate --scenario emergency-brake --policy enkts --set enkts.n_particles=10 --label enkts-n10 ...
-    bimp evaluate ... --seeds 4 10 13 --video 1
+    bimp evaluate ... --seeds 4 10 13 --video 1 --traces 1
+    bimp evaluate ... --dry-run                  # what would run, per arm; writes nothing
 
 Every policy, scenario and override is validated before the first episode runs: a bad one exits with status
 2 and writes nothing. Each row of the table is an *arm*: a policy under one fully resolved config, named by its
-label (the policy name unless ``--label`` says otherwise). ``OUT/episodes.jsonl`` gets one record per
-finished episode, fsynced at once, carrying the resolved config, its hash, the scenario's drawn parameters,
-the seeds and the code version (``docs/evaluation.md``). A rerun skips the episodes already recorded for the
-same ``(scenario, label, config_hash, seed)``; records made with another config under the same label make it
-refuse (give ``--label``), never reuse them, and so does a record whose own config does not hash to its
-``config_hash`` (naming its line). A line that is not a record is reported and skipped, never a traceback. An
+label (the policy name unless ``--label`` says otherwise). ``OUT/arms.json`` holds each arm's resolved config once,
+keyed by its hash (written before the arm's first record); ``OUT/episodes.jsonl`` gets one compact record per
+finished episode, fsynced at once, carrying the config's hash, the scenario's drawn parameters, the seeds and the
+code version (``docs/evaluation.md``); per-step traces only with ``--traces K`` (figures). A rerun skips the
+episodes already recorded for the same ``(scenario, label, config_hash, seed)``; records made with another config
+under the same label make it refuse (give ``--label``), never reuse them, and so does a record whose config (its
+own, or its ``arms.json`` entry) does not hash to its ``config_hash`` (naming its line, or the entry's hash).
+``--dry-run`` resolves and checks the request exactly so, then lists per arm the episodes done and to run, and
+writes nothing. A line that is not a record is reported and skipped, never a traceback. An
 episode that raises is recorded with its traceback, shown in the ``errors`` column and retried by the next run.
 A worker process that dies is detected and its episode retried alone, then recorded as an error if it dies
 again; the run never hangs. One run at a time per folder (a lock). ``OUT/summary.{json,csv,md}`` cover the
@@ -53,14 +57,18 @@ from bimp.agents.cli import (
 from bimp.agents.metrics import episode_metrics, summarize
 from bimp.agents.provenance import code_version, config_diff, config_hash, resolved_config
 from bimp.agents.records import (
+    ARMS_FILE,
     EPISODES_FILE,
     finite,
     folder_lock,
     latest_records,
     markdown_table,
     numbered_records,
+    read_arms,
     read_records,
+    record_config,
     record_key,
+    write_arms,
     write_summary,
 )
 from bimp.agents.registry import POLICIES, is_policy_name, make_policy, policy_spec
@@ -72,7 +80,8 @@ VIDEO_DIR = "videos"
 @dataclass(frozen=True)
 class Arm:
     """One row of the table: policy ``policy`` under ``overrides`` on ``scenario``, shown as ``label``;
-    ``config`` is the policy's fully resolved config and ``config_hash`` its hash."""
+    ``config`` is the policy's fully resolved config and ``config_hash`` its hash; ``artifacts``: the files the
+    policy loaded, by name (its ``artifacts``; shown in ``arms.json``, not hashed: the config names them by content)."""
 
     scenario: str
     label: str
@@ -80,22 +89,30 @@ class Arm:
     overrides: tuple
     config: str  # canonical JSON: frozen and hashable
     config_hash: str
+    artifacts: str = "{}"  # canonical JSON
 
     @property
     def resolved(self) -> dict:
         return json.loads(self.config)
 
+    def entry(self) -> dict:
+        """The arm's entry in ``arms.json`` (infinities as null, as JSON holds them)."""
+        return finite({"policy": self.policy, "config": self.resolved, "artifacts": json.loads(self.artifacts),
+                       "overrides": dict(self.overrides), "seeding": SEEDING})
+
 
 @dataclass(frozen=True)
 class Job:
     """One episode to run: ``arm`` on episode ``seed``; ``trace``: keep the per-step trace (figures);
-    ``video_dir``: record an MP4 there; ``version``: the code version to stamp on the record."""
+    ``video_dir``: record an MP4 there; ``version``: the code version to stamp on the record; ``inline``: the
+    arm's fields a record repeats because they differ from its ``arms.json`` entry (overrides, seeding)."""
 
     arm: Arm
     seed: int
     trace: bool = False
     video_dir: str | None = None
     version: tuple = ()
+    inline: tuple = ()
 
     @property
     def key(self) -> tuple[str, str, str, int]:
@@ -133,11 +150,13 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
         for policy in policies:
             given = overrides.get(policy, {})
             try:
-                config = arm_config(make_policy(policy, env, **given), env)
+                built = make_policy(policy, env, **given)
+                config = arm_config(built, env)
             except (ValueError, TypeError, OSError, ImportError, AttributeError) as err:  # OSError: a model path
                 raise EvaluationError(f"policy {policy!r} on {scenario} with overrides {given}: {err}") from None
+            artifacts = json.dumps(getattr(built, "artifacts", {}), sort_keys=True, default=str)
             arms.append(Arm(scenario, labels.get(policy, policy), policy, tuple(sorted(given.items())),
-                            json.dumps(config, sort_keys=True), config_hash(policy, config)))
+                            json.dumps(config, sort_keys=True), config_hash(policy, config), artifacts))
         env.close()
     return arms
 
@@ -155,31 +174,42 @@ def arm_config(policy, env) -> dict:
     return {**resolved_config(policy), "scenario": definition}
 
 
-def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str | Path = ".") -> None:
+def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str | Path = ".",
+                    entries: dict[str, dict] | None = None) -> None:
     """Refuse (:class:`EvaluationError`) when ``records`` (``(line number, record)`` of ``out``'s records) hold
     episodes of an arm's ``(scenario, label)`` made with another config, or a *foreign* record: one carrying the
-    arm's ``config_hash`` whose own config does not hash to it. Such a record was not made by this arm (edited, or
-    copied in from another config) and resume must not count its episode as done."""
+    arm's ``config_hash`` whose config (its own, or its entry in ``entries``, ``out/arms.json`` by default) does not
+    hash to it, or that has none. Such a record was not made by this arm (edited, or copied in from another config)
+    and resume must not count its episode as done."""
+    entries = read_arms(out) if entries is None else entries
     by_row = {(arm.scenario, arm.label): arm for arm in arms}
-    written = {arm: config_hash(arm.policy, finite(arm.resolved)) for arm in arms}  # infinities are null there
+    for arm in arms:  # the arm's own entry must be its config: an edited arms.json would vouch for every record
+        entry = entries.get(arm.config_hash)
+        if entry is not None and config_hash(entry["policy"], entry["config"]) != arm.config_hash:
+            diff = config_diff(entry["config"], finite(arm.resolved)) or [f"policy: {entry['policy']!r}"]
+            raise EvaluationError(
+                f"{Path(out) / ARMS_FILE}: the entry {arm.config_hash} ({arm.label!r} on {arm.scenario}) does not "
+                f"hash to its key ({'; '.join(diff[:4])}): it is not that config; choose another --out")
     others: dict[Arm, list[dict]] = {}
     for number, r in records:
         arm = by_row.get((r["scenario"], r.get("label", r["policy"])))
         if arm is None:
             continue
+        config = record_config(r, entries)
         if r.get("config_hash") != arm.config_hash:
             others.setdefault(arm, []).append(r)
-        elif not isinstance(r.get("config"), dict) or config_hash(r["policy"], r["config"]) != written[arm]:
+        elif config is None or config_hash(r["policy"], config) != arm.config_hash:
             # A hash without the config it names proves nothing: such a record is foreign too.
-            diff = (config_diff(r["config"], finite(arm.resolved)) if isinstance(r.get("config"), dict)
-                    else ["the record carries no config"]) or [f"policy: {r['policy']!r} -> {arm.policy!r}"]
+            diff = (config_diff(config, finite(arm.resolved)) if config is not None
+                    else [f"its hash is not in {ARMS_FILE} and it carries no config"]) \
+                or [f"policy: {r['policy']!r} -> {arm.policy!r}"]
             raise EvaluationError(
                 f"{Path(out) / EPISODES_FILE} line {number}: a record of {arm.label!r} on {arm.scenario} carries "
-                f"config hash {arm.config_hash}, but its own config hashes otherwise ({'; '.join(diff[:4])}): it was "
+                f"config hash {arm.config_hash}, but its config hashes otherwise ({'; '.join(diff[:4])}): it was "
                 "not made with that config; choose another --out (the folder's records are never rewritten)")
     for arm, rs in others.items():
         old = rs[-1]
-        diff = config_diff(old.get("config") or {}, arm.resolved) or ["(the old records carry no config)"]
+        diff = config_diff(record_config(old, entries) or {}, arm.resolved) or ["(the old records carry no config)"]
         raise EvaluationError(
             f"the folder already holds {len(rs)} episode(s) of {arm.label!r} on {arm.scenario} made with "
             f"another config (hash {old.get('config_hash')} here, {arm.config_hash} now):\n  "
@@ -190,9 +220,10 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
 # --- running one episode -------------------------------------------------------------------------------
 def _base_record(job: Job) -> dict:
     arm = job.arm
+    # The config, overrides and seeding are the arm's entry in arms.json: a record names it by hash, and repeats only
+    # what differs from it (job.inline).
     return {"scenario": arm.scenario, "label": arm.label, "policy": arm.policy, "seed": job.seed,
-            "config_hash": arm.config_hash, "config": arm.resolved, "overrides": dict(arm.overrides),
-            "seeding": SEEDING, **dict(job.version)}
+            "config_hash": arm.config_hash, **dict(job.inline), **dict(job.version)}
 
 
 def run_group(group: tuple[Job, ...]) -> list[dict]:
@@ -262,11 +293,27 @@ def _crashed(group: tuple[Job, ...], why: str) -> list[dict]:
 
 
 # --- running many episodes ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DryRun:
+    """What a run would do (``evaluate(..., dry_run=True)``): ``to_run``, the ``(scenario, label, seed)`` of every
+    episode it would run; ``done``, how many of the requested episodes the folder already holds; ``arms``, per arm
+    ``(scenario, label, done, to run)``."""
+
+    to_run: list[tuple[str, str, int]]
+    done: int
+    arms: list[tuple[str, str, int, int]]
+
+    def lines(self) -> list[str]:
+        """One line per arm, then ``dry run: N episode(s) would run``."""
+        return ([f"{scenario}  {label}: {done} done, {todo} to run" for scenario, label, done, todo in self.arms]
+                + [f"dry run: {len(self.to_run)} episode(s) would run"])
+
+
 def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed: int = 0, workers: int = 1,
-             out: str | Path = "runs/eval", traces: int = 2, overrides: dict | None = None,
+             out: str | Path = "runs/eval", traces: int = 0, overrides: dict | None = None,
              progress: bool = True, *, seeds: list[int] | None = None, labels: dict | None = None,
              video: int = 0, all_records: bool = False, batch: int = 1, backend: str = "local",
-             address: str | None = None, ray_cpus: int | None = None) -> dict:
+             address: str | None = None, ray_cpus: int | None = None, dry_run: bool = False) -> dict | DryRun:
     """Run the missing episodes, append them to ``out/episodes.jsonl``, write and return the summary.
 
     Episodes: ``seeds`` if given, else ``seed, seed + 1, ..., seed + episodes - 1``. ``overrides``:
@@ -277,12 +324,14 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
     ``backend``: where the episodes run (:mod:`bimp.agents.backends`): ``"local"``, a pool of ``workers`` processes,
     or ``"ray"``, the Ray cluster at ``address`` (default: a new local instance of ``ray_cpus`` CPUs). Raises
     :class:`EvaluationError` before anything is written when the request is invalid, conflicts with the folder's
-    records, or names a backend that cannot run.
+    records, or names a backend that cannot run. ``dry_run``: check all that, then return a :class:`DryRun` (the
+    episodes that would run) instead, writing nothing and starting no backend.
     """
-    try:
-        start_backend(backend, address, ray_cpus)
-    except BackendError as err:
-        raise EvaluationError(str(err)) from None
+    if not dry_run:
+        try:
+            start_backend(backend, address, ray_cpus)
+        except BackendError as err:
+            raise EvaluationError(str(err)) from None
     seeds = list(range(seed, seed + episodes)) if seeds is None else [int(s) for s in seeds]
     if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
         raise EvaluationError(f"seeds must be distinct ints >= 0, at least one; got {seeds}")
@@ -294,7 +343,14 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
         if single:
             raise EvaluationError(f"--batch needs policies that plan batches; {single} do not")
     out = check_out_dir(out, create=False)
-    check_conflicts(arms, numbered_records(out), out)  # before anything is written: a refusal leaves no trace
+    numbered = numbered_records(out)
+    check_conflicts(arms, numbered, out)  # before anything is written: a refusal leaves no trace
+    if dry_run:
+        done = {record_key(r) for _, r in numbered if r["status"] == "ok"}
+        rows = [(arm, [s for s in seeds if (arm.scenario, arm.label, arm.config_hash, s) not in done]) for arm in arms]
+        return DryRun([(arm.scenario, arm.label, s) for arm, todo in rows for s in todo],
+                      len(arms) * len(seeds) - sum(len(todo) for _, todo in rows),
+                      [(arm.scenario, arm.label, len(seeds) - len(todo), len(todo)) for arm, todo in rows])
     check_out_dir(out)
     with folder_lock(out):
         numbered = numbered_records(out)
@@ -302,9 +358,16 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
         records = [r for _, r in numbered]
         version = tuple(code_version().items())
         video_dir = str(out / VIDEO_DIR)
-        jobs = [Job(arm, s, trace=i < traces, video_dir=video_dir if i < video else None, version=version)
-                for arm in arms for i, s in enumerate(seeds)]
         done = {record_key(r) for r in records if r["status"] == "ok"}
+        entries = read_arms(out)
+        new = {arm.config_hash: arm.entry() for arm in arms
+               if arm.config_hash not in entries and _keys(arm, seeds) - done}
+        if new:  # each new arm's config before its first record: a record never names a hash arms.json lacks
+            entries = {**entries, **new}
+            write_arms(out, entries)
+        jobs = [Job(arm, s, trace=i < traces, video_dir=video_dir if i < video else None, version=version,
+                    inline=_inline(arm, entries[arm.config_hash]) if arm.config_hash in entries else ())
+                for arm in arms for i, s in enumerate(seeds)]
         todo = [j for j in jobs if j.key not in done]
         path = out / EPISODES_FILE
         if path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n"):
@@ -328,6 +391,17 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
         summary = summarize(records if all_records else [r for r in records if record_key(r) in wanted])
         write_summary(summary, out)
     return summary
+
+
+def _keys(arm: Arm, seeds: list[int]) -> set[tuple[str, str, str, int]]:
+    return {(arm.scenario, arm.label, arm.config_hash, s) for s in seeds}
+
+
+def _inline(arm: Arm, entry: dict) -> tuple:
+    """The fields of ``arm``'s records that differ from its ``arms.json`` entry (made by another label's
+    spelling of the same config, or before the seeding changed): those a record must repeat."""
+    mine = arm.entry()
+    return tuple((key, mine[key]) for key in ("overrides", "seeding") if entry.get(key) != mine[key])
 
 
 def _groups(todo: list[Job], batch: int) -> list[tuple[Job, ...]]:
@@ -355,7 +429,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="first episode seed (seeds by role: docs/evaluation.md)")
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="an explicit list of episode seeds")
     parser.add_argument("--workers", type=int, default=max(1, min(2, os.cpu_count() or 1)))
-    parser.add_argument("--traces", type=int, default=2, help="episodes per arm that keep their per-step trace")
+    parser.add_argument("--traces", type=int, default=0,
+                        help="episodes per arm that keep their per-step trace (for bimp plot; a traced record is "
+                             "~50x larger)")
     parser.add_argument("--video", type=int, default=0, metavar="K", help="MP4 of the first K episodes per arm")
     add_set_argument(parser)
     parser.add_argument("--label", nargs="*", action="extend", default=[], metavar="[POLICY=]NAME",
@@ -365,6 +441,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--all", dest="all_records", action="store_true",
                         help="summarize every episode in the folder, not only this request's")
     parser.add_argument("--out", default="runs/eval")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="check the request against the folder and list what would run; write nothing")
     add_backend_arguments(parser)
 
 
@@ -379,13 +457,17 @@ def main(argv: list[str] | None = None) -> int:
         summary = evaluate(args.scenario, args.policy, args.episodes, args.seed, args.workers, args.out,
                            args.traces, parse_overrides(args.overrides), seeds=args.seeds,
                            labels=parse_labels(args.label, args.policy), video=args.video,
-                           all_records=args.all_records, batch=args.batch, **backend_options(args))
+                           all_records=args.all_records, batch=args.batch, dry_run=args.dry_run,
+                           **backend_options(args))
     except EvaluationError as err:
         print(f"bimp evaluate: error: {err}", file=sys.stderr)
         return 2
+    if isinstance(summary, DryRun):
+        print("\n".join(summary.lines()))
+        return 0
     print(markdown_table(summary))
     print(f"wrote {Path(args.out) / EPISODES_FILE} and summary.{{json,csv,md}}")
     return 0
 
 
-__all__ = ["Arm", "EvaluationError", "Job", "evaluate", "latest_records", "read_records", "resolve_arms"]
+__all__ = ["Arm", "DryRun", "EvaluationError", "Job", "evaluate", "latest_records", "read_records", "resolve_arms"]

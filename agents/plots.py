@@ -190,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bimp plot: error: {err}", file=sys.stderr)
         return 2
     if not written:
-        print(f"no traced episodes in {args.folder}: run `bimp evaluate --traces 1 ...` first")
+        print(f"no traced episodes in {args.folder} (bimp evaluate keeps no per-step trace unless asked): run "
+              "`bimp evaluate --traces 1 ...` into it first")
         return 1
     for path in written:
         print(path)

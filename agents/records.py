@@ -3,6 +3,10 @@
 Every command that reads or writes a folder goes through here: ``bimp evaluate`` appends records under the lock and
 writes the summary; ``compare``, ``aggregate``, ``plot``, ``sweep`` and ``tune`` read the records. A line that is not
 a record is reported once with its number and skipped, never a traceback (``docs/evaluation.md``).
+
+An arm's resolved config is written once, in ``arms.json`` beside the records (:func:`read_arms`,
+:func:`write_arms`), keyed by its ``config_hash``; a record names it by that hash (:func:`record_config`). Records
+written before ``arms.json`` existed carry their config inline and are read as they are.
 """
 
 from __future__ import annotations
@@ -23,7 +27,11 @@ from bimp.agents.cli import EvaluationError
 from bimp.agents.metrics import BINARY, METRICS
 
 EPISODES_FILE = "episodes.jsonl"
+ARMS_FILE = "arms.json"
 LOCK_FILE = ".lock"
+# What an arms.json entry holds for its records; a record repeats one of the last two only where its value differs
+# from its arm's (two labels sharing one config with different --set spellings, an arm resumed after SEEDING changed).
+ARM_FIELDS = ("policy", "config", "artifacts", "overrides", "seeding")
 
 
 def record_key(record: dict) -> tuple[str, str, str | None, int]:
@@ -111,6 +119,51 @@ def latest_records(records: list[dict]) -> list[dict]:
         if r["status"] == "ok" or chosen.get(key, {}).get("status") != "ok":
             chosen[key] = r
     return list(chosen.values())
+
+
+# --- arms.json: each arm's config, once ---------------------------------------------------------------------
+def read_arms(out: str | Path) -> dict[str, dict]:
+    """``{config_hash: {"policy", "config", "artifacts", "overrides", "seeding"}}`` of ``out/arms.json`` (``{}``
+    where there is none). :class:`EvaluationError` naming the file when it cannot be read or is not such a map: a
+    folder whose configs cannot be read cannot be resumed."""
+    path = Path(out) / ARMS_FILE
+    try:
+        arms = json.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as err:
+        raise EvaluationError(f"cannot read {path}: {err}") from None
+    bad = ["(the file)"] if not isinstance(arms, dict) else [
+        key for key, entry in arms.items() if not (isinstance(entry, dict) and isinstance(entry.get("policy"), str)
+                                                   and isinstance(entry.get("config"), dict))]
+    if bad:
+        raise EvaluationError(f"{path}: not a map of config hash to {{policy, config, ...}}; bad entries: {bad[:5]}")
+    return arms
+
+
+def write_arms(out: str | Path, arms: dict[str, dict]) -> None:
+    """``out/arms.json`` replaced atomically (a temporary file, then ``os.replace``): a reader or an interruption
+    sees the old map or the new one, never half of one."""
+    write_atomic(Path(out) / ARMS_FILE, json.dumps(finite(arms), indent=1, sort_keys=True) + "\n")
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """``path`` holds ``text``, replaced in one step (fsynced before the rename)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def record_config(record: dict, arms: dict[str, dict]) -> dict | None:
+    """The resolved config a record was made with: its own (records from before ``arms.json``), else its arm's entry
+    in ``arms`` by ``config_hash``; None when neither holds one."""
+    if isinstance(record.get("config"), dict):
+        return record["config"]
+    entry = arms.get(record.get("config_hash"))
+    return entry["config"] if entry is not None else None
 
 
 # --- the lock ----------------------------------------------------------------------------------------------
@@ -210,6 +263,6 @@ def markdown_table(summary: dict) -> str:
     return "\n".join(lines) + "\n" + notes
 
 
-__all__ = ["EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "finite", "folder_lock", "format_stat",
-           "latest_records", "markdown_table", "numbered_records", "read_records", "record_key", "record_problem",
-           "write_summary"]
+__all__ = ["ARMS_FILE", "ARM_FIELDS", "EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "finite", "folder_lock",
+           "format_stat", "latest_records", "markdown_table", "numbered_records", "read_arms", "read_records",
+           "record_config", "record_key", "record_problem", "write_arms", "write_atomic", "write_summary"]

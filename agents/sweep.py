@@ -22,7 +22,8 @@ episodes). Episodes run one at a time (no ``--batch``): a batched plan's time is
 seeds and an otherwise idle machine, with ``--workers 1`` (the default) so that no two episodes share a core.
 
 Writes ``OUT/sweep.json`` (the points with their summaries), ``OUT/sweep.md`` (one row per point and scenario)
-and ``OUT/sweep.png`` (or ``frontier.json``, ``frontier.md``, ``frontier.png``).
+and ``OUT/sweep.png`` (or ``frontier.json``, ``frontier.md``, ``frontier.png``). ``--dry-run``: every point checked as
+for a run, then one line per arm (episodes done, to run) and ``dry run: N episode(s) would run``; nothing written.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from bimp.agents.cli import (
     check_out_dir,
     parse_overrides,
 )
-from bimp.agents.evaluate import check_conflicts, evaluate, resolve_arms
+from bimp.agents.evaluate import DryRun, check_conflicts, evaluate, resolve_arms
 from bimp.agents.records import format_stat, numbered_records, write_summary
 from bimp.agents.registry import is_policy_name, make_policy, policy_color, policy_label, policy_spec
 from bimp.agents.tune import TuneError, factory_kwargs, overrides_for
@@ -119,9 +120,10 @@ def axis_points(policies: list[str], axis: dict[str, tuple[str, list]], base: di
 
 def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: int, out: str | Path, *,
                workers: int = 1, batch: int = 1, progress: bool = True, backend: str = "local",
-               address: str | None = None, ray_cpus: int | None = None) -> list[dict]:
+               address: str | None = None, ray_cpus: int | None = None, dry_run: bool = False) -> list[dict] | DryRun:
     """Evaluate every point into ``out``; ``[{label, policy, param, value, scenario, **summary entry}]``.
-    ``backend``, ``address``, ``ray_cpus``: where the episodes run, as for :func:`bimp.agents.evaluate.evaluate`."""
+    ``backend``, ``address``, ``ray_cpus``: where the episodes run, as for :func:`bimp.agents.evaluate.evaluate`.
+    ``dry_run``: the same checks, then the :class:`bimp.agents.evaluate.DryRun` of all the points; nothing written."""
     labels = [p.label for p in points]
     if not points or len(set(labels)) != len(labels):
         raise EvaluationError(f"the points need distinct labels, got {labels}")
@@ -134,6 +136,11 @@ def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: i
     arms = [arm for p in points
             for arm in resolve_arms(scenarios, [p.policy], {p.policy: p.overrides}, {p.policy: p.label})]
     check_conflicts(arms, numbered_records(out), out)
+    if dry_run:
+        plans = [evaluate(scenarios, [p.policy], episodes, seed, workers, out, overrides={p.policy: p.overrides},
+                          labels={p.policy: p.label}, batch=batch, dry_run=True) for p in points]
+        return DryRun([e for plan in plans for e in plan.to_run], sum(plan.done for plan in plans),
+                      [a for plan in plans for a in plan.arms])
     rows, combined = [], {}
     for p in points:
         summary = evaluate(scenarios, [p.policy], episodes, seed, workers, out, traces=0, progress=progress,
@@ -219,6 +226,8 @@ def _common(parser: argparse.ArgumentParser, seed: int) -> None:
     add_set_argument(parser, help="overrides under every point (as bimp evaluate --set)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--out", required=True)
+    parser.add_argument("--dry-run", action="store_true",
+                        help="check every point against the folder and list what would run; write nothing")
     add_backend_arguments(parser)
 
 
@@ -261,10 +270,13 @@ def _run(name: str, args: argparse.Namespace, points_of, batch: int = 1) -> int:
         if stray:
             raise EvaluationError(f"--set names {stray}, which no point evaluates")
         rows = run_points(points, args.scenario, args.episodes, args.seed, args.out, workers=args.workers,
-                          batch=batch, **backend_options(args))
+                          batch=batch, dry_run=args.dry_run, **backend_options(args))
     except EvaluationError as err:
         print(f"bimp {name}: error: {err}", file=sys.stderr)
         return 2
+    if isinstance(rows, DryRun):
+        print("\n".join(rows.lines()))
+        return 0
     for path in write(rows, Path(args.out), name):
         print(path)
     print(table(rows))

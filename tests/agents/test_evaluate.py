@@ -11,7 +11,7 @@ from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate
 from bimp.agents.metrics import METRICS
 from bimp.agents.plots import plot_all
-from bimp.agents.records import EPISODES_FILE, folder_lock, read_records
+from bimp.agents.records import EPISODES_FILE, folder_lock, read_arms, read_records, record_config
 
 ARGS = dict(scenarios=["emergency-brake"], policies=["lane-keep"], episodes=3, seed=5, workers=1,
             traces=1, progress=False)
@@ -51,13 +51,17 @@ def test_summary_files_carry_every_named_key_with_intervals(tmp_path):
 
 
 def test_records_carry_provenance(tmp_path):
-    evaluate(out=tmp_path, **{**ARGS, "episodes": 1})
+    evaluate(out=tmp_path, **{k: v for k, v in {**ARGS, "episodes": 1}.items() if k != "traces"})
     (r,) = read_records(tmp_path)
-    assert r["config"]["config"] == {"k_lat": 0.004, "k_head": 0.15, "k_speed": 0.8}
-    assert r["config"]["scenario"]["brake_decel"] == [5.0, 7.0]  # the scenario's ranges are part of the config
+    arm = read_arms(tmp_path)[r["config_hash"]]  # the arm's config, once, beside the records
+    assert not {"config", "overrides", "seeding"} & set(r)  # a compact record names it by hash
+    assert arm["config"]["config"] == {"k_lat": 0.004, "k_head": 0.15, "k_speed": 0.8}
+    assert arm["config"]["scenario"]["brake_decel"] == [5.0, 7.0]  # the scenario's ranges are part of the config
+    assert arm["policy"] == "lane-keep" and arm["overrides"] == {} and arm["artifacts"] == {}
     assert len(r["config_hash"]) == 16 and r["label"] == "lane-keep" and r["policy"] == "lane-keep"
     assert set(r["scenario_params"]) >= {"ev_speed", "ov1_gap", "brake_decel"}
-    assert r["env_seed"] != r["policy_seed"] and "SeedSequence" in r["seeding"]
+    assert r["env_seed"] != r["policy_seed"] and "SeedSequence" in arm["seeding"]
+    assert "trace" not in r  # traces only when asked for (--traces)
     assert r["bimp_version"] and "git_commit" in r and "git_dirty" in r
 
 
@@ -86,8 +90,8 @@ def test_a_rerun_with_other_overrides_refuses_and_a_label_adds_a_row(tmp_path):
     assert set(summary) == {"enkts-n12/emergency-brake"}  # this request's rows only
     assert set(evaluate(out=tmp_path, overrides={"enkts": SMALL_ENKTS}, all_records=True, **args)) == {
         "enkts/emergency-brake", "enkts-n12/emergency-brake"}
-    records = read_records(tmp_path)
-    assert len(records) == 2 and {r["config"]["config"]["n_particles"] for r in records} == {10, 12}
+    records, arms = read_records(tmp_path), read_arms(tmp_path)
+    assert len(records) == 2 and {record_config(r, arms)["config"]["n_particles"] for r in records} == {10, 12}
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -237,3 +241,39 @@ def test_compare_pairs_two_arms_across_both_scenarios(tmp_path, capsys):
     assert result["emergency-brake"]["seeds"] == [5, 6] and "p_value" in result["overtaking"]["success_rate"]
     assert result["emergency-brake"]["overtake_rate"] is None  # no OV1 to pass in the emergency brake
     assert "p_value" in result["overtaking"]["overtake_rate"]
+
+
+# --- --dry-run and compact records (issue 28) ----------------------------------------------------------------------
+def _tree(folder) -> dict:
+    return {str(p): (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*"))}
+
+
+def test_a_dry_run_lists_the_missing_seeds_and_writes_nothing(tmp_path, capsys):
+    args = {k: v for k, v in ARGS.items() if k != "traces"}
+    absent = tmp_path / "absent"
+    plan = evaluate(out=absent, dry_run=True, **args)
+    assert plan.done == 0 and plan.to_run == [("emergency-brake", "lane-keep", s) for s in (5, 6, 7)]
+    assert not absent.exists()  # no mkdir, no lock
+    evaluate(out=tmp_path, **{**args, "episodes": 2})
+    before = _tree(tmp_path)
+    plan = evaluate(out=tmp_path, dry_run=True, **{**args, "episodes": 4})
+    assert plan.done == 2 and plan.to_run == [("emergency-brake", "lane-keep", 7), ("emergency-brake", "lane-keep", 8)]
+    assert ev.main(["--policy", "lane-keep", "--scenario", "emergency-brake", "--episodes", "2", "--seed", "5",
+                    "--out", str(tmp_path), "--dry-run"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out == ["emergency-brake  lane-keep: 2 done, 0 to run", "dry run: 0 episode(s) would run"]
+    assert _tree(tmp_path) == before  # no record, no arms.json, no summary, no lock touched
+    # A refusal is the real run's: another config under the label exits 2 naming it, and still writes nothing.
+    assert ev.main(["--policy", "lane-keep", "--set", "lane-keep.k_lat=0.01", "--scenario", "emergency-brake",
+                    "--out", str(tmp_path), "--dry-run"]) == 2
+    assert "k_lat" in capsys.readouterr().err and _tree(tmp_path) == before
+
+
+def test_a_record_without_its_trace_still_summarizes_and_plot_says_there_is_none(tmp_path, capsys):
+    from bimp.agents import plots
+
+    summary = evaluate(out=tmp_path, **{**ARGS, "traces": 0})
+    assert summary["lane-keep/emergency-brake"]["episodes"] == 3
+    assert not any("trace" in r for r in read_records(tmp_path))
+    assert plots.main([str(tmp_path)]) == 1
+    assert "no traced episodes" in capsys.readouterr().out

@@ -12,7 +12,7 @@ from bimp.agents import aggregate, compare, plots
 from bimp.agents import evaluate as ev
 from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate, resolve_arms
-from bimp.agents.records import EPISODES_FILE, finite, read_records
+from bimp.agents.records import ARMS_FILE, EPISODES_FILE, finite, read_arms, read_records, record_config
 
 ARGS = dict(scenarios=["emergency-brake"], episodes=2, seed=5, workers=1, traces=1, progress=False)
 CLI = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5", "--workers", "1"]
@@ -24,7 +24,9 @@ def test_a_record_whose_config_does_not_hash_to_its_config_hash_is_refused_namin
     (arm,) = resolve_arms(["emergency-brake"], ["lane-keep"])
     out = tmp_path / "out"
     out.mkdir()
-    forged = [{**r, "config_hash": arm.config_hash} for r in read_records(tmp_path / "other")]
+    other = read_arms(tmp_path / "other")  # an old-format record: its config inline
+    forged = [{**r, "config": record_config(r, other), "config_hash": arm.config_hash}
+              for r in read_records(tmp_path / "other")]
     (out / EPISODES_FILE).write_text("".join(json.dumps(r) + "\n" for r in forged))
     before = (out / EPISODES_FILE).read_bytes()
     with pytest.raises(EvaluationError, match=r"episodes\.jsonl line 1: .*k_lat: 0\.01 -> 0\.004"):
@@ -40,7 +42,8 @@ def test_a_genuine_record_resumes_even_with_infinities_written_as_null():
     records of an arm with an infinite value (EnKS's nu) still resume; a changed value is still refused."""
     toy = "tests.agents.toys:AlwaysBrake"  # a policy whose config takes any number
     (arm,) = resolve_arms(["emergency-brake"], [toy], {toy: {"brake": math.inf}})
-    record = json.loads(json.dumps(finite({**ev._base_record(ev.Job(arm, 5)), "status": "error"})))
+    record = json.loads(json.dumps(finite({**ev._base_record(ev.Job(arm, 5)), "config": arm.resolved,
+                                           "status": "error"})))
     assert record["config"]["config"]["brake"] is None
     ev.check_conflicts([arm], [(1, record)])  # accepted
     record["config"]["config"]["brake"] = 0.5
@@ -51,10 +54,21 @@ def test_a_genuine_record_resumes_even_with_infinities_written_as_null():
 def test_a_record_with_the_arms_hash_but_no_config_is_refused():
     """A forged record that drops its config (so there is nothing to recompute) is foreign too (review finding)."""
     (arm,) = resolve_arms(["emergency-brake"], ["lane-keep"])
-    record = {**ev._base_record(ev.Job(arm, 5)), "status": "ok"}
-    del record["config"]
-    with pytest.raises(EvaluationError, match="line 3: .*carries no config"):
-        ev.check_conflicts([arm], [(3, record)])
+    record = {**ev._base_record(ev.Job(arm, 5)), "status": "ok"}  # compact, and its hash not in arms.json
+    with pytest.raises(EvaluationError, match="line 3: .*not in arms.json and it carries no config"):
+        ev.check_conflicts([arm], [(3, record)], entries={})
+
+
+def test_an_arms_json_entry_that_does_not_hash_to_its_key_is_refused_naming_the_hash(tmp_path):
+    """arms.json vouches for every record of its arm: an entry edited to another config is foreign, and the
+    folder's records with that hash with it."""
+    evaluate(out=tmp_path, policies=["lane-keep"], **ARGS)
+    arms = read_arms(tmp_path)
+    (key,) = arms
+    arms[key]["config"]["config"]["k_lat"] = 0.01
+    (tmp_path / ARMS_FILE).write_text(json.dumps(arms))
+    with pytest.raises(EvaluationError, match=f"arms.json: the entry {key} .*k_lat: 0.01 -> 0.004"):
+        evaluate(out=tmp_path, policies=["lane-keep"], **ARGS)
 
 
 BAD_LINES = {

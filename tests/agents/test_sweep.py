@@ -6,7 +6,7 @@ import json
 import pytest
 
 from bimp.agents.cli import EvaluationError, main
-from bimp.agents.records import read_records
+from bimp.agents.records import read_arms, read_records, record_config
 from bimp.agents.sweep import axis_points, param_points
 
 EB = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5"]
@@ -18,8 +18,8 @@ def test_a_param_sweep_runs_one_point_per_value_and_resumes(tmp_path, capsys):
     rows = json.loads((out / "sweep.json").read_text())
     assert [(r["label"], r["value"], r["episodes"]) for r in rows] == [("lane-keep k_speed=0.2", 0.2, 2),
                                                                       ("lane-keep k_speed=0.8", 0.8, 2)]
-    records = read_records(out)
-    assert {r["config"]["config"]["k_speed"] for r in records} == {0.2, 0.8} and len(records) == 4
+    records, arms = read_records(out), read_arms(out)
+    assert {record_config(r, arms)["config"]["k_speed"] for r in records} == {0.2, 0.8} and len(records) == 4
     assert (out / "sweep.png").stat().st_size > 0 and "| emergency-brake | lane-keep | k_speed | 0.2 |" in \
         (out / "sweep.md").read_text()
     summary = json.loads((out / "summary.json").read_text())  # the folder's summary holds every point
@@ -60,7 +60,9 @@ def test_the_frontier_table_has_one_row_per_policy_and_compute_value(tmp_path):
     assert all(r["plan_time_ms_p50"]["mean"] > 0 for r in rows)
     lines = [line for line in (out / "frontier.md").read_text().splitlines() if line.startswith("| emergency")]
     assert len(lines) == 3
-    assert {r["config"]["config"]["problem"]["horizon"] for r in read_records(out) if r["policy"] == "mppi"} == {3}
+    arms = read_arms(out)
+    assert {record_config(r, arms)["config"]["problem"]["horizon"] for r in read_records(out)
+            if r["policy"] == "mppi"} == {3}
 
 
 def test_axis_points_label_each_value_and_keep_a_policy_without_an_axis_whole():
@@ -78,11 +80,11 @@ def test_repeated_param_and_set_flags_add_up_instead_of_replacing_each_other(tmp
     assert main(["sweep", "--param", "lane-keep.k_lat=0.01,0.02", "--param", "mppi.n_particles=2,3",
                  "--set", "mppi.problem.horizon=3", "--set", "lane-keep.k_head=0.1", *EB, "--episodes", "1",
                  "--out", str(out)]) == 0
-    records = read_records(out)
+    records, arms = read_records(out), read_arms(out)
     assert {r["label"] for r in records} == {"lane-keep k_lat=0.01", "lane-keep k_lat=0.02", "mppi n_particles=2",
                                              "mppi n_particles=3"}
-    assert all('"horizon": 3' in json.dumps(r["config"]) for r in records if r["policy"] == "mppi")
-    assert all('"k_head": 0.1' in json.dumps(r["config"]) for r in records if r["policy"] == "lane-keep")
+    assert all('"horizon": 3' in json.dumps(record_config(r, arms)) for r in records if r["policy"] == "mppi")
+    assert all('"k_head": 0.1' in json.dumps(record_config(r, arms)) for r in records if r["policy"] == "lane-keep")
 
 
 @pytest.mark.parametrize("command, match", [
@@ -111,3 +113,16 @@ def test_every_point_is_checked_before_the_first_runs(tmp_path, capsys):
                  "--out", str(out)]) == 2
     assert "another config" in capsys.readouterr().err
     assert len(read_records(out)) == 2
+
+
+def test_a_dry_run_of_a_sweep_lists_each_point_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--param", "lane-keep.k_lat=0.01,0.02", *EB, "--episodes", "1", "--out", str(out)]
+    assert main([*argv, "--dry-run"]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == "dry run: 2 episode(s) would run"
+    assert not out.exists()
+    assert main(argv) == 0
+    before = sorted((p, p.stat().st_mtime_ns) for p in out.rglob("*"))
+    assert main([*argv, "--dry-run"]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == "dry run: 0 episode(s) would run"
+    assert sorted((p, p.stat().st_mtime_ns) for p in out.rglob("*")) == before
