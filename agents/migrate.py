@@ -1,0 +1,344 @@
+"""``bimp migrate DIR [DIR ...]``: evaluation folders written by older code, turned into ones the current code resumes.
+
+    bimp migrate results/safety results/peers --dry-run      # what would change, per folder; writes nothing
+    bimp migrate $(dirname $(git ls-files 'results/*episodes.jsonl'))
+
+Per arm (the records sharing one config), the old config is brought to today's (``docs/evaluation.md``):
+
+- the config shape of issue 25: EnKTS/EnKS's problem keys move under ``config.problem``; MPPI/NMPC's ``tuning``
+  becomes ``config.problem``, with ``horizon`` (when not null), NMPC's ``nu`` and ``bound_tightening`` (as
+  ``problem.barrier.bound_margin``) moved into it; the ``--set`` overrides the same (``horizon`` ->
+  ``problem.horizon``, ...). Fields added since, missing from an old config, take their class default: each was
+  added with the default that reproduces the old behaviour, and the hash leaves defaults out anyway;
+- PPO/SAC: the absolute ``model_path`` is dropped (``model_sha256`` names the file), and the shipped file with that
+  sha256 goes into the arm's ``artifacts`` as ``bimp:agents/models/NAME``;
+- the hash recomputed with :func:`bimp.agents.provenance.config_hash`, and the config moved into ``arms.json``
+  (records keep their labels, seeds, metrics and code version; only ``config``, ``overrides`` and ``seeding`` go, to
+  the arm's entry).
+
+Each migrated arm is checked, not assumed: its policy is rebuilt from the migrated config on its scenario's env, and
+its resolved config must be the migrated one (what a resume will compare). A folder where an arm fails (or a record
+carries no config at all) is reported naming the arm and left as it is; nothing is half written: the new files are
+written beside the old and renamed over them. MPPI arms made before commit ``MPPI_SEEDING`` (its seeding changed
+there, its config did not) are not results of the current code: they are left in place, inline, and reported. A
+second migration changes nothing. Exit status 0 when every folder is migrated (or was already), 1 when one is left
+as it was, 2 for a DIR that is not an evaluation folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import functools
+import hashlib
+import json
+import math
+import re
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gymnasium as gym
+
+from bimp import envs
+from bimp.agents.cli import EvaluationError
+from bimp.agents.provenance import REPO_ROOT, class_defaults, config_diff, config_hash, plain, resolved_config
+from bimp.agents.records import (
+    EPISODES_FILE,
+    finite,
+    folder_lock,
+    read_arms,
+    record_config,
+    record_problem,
+    write_arms,
+    write_atomic,
+)
+from bimp.agents.registry import load, make_policy, policy_spec
+from bimp.planners.problem import ProblemConfig
+
+MPPI_SEEDING = "667c57c"  # MPPI's generator seeding changed here; its config hash did not
+MODEL_DIR = REPO_ROOT / "agents" / "models"
+PROBLEM_KEYS = tuple(f.name for f in dataclasses.fields(ProblemConfig))
+MOVED = ("config", "overrides", "seeding")  # what a record hands to its arm's entry in arms.json
+
+
+class MigrationError(ValueError):
+    """An arm whose records cannot be migrated exactly (the message says why)."""
+
+
+
+# --- one config ----------------------------------------------------------------------------------------------
+def new_shape(policy: str, config: dict) -> dict:
+    """An old record's config (``{"config", "tuning"?, "scenario"}``) in today's shape (the module doc); a config
+    already in it comes back equal."""
+    config = copy.deepcopy(config)
+    own = config.get("config")
+    if not isinstance(own, dict):
+        raise MigrationError("the config has no 'config' part")
+    if "tuning" in config:  # MPPI, NMPC: the separate problem becomes config.problem
+        problem = config.pop("tuning")
+        horizon = own.pop("horizon", None)
+        if horizon is not None:  # null meant the problem's own
+            problem["horizon"] = horizon
+        if "nu" in own:
+            problem["nu"] = own.pop("nu")
+        if "bound_tightening" in own:
+            problem.setdefault("barrier", {})["bound_margin"] = own.pop("bound_tightening")
+        own["problem"] = problem
+    elif "problem" not in own and "horizon" in own:  # EnKTS, EnKS: the problem's keys at the top
+        own["problem"] = {key: own.pop(key) for key in PROBLEM_KEYS if key in own}
+    if "model_sha256" in own:  # PPO, SAC: the file is its sha256; where it lay is no part of the config
+        own.pop("model_path", None)
+    config["config"] = _with_defaults(own, class_defaults(policy) or {})
+    stray = sorted(set(config) - {"config", "scenario"})
+    if stray:
+        raise MigrationError(f"the config holds {stray}, which no current config has")
+    return config
+
+
+def _with_defaults(value: dict, defaults: dict) -> dict:
+    """``value`` with the fields it lacks (added to the config class since) at their class defaults."""
+    out = dict(value)
+    for key, default in defaults.items():
+        if key not in out:
+            out[key] = copy.deepcopy(default)
+        elif isinstance(out[key], dict) and isinstance(default, dict):
+            out[key] = _with_defaults(out[key], default)
+    return out
+
+
+def new_overrides(old_config: dict, overrides: dict) -> dict:
+    """The ``--set`` overrides of an arm, renamed as :func:`new_shape` moves the keys they set."""
+    tuning, flat = "tuning" in old_config, "horizon" in old_config.get("config", {}) and "tuning" not in old_config
+    out = {}
+    for key, value in overrides.items():
+        head = re.split(r"[.\[]", key, maxsplit=1)[0]
+        if tuning and key == "horizon":
+            if value is None:  # the problem's own horizon: nothing to set
+                continue
+            key = "problem.horizon"
+        elif tuning and key == "nu":
+            key = "problem.nu"
+        elif tuning and key == "bound_tightening":
+            key = "problem.barrier.bound_margin"
+        elif flat and head in PROBLEM_KEYS:
+            key = f"problem.{key}"
+        out[key] = value
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def shipped_models() -> dict[str, str]:
+    """``{sha256: file name}`` of the models under ``agents/models/``."""
+    return {hashlib.sha256(path.read_bytes()).hexdigest(): path.name for path in sorted(MODEL_DIR.glob("*.zip"))}
+
+
+@functools.lru_cache(maxsize=None)
+def _env(scenario: str) -> gym.Env:
+    return gym.make(envs.env_id(scenario))
+
+
+def rebuild(policy: str, scenario: str, config: dict, given: str | None = None) -> tuple[dict, str | None]:
+    """``(artifacts, note)`` of ``policy`` rebuilt on ``scenario`` from the migrated ``config``;
+    :class:`MigrationError` unless its resolved config is ``config``'s (what a resume compares). A model is the
+    shipped file with the config's sha256; where none ships (a model since replaced, a user's own file: ``given``, the
+    old ``model_path``), the policy is rebuilt on a shipped model of the same algorithm and must resolve to the same
+    fields but the sha256: the config names the file by content, so it stays exact, and ``note`` says so."""
+    own, note = config["config"], None
+    kwargs = _infinities(own, _default_config(policy))  # a record holds infinities as null
+    if "model_sha256" in own:
+        name = shipped_models().get(own["model_sha256"])
+        if name is None:
+            same = sorted(n for n in shipped_models().values() if n.startswith(f"{own.get('algo')}_{scenario}_"))
+            name = same[0] if same else None
+            if name is None:
+                raise MigrationError(f"no shipped {own.get('algo')} model to check its config against")
+            note = (f"its model (sha256 {own['model_sha256'][:12]}...) is no shipped file: config checked on "
+                    f"{name}; artifacts name the file it was made with")
+        kwargs = {"model": str(MODEL_DIR / name), **{k: v for k, v in own.items() if k == "trust_model"}}
+    try:
+        built = make_policy(policy, _env(scenario), **kwargs)
+        resolved = plain(resolved_config(built))
+    except (ValueError, TypeError, OSError, ImportError, AttributeError) as err:
+        raise MigrationError(f"the current code cannot build it: {type(err).__name__}: {err}") from None
+    artifacts = getattr(built, "artifacts", {})
+    if note is not None:
+        resolved["config"]["model_sha256"] = own["model_sha256"]
+        # Only the name: an absolute path would tie the folder to the machine it was made on.
+        artifacts = {"model": Path(given).name if given and Path(given).is_absolute() else given}
+    if resolved != plain({"config": own}):
+        raise MigrationError("rebuilt, it resolves otherwise: "
+                             + "; ".join(config_diff(plain({"config": own}), resolved)[:4]))
+    return artifacts, note
+
+
+def _default_config(policy: str) -> object:
+    """The policy's config class at its defaults (None when its spec names none)."""
+    reference = policy_spec(policy).config_class
+    return None if reference is None else load(reference)()
+
+
+def _infinities(value: object, default: object) -> object:
+    """``value`` with each null where ``default`` (the config class's instance, walked alongside) holds a float
+    turned into ``inf``: JSON has no inf, so a record wrote ``nu: inf`` as ``null``."""
+    if isinstance(value, dict):
+        def child(key: str) -> object:
+            return default.get(key) if isinstance(default, dict) else getattr(default, key, None)
+        return {key: _infinities(item, child(key)) for key, item in value.items()}
+    return math.inf if value is None and isinstance(default, float) else value
+
+
+# --- one folder ----------------------------------------------------------------------------------------------
+@dataclass
+class FolderReport:
+    """What :func:`migrate_folder` did (or would do) to one folder. ``problem``: why it was left as it was."""
+
+    folder: Path
+    records: int = 0
+    changed: int = 0
+    arms: int = 0
+    left: list[str] = field(default_factory=list)  # arms left in place (inline, old hash), and why
+    notes: list[str] = field(default_factory=list)  # arms migrated with something to know
+    problem: str | None = None
+    bytes_before: int = 0
+    bytes_after: int = 0
+
+    def line(self) -> str:
+        if self.problem:
+            return f"{self.folder}: not migrated: {self.problem}"
+        what = f"{self.changed} of {self.records} record(s) rewritten" if self.changed else "nothing to change"
+        left = "".join(f"\n  left in place: {reason}" for reason in self.left)
+        left += "".join(f"\n  note: {note}" for note in self.notes)
+        return (f"{self.folder}: {what}; {self.arms} arm(s) in arms.json; {self.bytes_before / 1e6:.2f} MB -> "
+                f"{self.bytes_after / 1e6:.2f} MB{left}")
+
+
+@functools.lru_cache(maxsize=None)
+def made_after_mppi_seeding(commit: str | None) -> bool:
+    """Whether ``commit`` holds MPPI's current seeding (None, or a commit this checkout lacks: not proven)."""
+    if not commit:
+        return False
+    run = subprocess.run(["git", "merge-base", "--is-ancestor", MPPI_SEEDING, commit], cwd=REPO_ROOT,
+                         capture_output=True)
+    return run.returncode == 0
+
+
+def migrate_folder(folder: str | Path, dry_run: bool = False) -> FolderReport:
+    """Migrate ``folder`` (the module doc); with ``dry_run`` only report. Never raises for a folder that cannot be
+    migrated: the report's ``problem`` says why, and the folder is untouched."""
+    folder = Path(folder)
+    path = folder / EPISODES_FILE
+    report = FolderReport(folder)
+    try:
+        data = path.read_bytes()
+        old_entries = read_arms(folder)
+    except (OSError, EvaluationError) as err:
+        report.problem = str(err)
+        return report
+    report.bytes_before = report.bytes_after = len(data) + _size(folder / "arms.json")
+    lines = data.split(b"\n")
+    if lines[-1] == b"":
+        lines.pop()
+    parsed: list[dict | None] = []
+    for line in lines:  # a line that is not a record is kept as it is (every reader skips it)
+        try:
+            value = json.loads(line)
+        except ValueError:
+            value = None
+        parsed.append(value if value is not None and record_problem(value) is None else None)
+    report.records = sum(r is not None for r in parsed)
+
+    # The arms: records sharing a policy and an old config (inline, or their arms.json entry).
+    arms: dict[tuple[str, str], list[int]] = {}
+    for number, r in enumerate(parsed, start=1):
+        if r is None:
+            continue
+        config = record_config(r, old_entries)
+        if config is None:
+            report.problem = (f"line {number} ({r.get('label', r['policy'])} on {r['scenario']}) carries no config "
+                              "(made before records carried one): nothing to migrate it from")
+            return report
+        arms.setdefault((r["policy"], json.dumps(config, sort_keys=True)), []).append(number)
+
+    new_lines, entries, referenced = list(lines), {}, set()
+    for (policy, old_json), numbers in arms.items():
+        first = parsed[numbers[0] - 1]
+        name = f"{first.get('label', policy)!r} ({policy}) on {first['scenario']}, hash {first.get('config_hash')}"
+        if policy == "mppi" and not all(made_after_mppi_seeding(parsed[n - 1].get("git_commit")) for n in numbers):
+            report.left.append(f"{name}: {len(numbers)} record(s) made before {MPPI_SEEDING} (MPPI's seeding "
+                               "changed there): rerun them")
+            referenced.add(first.get("config_hash"))
+            continue
+        old = json.loads(old_json)
+        source = old_entries.get(first.get("config_hash"), {})  # the arm's entry, if already migrated
+        given = old["config"].get("model_path") or source.get("artifacts", {}).get("model")
+        try:
+            config = new_shape(policy, old)
+            artifacts, note = rebuild(policy, first["scenario"], config, given)
+        except MigrationError as err:
+            report.problem = f"arm {name}: {err}"
+            return report
+        key = config_hash(policy, config)  # the current hash, whatever it leaves out: never copied
+        if note:
+            report.notes.append(f"{name}: {note}")
+        for number in numbers:
+            r = parsed[number - 1]
+            overrides = new_overrides(old, r.get("overrides", source.get("overrides", {})))
+            seeding = r.get("seeding", source.get("seeding"))
+            entry = entries.setdefault(key, finite({"policy": policy, "config": config, "artifacts": artifacts,
+                                                    "overrides": overrides, "seeding": seeding}))
+            record = {k: v for k, v in r.items() if k not in MOVED}
+            record["config_hash"] = key
+            # A record repeats what differs from its arm's entry (another label's spelling of the same config).
+            record.update({k: v for k, v in (("overrides", overrides), ("seeding", seeding)) if entry[k] != v})
+            new_lines[number - 1] = json.dumps(finite(record)).encode()
+    final = {**{k: v for k, v in old_entries.items() if k in referenced}, **entries}
+    new_data = b"".join(line + b"\n" for line in new_lines)
+    report.arms = len(final)
+    report.changed = sum(a != b for a, b in zip(lines, new_lines))
+    report.bytes_after = len(new_data) + len(_arms_text(final))
+    if dry_run or (new_data == data and final == old_entries):
+        return report
+    with folder_lock(folder):
+        if path.read_bytes() != data:
+            report.problem = "the folder changed while it was migrated (a run writing into it?): try again"
+            return report
+        # arms.json first, the old entries kept: a reader between the two renames finds every hash it looks up.
+        write_arms(folder, {**old_entries, **final})
+        write_atomic(path, new_data.decode())
+        write_arms(folder, final)
+    return report
+
+
+def _arms_text(entries: dict) -> str:
+    return json.dumps(finite(entries), indent=1, sort_keys=True) + "\n" if entries else ""
+
+
+def _size(path: Path) -> int:
+    return path.stat().st_size if path.exists() else 0
+
+
+# --- command line --------------------------------------------------------------------------------------------
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp migrate", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folders", nargs="+", metavar="DIR", help="evaluation folders (each holding episodes.jsonl)")
+    parser.add_argument("--dry-run", action="store_true", help="report what would change; write nothing")
+    args = parser.parse_args(argv)
+    missing = [d for d in args.folders if not (Path(d) / EPISODES_FILE).is_file()]
+    if missing:
+        print(f"bimp migrate: error: no {EPISODES_FILE} in {', '.join(missing)}", file=sys.stderr)
+        return 2
+    reports = [migrate_folder(d, dry_run=args.dry_run) for d in dict.fromkeys(args.folders)]
+    for report in reports:
+        print(report.line())
+    before, after = sum(r.bytes_before for r in reports), sum(r.bytes_after for r in reports)
+    failed = [r for r in reports if r.problem]
+    print(f"{'dry run: ' if args.dry_run else ''}{len(reports) - len(failed)} folder(s) migrated, {len(failed)} "
+          f"left as they were; records and arms.json {before / 1e6:.1f} MB -> {after / 1e6:.1f} MB")
+    return 1 if failed else 0
+
+
+__all__ = ["FolderReport", "MigrationError", "migrate_folder", "new_overrides", "new_shape", "rebuild"]

@@ -1,0 +1,400 @@
+"""``bimp migrate`` (issue 28, item 4): records of older code become records the current code resumes.
+
+The fixture is real records from results/ (trimmed: fewer metrics, no scenario draws, a shorter seeding note), made
+in the flat config shape before issue 25 and, for PPO, with the absolute model path of the machine they were made on
+(two machines: one arm)."""
+
+import copy
+import json
+import shutil
+
+import pytest
+
+from bimp.agents import migrate
+from bimp.agents.cli import main
+from bimp.agents.evaluate import evaluate
+from bimp.agents.records import ARMS_FILE, EPISODES_FILE, read_arms, read_records
+
+AFTER_MPPI_SEEDING = "667c57cfab7668693560ca8390a734d82705bc03"  # MPPI's records from here are the current code's
+# The checkouts the two PPO records were made in (spelled in pieces: no committed file names a machine's folder).
+MACHINES = {"{HERE}": "/" + "work/main", "{THERE}": "/" + "home/someone/study"}
+
+# The requests that made them (results/safety, results/peers, results/rl): each must find its episode done.
+REQUESTS = {
+    "enkts": dict(scenarios=["emergency-brake"], policies=["enkts"], seeds=[1000]),
+    "enks": dict(scenarios=["overtaking"], policies=["enks"], seeds=[1000]),
+    "mppi": dict(scenarios=["emergency-brake"], policies=["mppi"], seeds=[1000]),
+    "nmpc": dict(scenarios=["emergency-brake"], policies=["nmpc"], seeds=[1000]),
+    "ppo": dict(scenarios=["emergency-brake"], policies=["ppo"], seeds=[1000, 1001],
+                overrides={"ppo": {"training_seed": 1}}, labels={"ppo": "ppo-s1"}),
+}
+
+OLD = {'enkts': {'scenario': 'emergency-brake',
+                 'label': 'enkts',
+                 'policy': 'enkts',
+                 'seed': 1000,
+                 'config_hash': '164760d5591ef385',
+                 'config': {'config': {'adapt_spread': True,
+                                       'barrier': {'bound_margin': 0.05,
+                                                   'brake_decel': 6.0,
+                                                   'edge_margin': 0.3,
+                                                   'headway': 0.6,
+                                                   'lateral_clearance': 1.0,
+                                                   'sharpness': 8.0,
+                                                   'widths': [0.1, 0.5, 1.0, 0.01, 0.5, 0.002]},
+                                       'dynamics': 'mlp',
+                                       'grow_nu': True,
+                                       'horizon': 20,
+                                       'iterations': 1,
+                                       'lane_change_rate': 2.0,
+                                       'max_innovation': 2.0,
+                                       'max_spread': 25.0,
+                                       'n_particles': 100,
+                                       'nu': 4.0,
+                                       'relaxation': 0.5,
+                                       'seed': 0,
+                                       'sigma_barrier': 0.1,
+                                       'sigma_du': [0.5, 0.0015],
+                                       'sigma_input': [3.0, 0.02],
+                                       'sigma_ref': [1.0, 0.05, 1.0]},
+                            'scenario': {'brake_decel': [5.0, 7.0],
+                                         'brake_onset': [0.8, 1.2],
+                                         'ev_speed': [23.0, 27.0],
+                                         'ov1_gap': [50.0, 60.0],
+                                         'ov2_gap': [35.0, 55.0],
+                                         'ov_speed': [20.0, 24.0],
+                                         'ref_hold': 3.0,
+                                         'ref_zero_step': 80}},
+                 'overrides': {},
+                 'seeding': 'np.random.SeedSequence(seed).spawn(2) -> (env, policy)',
+                 'bimp_version': '0.1.0',
+                 'git_commit': 'a251b89088672207b278b487824857a20c9be49f',
+                 'git_dirty': True,
+                 'env_seed': 298458674005815454,
+                 'policy_seed': 8562138667189027890,
+                 'status': 'ok',
+                 'steps': 120,
+                 'truncated': True,
+                 'metrics': {'success_rate': 1.0, 'collision_rate': 0.0, 'offroad_rate': 0.0}},
+       'enks': {'scenario': 'overtaking',
+                'label': 'enks',
+                'policy': 'enks',
+                'seed': 1000,
+                'config_hash': 'd6aa715d853b5241',
+                'config': {'config': {'adapt_spread': True,
+                                      'barrier': {'bound_margin': 0.05,
+                                                  'brake_decel': 6.0,
+                                                  'edge_margin': 0.3,
+                                                  'headway': 0.6,
+                                                  'lateral_clearance': 1.0,
+                                                  'sharpness': 8.0,
+                                                  'widths': [0.1, 0.5, 1.0, 0.01, 0.5, 0.002]},
+                                      'dynamics': 'mlp',
+                                      'grow_nu': True,
+                                      'horizon': 20,
+                                      'iterations': 1,
+                                      'lane_change_rate': 2.0,
+                                      'max_innovation': 2.0,
+                                      'max_spread': 25.0,
+                                      'n_particles': 100,
+                                      'nu': None,
+                                      'relaxation': 0.5,
+                                      'seed': 0,
+                                      'sigma_barrier': 0.1,
+                                      'sigma_du': [0.5, 0.0015],
+                                      'sigma_input': [3.0, 0.02],
+                                      'sigma_ref': [1.0, 0.05, 1.0]},
+                           'scenario': {'arc_angle_deg': [50.0, 70.0],
+                                        'behaviour': {'consider_s': 4.0,
+                                                      'headway_s': 1.5,
+                                                      'lane_change_s': 2.0,
+                                                      'pass_s': 6.0,
+                                                      'return_s': 0.5},
+                                        'ev_speed': [23.0, 27.0],
+                                        'ov1_gap': [25.0, 35.0],
+                                        'ov1_speed': [15.0, 17.0],
+                                        'ov2_gap': [100.0, 130.0],
+                                        'ov2_speed': [18.0, 20.0],
+                                        'radius': [180.0, 220.0],
+                                        'reference': 'behaviour'}},
+                'overrides': {},
+                'seeding': 'np.random.SeedSequence(seed).spawn(2) -> (env, policy)',
+                'bimp_version': '0.1.0',
+                'git_commit': 'dc4efc265a0169364432f57071da6a33aa284f32',
+                'git_dirty': False,
+                'env_seed': 298458674005815454,
+                'policy_seed': 8562138667189027890,
+                'status': 'ok',
+                'steps': 150,
+                'truncated': True,
+                'metrics': {'success_rate': 1.0, 'collision_rate': 0.0, 'offroad_rate': 0.0}},
+       'mppi': {'scenario': 'emergency-brake',
+                'label': 'mppi',
+                'policy': 'mppi',
+                'seed': 1000,
+                'config_hash': '53875ca1e7a74105',
+                'config': {'config': {'control_cost': 0.26403651263343025,
+                                      'horizon': None,
+                                      'n_particles': 50,
+                                      'noise_gain': 2.1624849553408434,
+                                      'sample': 'increments',
+                                      'seed': 0,
+                                      'temperature': 1.7832296111318195},
+                           'scenario': {'brake_decel': [5.0, 7.0],
+                                        'brake_onset': [0.8, 1.2],
+                                        'ev_speed': [23.0, 27.0],
+                                        'ov1_gap': [50.0, 60.0],
+                                        'ov2_gap': [35.0, 55.0],
+                                        'ov_speed': [20.0, 24.0],
+                                        'ref_hold': 3.0,
+                                        'ref_zero_step': 80},
+                           'tuning': {'barrier': {'bound_margin': 0.05,
+                                                  'brake_decel': 6.0,
+                                                  'edge_margin': 0.5421183334242939,
+                                                  'headway': 0.5559190030990193,
+                                                  'lateral_clearance': 1.0,
+                                                  'sharpness': 8.0,
+                                                  'widths': [0.1, 0.5, 1.0, 0.01, 0.5, 0.002]},
+                                      'dynamics': 'mlp',
+                                      'horizon': 20,
+                                      'lane_change_rate': 2.0,
+                                      'nu': 4.0,
+                                      'sigma_barrier': 0.09163017788378915,
+                                      'sigma_du': [0.5, 0.0015],
+                                      'sigma_input': [3.0, 0.02],
+                                      'sigma_ref': [2.285894960493878, 0.05, 1.050435220966566]}},
+                'overrides': {},
+                'seeding': 'np.random.SeedSequence(seed).spawn(2) -> (env, policy)',
+                'bimp_version': '0.1.0',
+                'git_commit': '90f584cd9d8a4eda3bf5df4fa6c699096338c38f',
+                'git_dirty': False,
+                'env_seed': 298458674005815454,
+                'policy_seed': 8562138667189027890,
+                'status': 'ok',
+                'steps': 120,
+                'truncated': True,
+                'metrics': {'success_rate': 1.0, 'collision_rate': 0.0, 'offroad_rate': 0.0}},
+       'nmpc': {'scenario': 'emergency-brake',
+                'label': 'nmpc',
+                'policy': 'nmpc',
+                'seed': 1000,
+                'config_hash': 'dbe43b90909b687f',
+                'config': {'config': {'bound_tightening': 0.001,
+                                      'cold_max_cpu_time': 5.0,
+                                      'cold_max_iter': 200,
+                                      'feasibility_tol': 0.0001,
+                                      'hessian': 'exact',
+                                      'horizon': None,
+                                      'keep_out_power': 4,
+                                      'max_cpu_time': 1.0,
+                                      'max_iter': 30,
+                                      'nu': None,
+                                      'slack_penalty': 10000.0,
+                                      'tol': 1e-06},
+                           'scenario': {'brake_decel': [5.0, 7.0],
+                                        'brake_onset': [0.8, 1.2],
+                                        'ev_speed': [23.0, 27.0],
+                                        'ov1_gap': [50.0, 60.0],
+                                        'ov2_gap': [35.0, 55.0],
+                                        'ov_speed': [20.0, 24.0],
+                                        'ref_hold': 3.0,
+                                        'ref_zero_step': 80},
+                           'tuning': {'barrier': {'bound_margin': 0.05,
+                                                  'brake_decel': 6.0,
+                                                  'edge_margin': 0.3,
+                                                  'headway': 0.6,
+                                                  'lateral_clearance': 1.0,
+                                                  'sharpness': 8.0,
+                                                  'widths': [0.1, 0.5, 1.0, 0.01, 0.5, 0.002]},
+                                      'dynamics': 'mlp',
+                                      'horizon': 20,
+                                      'lane_change_rate': 2.0,
+                                      'nu': 4.0,
+                                      'sigma_barrier': 0.1,
+                                      'sigma_du': [0.5, 0.0015],
+                                      'sigma_input': [3.0, 0.02],
+                                      'sigma_ref': [1.0, 0.05, 1.0]}},
+                'overrides': {},
+                'seeding': 'np.random.SeedSequence(seed).spawn(2) -> (env, policy)',
+                'bimp_version': '0.1.0',
+                'git_commit': '5da45f64a68e5dead2f78495f7c4f6fabf1fafe6',
+                'git_dirty': False,
+                'env_seed': 298458674005815454,
+                'policy_seed': 8562138667189027890,
+                'status': 'ok',
+                'steps': 120,
+                'truncated': True,
+                'metrics': {'success_rate': 1.0, 'collision_rate': 0.0, 'offroad_rate': 0.0}},
+       'ppo': {'scenario': 'emergency-brake',
+               'label': 'ppo-s1',
+               'policy': 'ppo',
+               'seed': 1000,
+               'config_hash': 'e6952698a955f938',
+               'config': {'config': {'algo': 'ppo',
+                                     'model_path': '{HERE}/agents/models/ppo_emergency-brake_s1.zip',
+                                     'model_sha256':
+                                         'fde20022c3e4b3275044075f9ad4a442f0d2fd1c012479efffccda92861de923'},
+                          'scenario': {'brake_decel': [5.0, 7.0],
+                                       'brake_onset': [0.8, 1.2],
+                                       'ev_speed': [23.0, 27.0],
+                                       'ov1_gap': [50.0, 60.0],
+                                       'ov2_gap': [35.0, 55.0],
+                                       'ov_speed': [20.0, 24.0],
+                                       'ref_hold': 3.0,
+                                       'ref_zero_step': 80}},
+               'overrides': {'training_seed': 1},
+               'seeding': 'np.random.SeedSequence(seed).spawn(2) -> (env, policy)',
+               'bimp_version': '0.1.0',
+               'git_commit': '715d4c9a524f2902474824430425e67f3ee8a789',
+               'git_dirty': True,
+               'env_seed': 298458674005815454,
+               'policy_seed': 8562138667189027890,
+               'status': 'ok',
+               'steps': 120,
+               'truncated': True,
+               'metrics': {'success_rate': 1.0, 'collision_rate': 0.0, 'offroad_rate': 0.0}},
+       'ppo-elsewhere': {'scenario': 'emergency-brake',
+                         'label': 'ppo-s1',
+                         'policy': 'ppo',
+                         'seed': 1001,
+                         'config_hash': '834232a4cfcab8dc',
+                         'config': {'config': {'algo': 'ppo',
+                                               'model_path': '{THERE}/agents/models/ppo_emergency-brake_s1.zip',
+                                               'model_sha256':
+                                                   'fde20022c3e4b3275044075f9ad4a442f0d2fd1c012479efffccda92861de923'},
+                                    'scenario': {'brake_decel': [5.0, 7.0],
+                                                 'brake_onset': [0.8, 1.2],
+                                                 'ev_speed': [23.0, 27.0],
+                                                 'ov1_gap': [50.0, 60.0],
+                                                 'ov2_gap': [35.0, 55.0],
+                                                 'ov_speed': [20.0, 24.0],
+                                                 'ref_hold': 3.0,
+                                                 'ref_zero_step': 80}},
+                         'overrides': {'training_seed': 1},
+                         'seeding': 'np.random.SeedSequence(seed).spawn(2) -> (env, policy)',
+                         'bimp_version': '0.1.0',
+                         'git_commit': 'c711b58f0a1319ba84d31e3135c473e68a06ac34',
+                         'git_dirty': False,
+                         'env_seed': 4015908867499960593,
+                         'policy_seed': 4619074960470009795,
+                         'status': 'ok',
+                         'steps': 120,
+                         'truncated': True,
+                         'metrics': {'success_rate': 1.0, 'collision_rate': 0.0, 'offroad_rate': 0.0}}}
+
+
+def write(folder, records) -> bytes:
+    folder.mkdir(parents=True, exist_ok=True)
+    data = "".join(json.dumps(r) + "\n" for r in records).encode()
+    (folder / EPISODES_FILE).write_bytes(data)
+    return data
+
+
+def old_records() -> list[dict]:
+    records = copy.deepcopy(list(OLD.values()))
+    for r in records:
+        if r["policy"] == "mppi":
+            r["git_commit"] = AFTER_MPPI_SEEDING
+        if "model_path" in r["config"]["config"]:
+            for placeholder, root in MACHINES.items():
+                r["config"]["config"]["model_path"] = r["config"]["config"]["model_path"].replace(placeholder, root)
+    return records
+
+
+def tree(folder) -> dict:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.name != ".lock"}
+
+
+@pytest.fixture(scope="module")
+def migrated(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("migrate") / "old"
+    write(folder, old_records())
+    report = migrate.migrate_folder(folder)
+    assert report.problem is None and report.changed == len(OLD) and not report.left, report.line()
+    return folder
+
+
+@pytest.mark.parametrize("name", REQUESTS)
+def test_migrated_records_are_found_done_by_the_request_that_made_them(migrated, name):
+    plan = evaluate(out=migrated, episodes=1, progress=False, dry_run=True, **REQUESTS[name])
+    assert plan.to_run == [] and plan.done == len(REQUESTS[name]["seeds"])
+
+
+def test_records_are_compact_and_their_configs_in_the_new_shape(migrated):
+    arms, records = read_arms(migrated), read_records(migrated)
+    assert len(arms) == 5 and {r["config_hash"] for r in records} == set(arms)  # both PPO records: one arm
+    assert not any({"config", "overrides", "seeding"} & set(r) for r in records)
+    for key, entry in arms.items():
+        assert migrate.config_hash(entry["policy"], entry["config"]) == key
+    by_policy = {entry["policy"]: entry for entry in arms.values()}
+    assert by_policy["enkts"]["config"]["config"]["problem"]["horizon"] == 20
+    assert "horizon" not in by_policy["enkts"]["config"]["config"]
+    assert by_policy["mppi"]["config"]["config"]["problem"]["nu"] == 4.0 and "tuning" not in by_policy["mppi"]["config"]
+    nmpc = by_policy["nmpc"]["config"]["config"]
+    assert not {"nu", "bound_tightening", "horizon"} & set(nmpc)
+    assert nmpc["problem"]["barrier"]["bound_margin"] == OLD["nmpc"]["config"]["config"]["bound_tightening"]
+    ppo = by_policy["ppo"]
+    assert ppo["config"]["config"] == {"algo": "ppo", "model_sha256": OLD["ppo"]["config"]["config"]["model_sha256"]}
+    assert ppo["artifacts"] == {"model": "bimp:agents/models/ppo_emergency-brake_s1.zip"}
+    assert ppo["overrides"] == {"training_seed": 1}
+    # Labels, seeds, metrics and the code version stay as they were.
+    assert [(r["label"], r["seed"], r["metrics"], r["git_commit"]) for r in records] == [
+        (r["label"], r["seed"], r["metrics"], r["git_commit"]) for r in old_records()]
+
+
+def test_no_absolute_path_is_left_so_a_copy_elsewhere_resumes_the_same_config(migrated, tmp_path):
+    for name in (EPISODES_FILE, ARMS_FILE):
+        text = (migrated / name).read_text()
+        assert not any(root in text for root in MACHINES.values()) and '"model_path"' not in text
+    copy_ = tmp_path / "elsewhere" / "old"
+    shutil.copytree(migrated, copy_)
+    plan = evaluate(out=copy_, episodes=1, progress=False, dry_run=True, **REQUESTS["ppo"])
+    assert plan.to_run == []
+
+
+def test_a_second_migration_changes_nothing(migrated, capsys):
+    before = tree(migrated)
+    assert main(["migrate", str(migrated)]) == 0
+    assert "nothing to change" in capsys.readouterr().out
+    assert tree(migrated) == before
+
+
+def test_a_dry_run_reports_and_writes_nothing(tmp_path, capsys):
+    data = write(tmp_path / "old", old_records())
+    assert main(["migrate", str(tmp_path / "old"), "--dry-run"]) == 0
+    assert f"{len(OLD)} of {len(OLD)} record(s) rewritten" in capsys.readouterr().out
+    assert tree(tmp_path / "old") == {EPISODES_FILE: data}
+
+
+def test_mppi_records_made_before_its_seeding_changed_are_left_in_place(tmp_path):
+    records = old_records()
+    records[2]["git_commit"] = OLD["mppi"]["git_commit"]  # made before 667c57c
+    write(tmp_path, records)
+    report = migrate.migrate_folder(tmp_path)
+    assert report.problem is None and len(report.left) == 1 and "mppi" in report.left[0]
+    lines = (tmp_path / EPISODES_FILE).read_text().splitlines()
+    assert json.loads(lines[2]) == records[2]  # as it was, config inline
+    assert len(read_arms(tmp_path)) == 4
+
+
+def test_an_arm_the_current_code_cannot_rebuild_is_refused_and_its_folder_left_alone(tmp_path, capsys):
+    records = old_records()
+    records[0]["config"]["config"]["bogus_switch"] = True  # a config the current code does not know
+    data = write(tmp_path / "old", records)
+    assert main(["migrate", str(tmp_path / "old")]) == 1
+    out = capsys.readouterr().out
+    assert "not migrated: arm 'enkts' (enkts) on emergency-brake" in out and "bogus_switch" in out
+    assert tree(tmp_path / "old") == {EPISODES_FILE: data}
+
+
+def test_records_without_any_config_are_reported_and_left_alone(tmp_path, capsys):
+    record = {k: v for k, v in OLD["enkts"].items() if k not in ("config", "config_hash", "label", "overrides")}
+    data = write(tmp_path / "N10", [record])
+    assert main(["migrate", str(tmp_path / "N10")]) == 1
+    assert "carries no config" in capsys.readouterr().out
+    assert tree(tmp_path / "N10") == {EPISODES_FILE: data}
+
+
+def test_a_folder_without_records_is_refused(tmp_path, capsys):
+    assert main(["migrate", str(tmp_path)]) == 2
+    assert "no episodes.jsonl" in capsys.readouterr().err
