@@ -21,8 +21,9 @@ its resolved config must be the migrated one (what a resume will compare). A fol
 carries no config at all) is reported naming the arm and left as it is; nothing is half written: the new files are
 written beside the old and renamed over them. MPPI arms made before commit ``MPPI_SEEDING`` (its seeding changed
 there, its config did not) are not results of the current code: they are left in place, inline, and reported. A
-second migration changes nothing. Exit status 0 when every folder is migrated (or was already), 1 when one is left
-as it was, 2 for a DIR that is not an evaluation folder.
+second migration changes nothing. ``--drop-traces``: the migrated records lose their per-step traces (for folders no
+figure is drawn from: a trace is most of a record). Exit status 0 when every folder is migrated (or was already), 1
+when one is left as it was, 2 for a DIR that is not an evaluation folder.
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ MPPI_SEEDING = "667c57c"  # MPPI's generator seeding changed here; its config ha
 MODEL_DIR = REPO_ROOT / "agents" / "models"
 PROBLEM_KEYS = tuple(f.name for f in dataclasses.fields(ProblemConfig))
 MOVED = ("config", "overrides", "seeding")  # what a record hands to its arm's entry in arms.json
+TRACE_FIELDS = ("trace", "road", "bounds")  # a record's per-step trace: only figures read it
 
 
 class MigrationError(ValueError):
@@ -225,8 +227,9 @@ def made_after_mppi_seeding(commit: str | None) -> bool:
     return run.returncode == 0
 
 
-def migrate_folder(folder: str | Path, dry_run: bool = False) -> FolderReport:
-    """Migrate ``folder`` (the module doc); with ``dry_run`` only report. Never raises for a folder that cannot be
+def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool = False) -> FolderReport:
+    """Migrate ``folder`` (the module doc); with ``dry_run`` only report; ``drop_traces``: the migrated records lose
+    their per-step traces too (a folder no figure is drawn from). Never raises for a folder that cannot be
     migrated: the report's ``problem`` says why, and the folder is untouched."""
     folder = Path(folder)
     path = folder / EPISODES_FILE
@@ -289,7 +292,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False) -> FolderReport:
             seeding = r.get("seeding", source.get("seeding"))
             entry = entries.setdefault(key, finite({"policy": policy, "config": config, "artifacts": artifacts,
                                                     "overrides": overrides, "seeding": seeding}))
-            record = {k: v for k, v in r.items() if k not in MOVED}
+            record = {k: v for k, v in r.items() if k not in MOVED and not (drop_traces and k in TRACE_FIELDS)}
             record["config_hash"] = key
             # A record repeats what differs from its arm's entry (another label's spelling of the same config).
             record.update({k: v for k, v in (("overrides", overrides), ("seeding", seeding)) if entry[k] != v})
@@ -326,12 +329,15 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="+", metavar="DIR", help="evaluation folders (each holding episodes.jsonl)")
     parser.add_argument("--dry-run", action="store_true", help="report what would change; write nothing")
+    parser.add_argument("--drop-traces", action="store_true",
+                        help="drop the per-step traces of the migrated records (folders no figure is drawn from)")
     args = parser.parse_args(argv)
     missing = [d for d in args.folders if not (Path(d) / EPISODES_FILE).is_file()]
     if missing:
         print(f"bimp migrate: error: no {EPISODES_FILE} in {', '.join(missing)}", file=sys.stderr)
         return 2
-    reports = [migrate_folder(d, dry_run=args.dry_run) for d in dict.fromkeys(args.folders)]
+    reports = [migrate_folder(d, dry_run=args.dry_run, drop_traces=args.drop_traces)
+               for d in dict.fromkeys(args.folders)]
     for report in reports:
         print(report.line())
     before, after = sum(r.bytes_before for r in reports), sum(r.bytes_after for r in reports)

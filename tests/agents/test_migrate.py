@@ -398,3 +398,13 @@ def test_records_without_any_config_are_reported_and_left_alone(tmp_path, capsys
 def test_a_folder_without_records_is_refused(tmp_path, capsys):
     assert main(["migrate", str(tmp_path)]) == 2
     assert "no episodes.jsonl" in capsys.readouterr().err
+
+
+def test_drop_traces_leaves_records_that_still_summarize(tmp_path):
+    records = old_records()
+    records[0].update(trace={"s": [0.0, 1.0]}, road={"lanes": 2}, bounds={"a": [-1, 1]})
+    write(tmp_path, records)
+    assert migrate.migrate_folder(tmp_path, drop_traces=True).problem is None
+    assert not any({"trace", "road", "bounds"} & set(r) for r in read_records(tmp_path))
+    summary = evaluate(out=tmp_path, episodes=1, progress=False, **REQUESTS["enkts"])  # nothing runs: all done
+    assert summary["enkts/emergency-brake"]["episodes"] == 1
