@@ -91,7 +91,9 @@ def param_points(params: list[str], base: dict | None = None) -> list[Point]:
                 overrides = {**base.get(policy, {}), **overrides_for(defaults[policy], params_i)}
             except TuneError as err:
                 raise EvaluationError(f"--param {policy}: {err}") from None
-            label = f"{policy} " + " ".join(f"{k}={v}" for k, v in params_i.items())
+            # The label names a problem key without its "problem." (as before issue 25 moved them): the rows of a
+            # folder swept before keep their names, and the shorter one reads the same for every planner.
+            label = f"{policy} " + " ".join(f"{k.removeprefix('problem.')}={v}" for k, v in params_i.items())
             points.append(Point(label, policy, overrides, "+".join(params_i), next(iter(params_i.values()))))
     return points
 
