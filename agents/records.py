@@ -29,9 +29,6 @@ from bimp.agents.metrics import BINARY, METRICS
 EPISODES_FILE = "episodes.jsonl"
 ARMS_FILE = "arms.json"
 LOCK_FILE = ".lock"
-# What an arms.json entry holds for its records; a record repeats one of the last two only where its value differs
-# from its arm's (two labels sharing one config with different --set spellings, an arm resumed after SEEDING changed).
-ARM_FIELDS = ("policy", "config", "artifacts", "overrides", "seeding")
 
 
 def record_key(record: dict) -> tuple[str, str, str | None, int]:
@@ -263,6 +260,6 @@ def markdown_table(summary: dict) -> str:
     return "\n".join(lines) + "\n" + notes
 
 
-__all__ = ["ARMS_FILE", "ARM_FIELDS", "EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "finite", "folder_lock",
+__all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "finite", "folder_lock",
            "format_stat", "latest_records", "markdown_table", "numbered_records", "read_arms", "read_records",
            "record_config", "record_key", "record_problem", "write_arms", "write_atomic", "write_summary"]
