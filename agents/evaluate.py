@@ -86,7 +86,7 @@ class Arm:
     scenario: str
     label: str
     policy: str
-    overrides: tuple
+    overrides: str  # canonical JSON, as config: a list value (--set KEY=[1, 2]) must not make the arm unhashable
     config: str  # canonical JSON: frozen and hashable
     config_hash: str
     artifacts: str = "{}"  # canonical JSON
@@ -95,10 +95,15 @@ class Arm:
     def resolved(self) -> dict:
         return json.loads(self.config)
 
+    @property
+    def given(self) -> dict:
+        """The overrides, as given to ``make_policy``."""
+        return json.loads(self.overrides)
+
     def entry(self) -> dict:
         """The arm's entry in ``arms.json`` (infinities as null, as JSON holds them)."""
         return finite({"policy": self.policy, "config": self.resolved, "artifacts": json.loads(self.artifacts),
-                       "overrides": dict(self.overrides), "seeding": SEEDING})
+                       "overrides": self.given, "seeding": SEEDING})
 
 
 @dataclass(frozen=True)
@@ -155,7 +160,7 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
             except (ValueError, TypeError, OSError, ImportError, AttributeError) as err:  # OSError: a model path
                 raise EvaluationError(f"policy {policy!r} on {scenario} with overrides {given}: {err}") from None
             artifacts = json.dumps(getattr(built, "artifacts", {}), sort_keys=True, default=str)
-            arms.append(Arm(scenario, labels.get(policy, policy), policy, tuple(sorted(given.items())),
+            arms.append(Arm(scenario, labels.get(policy, policy), policy, json.dumps(given, sort_keys=True),
                             json.dumps(config, sort_keys=True), config_hash(policy, config), artifacts))
         env.close()
     return arms
@@ -239,7 +244,7 @@ def run_group(group: tuple[Job, ...]) -> list[dict]:
                  for job in group]
         if group[0].video_dir:  # only ever a group of one
             envs_[0] = with_video(envs_[0], group[0].video_dir, f"{arm.label}_{arm.scenario}_seed{group[0].seed}")
-        policy = make_policy(arm.policy, envs_ if batched else envs_[0], **dict(arm.overrides))
+        policy = make_policy(arm.policy, envs_ if batched else envs_[0], **arm.given)
         built = config_hash(arm.policy, arm_config(policy, envs_[0]))
         if built != arm.config_hash:
             raise RuntimeError(f"the policy resolved to config {built} in this process, {arm.config_hash} when "

@@ -19,6 +19,7 @@ import pytest
 from bimp import envs
 from bimp.agents import rl
 from bimp.agents.cli import main as bimp
+from bimp.agents.records import read_arms, read_records, record_config
 from bimp.agents.registry import make_policy
 
 SHIPPED = sorted(rl.MODEL_DIR.glob("*.zip"))
@@ -112,13 +113,14 @@ def test_a_crafted_model_runs_no_code_through_the_cli(tmp_path):
     code = bimp(["evaluate", "--scenario", "overtaking", "--policy", "ppo", "--set", f"ppo.model={evil}",
                  "--seeds", "0", "--workers", "1", "--traces", "0", "--out", str(tmp_path / "eval")])
     assert code == 0 and not marker.exists()
-    record = json.loads((tmp_path / "eval" / "episodes.jsonl").read_text().splitlines()[0])
-    assert record["status"] == "ok" and "trust_model" not in record["config"]["config"]
+    (record,) = read_records(tmp_path / "eval")
+    config = record_config(record, read_arms(tmp_path / "eval"))
+    assert record["status"] == "ok" and "trust_model" not in config["config"]
     code = bimp(["evaluate", "--scenario", "overtaking", "--policy", "ppo", "--set", f"ppo.model={evil}",
                  "ppo.trust_model=true", "--seeds", "0", "--workers", "1", "--out", str(tmp_path / "trusted")])
     assert code == 0 and marker.exists()  # the switch reaches SB3's load, and is recorded
-    record = json.loads((tmp_path / "trusted" / "episodes.jsonl").read_text().splitlines()[0])
-    assert record["config"]["config"]["trust_model"] is True
+    (record,) = read_records(tmp_path / "trusted")
+    assert record_config(record, read_arms(tmp_path / "trusted"))["config"]["trust_model"] is True
 
 
 def test_a_crafted_weights_entry_is_refused_naming_the_file(overtaking, tmp_path):

@@ -110,3 +110,11 @@ def test_a_line_that_is_not_a_record_is_reported_and_skipped_by_every_reader(fol
     data = (out / EPISODES_FILE).read_bytes()
     assert data.startswith(good + line + b"\n") and data.count(b"\n") == n + 1  # appended to only, nothing lost
     assert len(read_records(out)) == len(read_records(folder))
+
+
+def test_a_list_override_in_a_folder_holding_another_config_is_refused_not_a_traceback():
+    """``--set KEY=[...]`` made the arm unhashable: the conflict check crashed with a TypeError (review finding)."""
+    (arm,) = resolve_arms(["emergency-brake"], ["enkts"], {"enkts": {"problem.sigma_ref": [2.0, 0.05, 1.0]}})
+    other = {**ev._base_record(ev.Job(arm, 5)), "status": "ok", "config_hash": "0" * 16}
+    with pytest.raises(EvaluationError, match="another config"):
+        ev.check_conflicts([arm], [(1, other)])

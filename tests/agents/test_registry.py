@@ -7,7 +7,7 @@ import pytest
 import tests.agents.toys  # noqa: F401  (registers the policy "always-brake" and the scenario "gentle-brake")
 from bimp import envs
 from bimp.agents.cli import main
-from bimp.agents.records import read_records
+from bimp.agents.records import read_arms, read_records, record_config
 from bimp.agents.registry import POLICIES, PolicySpec, make_policy, policy_spec, register_policy
 from bimp.envs import SCENARIOS, ScenarioSpec, register_scenario
 
@@ -21,8 +21,9 @@ def test_a_toy_policy_and_scenario_run_through_bimp_evaluate(tmp_path, capsys):
     assert [(r["scenario"], r["policy"], r["seed"], r["status"]) for r in records] == [
         ("gentle-brake", "always-brake", 5, "ok"), ("gentle-brake", "always-brake", 6, "ok")]
     first = records[0]
-    assert first["config"]["config"] == {"brake": 1.0}
-    assert first["config"]["scenario"]["brake_decel"] == [2.0, 3.0]  # the toy's own definition, not the parent's
+    config = record_config(first, read_arms(tmp_path))
+    assert config["config"] == {"brake": 1.0}
+    assert config["scenario"]["brake_decel"] == [2.0, 3.0]  # the toy's own definition, not the parent's
     assert first["policy_info"]["braking_steps"] == list(range(first["steps"]))  # its step_info, every step
     assert first["trace"]["speed"][-1] < first["trace"]["speed"][0]
     assert "| gentle-brake | always-brake | 2 |" in capsys.readouterr().out
