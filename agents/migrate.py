@@ -8,8 +8,10 @@ Per arm (the records sharing one config), the old config is brought to today's (
 - the config shape of issue 25: EnKTS/EnKS's problem keys move under ``config.problem``; MPPI/NMPC's ``tuning``
   becomes ``config.problem``, with ``horizon`` (when not null), NMPC's ``nu`` and ``bound_tightening`` (as
   ``problem.barrier.bound_margin``) moved into it; the ``--set`` overrides the same (``horizon`` ->
-  ``problem.horizon``, ...). Fields added since, missing from an old config, take their class default: each was
-  added with the default that reproduces the old behaviour, and the hash leaves defaults out anyway;
+  ``problem.horizon``, ...). Fields added since, missing from an old config, take their neutral value
+  (:func:`bimp.configs.added_field`: the value that reproduces the behaviour from before they existed, left out of
+  the hash); a field declared without one (NMPC's ``slack_penalty``: the first wave's NMPC had hard constraints) is
+  not filled, so such an arm no longer resolves to a current config and is left in place, reported;
 - PPO/SAC: the absolute ``model_path`` is dropped (``model_sha256`` names the file), and the shipped file with that
   sha256 goes into the arm's ``artifacts`` as ``bimp:agents/models/NAME``;
 - the hash recomputed with :func:`bimp.agents.provenance.config_hash`, and the config moved into ``arms.json``
@@ -45,7 +47,7 @@ import gymnasium as gym
 
 from bimp import envs
 from bimp.agents.cli import EvaluationError
-from bimp.agents.provenance import REPO_ROOT, class_defaults, config_diff, config_hash, plain, resolved_config
+from bimp.agents.provenance import REPO_ROOT, config_diff, config_hash, neutral_config, plain, resolved_config
 from bimp.agents.records import (
     EPISODES_FILE,
     finite,
@@ -64,6 +66,10 @@ MODEL_DIR = REPO_ROOT / "agents" / "models"
 PROBLEM_KEYS = tuple(f.name for f in dataclasses.fields(ProblemConfig))
 MOVED = ("config", "overrides", "seeding")  # what a record hands to its arm's entry in arms.json
 TRACE_FIELDS = ("trace", "road", "bounds")  # a record's per-step trace: only figures read it
+
+
+class NotReproduced(ValueError):
+    """An arm the current code does not reproduce (it resolves to another config): not migrated, left in place."""
 
 
 class MigrationError(ValueError):
@@ -93,21 +99,21 @@ def new_shape(policy: str, config: dict) -> dict:
         own["problem"] = {key: own.pop(key) for key in PROBLEM_KEYS if key in own}
     if "model_sha256" in own:  # PPO, SAC: the file is its sha256; where it lay is no part of the config
         own.pop("model_path", None)
-    config["config"] = _with_defaults(own, class_defaults(policy) or {})
+    config["config"] = _with_neutral(own, neutral_config(policy))
     stray = sorted(set(config) - {"config", "scenario"})
     if stray:
         raise MigrationError(f"the config holds {stray}, which no current config has")
     return config
 
 
-def _with_defaults(value: dict, defaults: dict) -> dict:
-    """``value`` with the fields it lacks (added to the config class since) at their class defaults."""
+def _with_neutral(value: dict, neutral: dict) -> dict:
+    """``value`` with the fields it lacks that were added since with a neutral value, at that value."""
     out = dict(value)
-    for key, default in defaults.items():
+    for key, mark in neutral.items():
         if key not in out:
-            out[key] = copy.deepcopy(default)
-        elif isinstance(out[key], dict) and isinstance(default, dict):
-            out[key] = _with_defaults(out[key], default)
+            out[key] = copy.deepcopy(mark)
+        elif isinstance(out[key], dict) and isinstance(mark, dict):
+            out[key] = _with_neutral(out[key], mark)
     return out
 
 
@@ -171,7 +177,7 @@ def rebuild(policy: str, scenario: str, config: dict, given: str | None = None) 
         # Only the name: an absolute path would tie the folder to the machine it was made on.
         artifacts = {"model": Path(given).name if given and Path(given).is_absolute() else given}
     if resolved != plain({"config": own}):
-        raise MigrationError("rebuilt, it resolves otherwise: "
+        raise NotReproduced("rebuilt, it resolves otherwise: "
                              + "; ".join(config_diff(plain({"config": own}), resolved)[:4]))
     return artifacts, note
 
@@ -280,6 +286,10 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
         try:
             config = new_shape(policy, old)
             artifacts, note = rebuild(policy, first["scenario"], config, given)
+        except NotReproduced as err:  # made by code that is gone: history, kept as it was
+            report.left.append(f"{name}: {len(numbers)} record(s) the current code does not reproduce ({err})")
+            referenced.add(first.get("config_hash"))
+            continue
         except MigrationError as err:
             report.problem = f"arm {name}: {err}"
             return report

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from bimp.agents.registry import load, policy_spec
+from bimp.configs import neutral_values
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
@@ -47,49 +48,48 @@ def plain(value: Any) -> Any:
 
 
 @functools.lru_cache(maxsize=None)
-def _class_defaults(policy_name: str) -> str | None:
+def _neutral(policy_name: str) -> str:
     # JSON text, so that the cache hands out no mutable dict.
     try:
         reference = policy_spec(policy_name).config_class
     except ValueError:  # not a policy: a hash of something else (a tuning study's space, say)
-        return None
-    return None if reference is None else json.dumps(plain(dataclasses.asdict(load(reference)())))
+        return "{}"
+    return "{}" if reference is None else json.dumps(plain(neutral_values(load(reference))))
 
 
-def class_defaults(policy_name: str) -> dict | None:
-    """The ``config`` part of :func:`resolved_config` for the policy's config class at its class defaults, as a
-    record holds it (:func:`plain`); None when the policy's spec names no config class."""
-    text = _class_defaults(policy_name)
-    return None if text is None else json.loads(text)
+def neutral_config(policy_name: str) -> dict:
+    """``{field: neutral value}`` of the fields the policy's config class declares with
+    :func:`bimp.configs.added_field` (nested configs nested), as a record holds them; ``{}`` when none."""
+    return json.loads(_neutral(policy_name))
 
 
-def without_defaults(value: dict, defaults: dict) -> dict:
-    """``value`` without the entries equal to ``defaults``' (nested mappings key by key)."""
+def without_neutral(value: dict, neutral: dict) -> dict:
+    """``value`` without the fields at their neutral value (nested mappings key by key)."""
     out = {}
     for key, item in value.items():
-        default = defaults.get(key, _ABSENT)
-        if item == default:
+        mark = neutral.get(key, _NONE)
+        if not isinstance(mark, dict) and item == mark:
             continue
-        out[key] = without_defaults(item, default) if isinstance(item, dict) and isinstance(default, dict) else item
+        out[key] = without_neutral(item, mark) if isinstance(item, dict) and isinstance(mark, dict) else item
     return out
 
 
-_ABSENT = object()
+_NONE = object()  # no neutral value declared
 
 
 def config_hash(policy_name: str, config: dict) -> str:
     """16 hex digits of SHA-256 over the policy name and the config, canonical JSON as a record holds it
     (:func:`plain`: a record's own config hashes to its arm's), with every field of the policy's config
-    (``config["config"]``) that equals its class default left out.
+    (``config["config"]``) left out that is at its neutral value (:func:`bimp.configs.added_field`).
 
-    Leaving the defaults out is what lets a config grow: a field added later, whose default reproduces the behaviour
-    from before it existed, leaves every hash unchanged, so old records keep resuming (``docs/evaluation.md``). A
-    changed default changes what an old record's config hashes to, so the resume check refuses those records
-    instead of taking them for the new default's."""
+    Leaving those out is what lets a config grow: a field added later, at the value that reproduces the behaviour
+    from before it existed, leaves every hash unchanged, so old records keep resuming (``docs/evaluation.md``). Every
+    other field is hashed, at its default or not: a field whose old behaviour no value reproduces changes the hash of
+    every config, and the old records are refused instead of taken for the new behaviour's."""
     config = plain(config)
-    defaults = class_defaults(policy_name)
-    if defaults is not None and isinstance(config.get("config"), dict):
-        config = {**config, "config": without_defaults(config["config"], defaults)}
+    neutral = neutral_config(policy_name)
+    if neutral and isinstance(config.get("config"), dict):
+        config = {**config, "config": without_neutral(config["config"], neutral)}
     blob = json.dumps({"policy": policy_name, "config": config}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -137,5 +137,5 @@ def code_version() -> dict:
     return {"bimp_version": version, "git_commit": commit, "git_dirty": dirty}
 
 
-__all__ = ["CODE_PATHS", "class_defaults", "code_version", "config_diff", "config_hash", "git_state", "plain",
-           "resolved_config", "without_defaults"]
+__all__ = ["CODE_PATHS", "code_version", "config_diff", "config_hash", "git_state", "neutral_config", "plain",
+           "resolved_config", "without_neutral"]

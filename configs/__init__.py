@@ -241,4 +241,33 @@ def check_fields(config: Any, allow_inf: Iterable[str] = ()) -> None:
             object.__setattr__(config, f.name, checked)
 
 
-__all__ = ["CONFIG_DIR", "TUNED_DIR", "ConfigError", "check_fields", "load_config", "load_tuned", "read_yaml"]
+# --- fields added after results were recorded ---------------------------------------------------------------
+def added_field(default: Any, *, neutral: Any) -> Any:
+    """A config field added after records were made without it. ``neutral``: its value that reproduces the behaviour
+    from before it existed (it may differ from ``default``, the value new configs take). At its neutral value the
+    field is left out of a config's hash (:func:`bimp.agents.provenance.config_hash`), so the records made before it
+    existed keep resuming; ``bimp migrate`` writes it into them at that value. A field whose old behaviour no value
+    reproduces is declared as a plain field: it is always hashed, and the old records are refused, as they must be.
+
+        gate_barriers: bool = added_field(True, neutral=True)
+    """
+    return dataclasses.field(default=default, metadata={"neutral": neutral})
+
+
+def neutral_values(cls: type) -> dict[str, Any]:
+    """``{field: neutral value}`` of the fields of the config class ``cls`` declared with :func:`added_field`; a
+    nested config's as a nested mapping (only where it has some)."""
+    hints = _hints(cls)
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if "neutral" in f.metadata:
+            out[f.name] = f.metadata["neutral"]
+        elif isinstance(hints[f.name], type) and dataclasses.is_dataclass(hints[f.name]):
+            nested = neutral_values(hints[f.name])
+            if nested:
+                out[f.name] = nested
+    return out
+
+
+__all__ = ["CONFIG_DIR", "TUNED_DIR", "ConfigError", "added_field", "check_fields", "load_config", "load_tuned",
+           "neutral_values", "read_yaml"]

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bimp.configs import ConfigError, check_fields
+from bimp.configs import ConfigError, added_field, check_fields
 from bimp.envs.scene import Scene, real_array
 from bimp.planners import core
 from bimp.planners.model import model_params
@@ -53,9 +53,10 @@ class EnKTSConfig:
     max_innovation: float = 2.0
     relaxation: float = 0.5
     iterations: int = 1
-    gate_barriers: bool = True
-    first_control_barriers: bool = True
-    update: str = "perturbed"
+    # Added for the claims study, with the behaviour from before as their neutral value (configs.added_field).
+    gate_barriers: bool = added_field(True, neutral=True)
+    first_control_barriers: bool = added_field(True, neutral=True)
+    update: str = added_field("perturbed", neutral="perturbed")
     seed: int = 0
     problem: ProblemConfig = field(default_factory=ProblemConfig)
 

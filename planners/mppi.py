@@ -53,7 +53,7 @@ import numpy as np
 import torch
 from pytorch_mppi import MPPI
 
-from bimp.configs import ConfigError, check_fields
+from bimp.configs import ConfigError, added_field, check_fields
 from bimp.envs.scene import Scene
 from bimp.planners.dynamics import model_from_name
 from bimp.planners.problem import (
@@ -97,7 +97,8 @@ class MPPIConfig:
     temperature: float = 1.0
     noise_gain: float = 1.0
     control_cost: float = 0.0
-    sample: Literal["increments", "inputs"] = "increments"
+    # Added when MPPI was reworked (issue 14): it sampled the inputs before, so that is its neutral value.
+    sample: Literal["increments", "inputs"] = added_field("increments", neutral="inputs")
     seed: int = 0
     problem: ProblemConfig = field(default_factory=ProblemConfig)
 

@@ -5,7 +5,9 @@ indented) or in inline code. Blocks are read as the shell would, as far as the d
 ``#`` comments, ``;``, ``VAR=value`` and (nested) ``for VAR in a b c; do ... done`` loops. Each command runs in
 process with ``--dry-run`` from the repository root and must find every episode done. A command that cannot be read
 (an unbalanced quote, an elided ``...`` in a block that writes ``results/``, an unknown variable) fails naming its
-file and line: the docs must stay runnable. ``make check-results`` runs this file alone.
+file and line: the docs must stay runnable. A command that only older code can run is printed as history,
+``(git switch --detach COMMIT && bimp ...)``: not a command of the current code, so not run here.
+``make check-results`` runs this file alone.
 """
 
 from __future__ import annotations

@@ -377,6 +377,21 @@ def test_mppi_records_made_before_its_seeding_changed_are_left_in_place(tmp_path
     assert len(read_arms(tmp_path)) == 4
 
 
+def test_an_arm_made_before_a_field_without_neutral_value_is_left_in_place_not_adopted(tmp_path):
+    """The first wave's NMPC had hard constraints; ``slack_penalty`` came with the soft ones and has no neutral
+    value. Filling it with its default would take those records for the current NMPC's: they stay as they were."""
+    records = old_records()
+    number = next(i for i, r in enumerate(records) if r["policy"] == "nmpc")
+    del records[number]["config"]["config"]["slack_penalty"]
+    write(tmp_path, records)
+    report = migrate.migrate_folder(tmp_path)
+    assert report.problem is None and len(report.left) == 1 and "slack_penalty" in report.left[0]
+    lines = (tmp_path / EPISODES_FILE).read_text().splitlines()
+    assert json.loads(lines[number]) == records[number]  # as it was, config inline: history, not a current result
+    (done,) = [r for r in read_records(tmp_path) if r["policy"] == "nmpc"]
+    assert done["config_hash"] not in read_arms(tmp_path)
+
+
 def test_an_arm_the_current_code_cannot_rebuild_is_refused_and_its_folder_left_alone(tmp_path, capsys):
     records = old_records()
     records[0]["config"]["config"]["bogus_switch"] = True  # a config the current code does not know

@@ -8,6 +8,7 @@ import sys
 from bimp.agents import provenance
 from bimp.agents.provenance import config_hash, git_state, resolved_config
 from bimp.agents.registry import PolicySpec, make_policy, register_policy
+from bimp.configs import added_field
 
 
 def test_a_changed_results_file_is_not_dirty_a_changed_code_file_is(tmp_path):
@@ -43,8 +44,7 @@ def test_a_package_inside_another_checkout_records_no_commit(tmp_path):
 
 @dataclasses.dataclass(frozen=True)
 class Grown:
-    """A toy policy's config: ``gain`` from the start, ``extra`` added later with a default that keeps the old
-    behaviour (the test swaps this class's fields to play each version)."""
+    """A toy policy's config: ``gain`` from the start; the test swaps this class to play later versions."""
 
     gain: float = 1.0
 
@@ -54,34 +54,41 @@ register_policy(PolicySpec(name="hash-toy", factory="tests.agents.toys:AlwaysBra
 
 
 def _version(monkeypatch, **fields):
-    version = dataclasses.make_dataclass("Grown", [(k, type(v), dataclasses.field(default=v)) for k, v in
-                                                   fields.items()], frozen=True)
-    monkeypatch.setattr(sys.modules[__name__], "Grown", version)
-    provenance._class_defaults.cache_clear()
+    """``Grown`` with ``fields``: ``name: default`` or ``name: (default, neutral)`` for an added field."""
+    spec = [(k, type(v[0]), added_field(*v[:1], neutral=v[1])) if isinstance(v, tuple)
+            else (k, type(v), dataclasses.field(default=v)) for k, v in fields.items()]
+    monkeypatch.setattr(sys.modules[__name__], "Grown", dataclasses.make_dataclass("Grown", spec, frozen=True))
+    provenance._neutral.cache_clear()
 
 
-def test_config_growth_leaves_old_hashes_and_a_changed_default_does_not(monkeypatch):
-    """Issue 28, item 2: a field added with a default leaves the hash of a record made before it unchanged, so the
-    record still resumes; a changed default changes what an old record's config hashes to, so it is refused."""
+def test_a_field_added_at_its_neutral_value_leaves_old_hashes_one_without_changes_them(monkeypatch):
+    """Issue 28, item 2: a field added with the value that reproduces the old behaviour leaves the hash of a record
+    made before it unchanged, so the record still resumes; a field no value of which reproduces the old behaviour
+    (declared plain) changes the hash, so the old records are refused instead of taken for the new behaviour's."""
+    old = {"config": {"gain": 1.0}, "scenario": {"x": 1}}
     _version(monkeypatch, gain=1.0)
-    before = config_hash("hash-toy", {"config": {"gain": 1.0}, "scenario": {"x": 1}})
-    _version(monkeypatch, gain=1.0, extra=0)
+    before = config_hash("hash-toy", old)
+    _version(monkeypatch, gain=1.0, extra=(0, 0))
     assert config_hash("hash-toy", {"config": {"gain": 1.0, "extra": 0}, "scenario": {"x": 1}}) == before
     assert config_hash("hash-toy", {"config": {"gain": 1.0, "extra": 5}, "scenario": {"x": 1}}) != before
-    _version(monkeypatch, gain=2.0, extra=0)  # the default moved: a record made at the old default is not the new
-    assert config_hash("hash-toy", {"config": {"gain": 1.0}, "scenario": {"x": 1}}) != before
-    provenance._class_defaults.cache_clear()
+    _version(monkeypatch, gain=1.0, extra=(5, 0))  # new configs take 5; 0 still means "as before"
+    assert config_hash("hash-toy", {"config": {"gain": 1.0, "extra": 0}, "scenario": {"x": 1}}) == before
+    _version(monkeypatch, gain=1.0, extra=0)  # no neutral value: the old records are not the new behaviour's
+    assert config_hash("hash-toy", {"config": {"gain": 1.0, "extra": 0}, "scenario": {"x": 1}}) != before
+    provenance._neutral.cache_clear()
 
 
-def test_the_shipped_planners_hash_without_their_defaults_and_as_their_records_hold_them():
+def test_the_switches_added_for_the_claims_study_are_neutral_and_nmpc_slack_is_not():
     import gymnasium as gym
 
     env = gym.make("bimp/EmergencyBrake-v0")
-    for name in ("enkts", "enks", "nmpc"):
-        resolved = resolved_config(make_policy(name, env))
-        assert provenance.class_defaults(name) is not None
-        # fields at their class default (the switches added later among them) do not enter the hash
-        dropped = {k: v for k, v in resolved["config"].items() if v != provenance.class_defaults(name).get(k)}
-        assert config_hash(name, {"config": dropped}) == config_hash(name, resolved)
-        # a record holds infinities as null (JSON): the same hash
-        assert config_hash(name, json.loads(json.dumps(provenance.plain(resolved)))) == config_hash(name, resolved)
+    resolved = resolved_config(make_policy("enkts", env))
+    before = {"config": {k: v for k, v in resolved["config"].items()
+                         if k not in ("gate_barriers", "first_control_barriers", "update")}}
+    assert config_hash("enkts", before) == config_hash("enkts", resolved)  # records made before the switches
+    nmpc = resolved_config(make_policy("nmpc", env))
+    hard = {"config": {k: v for k, v in nmpc["config"].items() if k != "slack_penalty"}}
+    assert config_hash("nmpc", hard) != config_hash("nmpc", nmpc)  # the first wave's hard-constraint NMPC
+    # a record holds infinities as null (JSON): the same hash
+    enks = resolved_config(make_policy("enks", env))
+    assert config_hash("enks", json.loads(json.dumps(provenance.plain(enks)))) == config_hash("enks", enks)

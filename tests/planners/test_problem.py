@@ -175,7 +175,8 @@ def test_every_policy_refuses_observations_that_are_not_real_numbers(name):
 def test_default_resolved_configs_are_unchanged():
     """Committed result records are keyed by the hash of each policy's resolved config: building a policy with no
     config and no overrides must give the same one. These are the hashes of the one config shape (issue 25: every
-    planner's own fields plus ``problem``); its values are those of commit e3c9e7b's, pinned key by key by
+    planner's own fields plus ``problem``), hashed as issue 28 hashes (fields at their neutral value left out,
+    infinities as null); its values are those of commit e3c9e7b's, pinned key by key by
     tests/planners/test_config_shape.py."""
     from bimp.agents import make_policy
     from bimp.agents.provenance import config_hash, resolved_config
@@ -183,5 +184,5 @@ def test_default_resolved_configs_are_unchanged():
     env = gym.make("bimp/Overtaking-v0")
     hashes = {name: config_hash(name, resolved_config(make_policy(name, env)))
               for name in ("enkts", "enks", "mppi", "nmpc", "nmpc-t")}
-    assert hashes == {"enkts": "65d8f06fdae2b713", "enks": "e2b81d2a23a7e656", "mppi": "a51c94c1cd9e0d6d",
-                      "nmpc": "4a28b7b9252e851e", "nmpc-t": "2dfab0e2ab2ea514"}
+    assert hashes == {"enkts": "689467911a27a40d", "enks": "485f4f5d5892fb1c", "mppi": "eee4fffdfb2b4dec",
+                      "nmpc": "38d176c3e2ee268c", "nmpc-t": "762bb56b515ec887"}
