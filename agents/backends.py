@@ -48,17 +48,23 @@ class BackendError(ValueError):
 
 
 def start_backend(backend: str, address: str | None = None, cpus: int | None = None) -> None:
-    """Check a backend request before anything runs and, for Ray, connect (:func:`connect_ray`):
-    :class:`BackendError` naming an unknown backend, Ray options without ``backend="ray"``, Ray not installed, or
-    an address where no cluster answers."""
+    """Check a backend request before anything runs (:func:`check_backend`) and, for Ray, connect
+    (:func:`connect_ray`): :class:`BackendError` naming what is wrong, Ray not installed, or an address where no
+    cluster answers."""
+    check_backend(backend, address, cpus)
+    if backend == "ray":
+        connect_ray(address, cpus)
+
+
+def check_backend(backend: str, address: str | None = None, cpus: int | None = None) -> None:
+    """The request alone, nothing started (what ``--dry-run`` checks): :class:`BackendError` naming an unknown
+    backend, or Ray options without ``backend="ray"``."""
     if backend not in BACKENDS:
         raise BackendError(f"unknown backend {backend!r}; choose from {list(BACKENDS)}")
     if backend != "ray" and (address is not None or cpus is not None):
         raise BackendError(f"--address and --ray-cpus are for --backend ray, not {backend!r}")
     if cpus is not None and (address is not None or cpus < 1):
         raise BackendError(f"--ray-cpus {cpus}: the CPUs of a new local Ray instance (>= 1), not with --address")
-    if backend == "ray":
-        connect_ray(address, cpus)
 
 
 def run_groups(groups: list, run: Callable, crashed: Callable, write: Callable, *, backend: str = "local",

@@ -44,7 +44,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bimp import envs
-from bimp.agents.backends import BackendError, run_groups, start_backend
+from bimp.agents.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.cli import (
     EvaluationError,
     add_backend_arguments,
@@ -332,11 +332,10 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
     records, or names a backend that cannot run. ``dry_run``: check all that, then return a :class:`DryRun` (the
     episodes that would run) instead, writing nothing and starting no backend.
     """
-    if not dry_run:
-        try:
-            start_backend(backend, address, ray_cpus)
-        except BackendError as err:
-            raise EvaluationError(str(err)) from None
+    try:  # a dry run checks the request as a real run would, but connects to nothing
+        (check_backend if dry_run else start_backend)(backend, address, ray_cpus)
+    except BackendError as err:
+        raise EvaluationError(str(err)) from None
     seeds = list(range(seed, seed + episodes)) if seeds is None else [int(s) for s in seeds]
     if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
         raise EvaluationError(f"seeds must be distinct ints >= 0, at least one; got {seeds}")

@@ -20,7 +20,7 @@ from types import MappingProxyType
 from typing import Any
 
 from bimp.agents.policy import Policy, missing_members
-from bimp.configs import TUNED_DIR, load_tuned
+from bimp.configs import TUNED_DIR, load_tuned, read_yaml
 
 
 def _is_reference(value: object) -> bool:
@@ -156,17 +156,26 @@ def policy_label(name: str) -> str:
 def make_policy(name: str, env, config: str | Path | None = None, **overrides) -> Policy:
     """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package). ``config``: a YAML written by
     ``bimp tune`` for this policy (default: ``configs/tuned/<name>.yaml`` if one ships), or a plain YAML of
-    overrides, handed to the factory as its own ``config``; ``overrides`` go on top, a nested mapping merged key by
+    overrides, which goes on top of the shipped tuned config where one ships (else it is handed to the factory as
+    its own ``config``, on top of the shipped defaults); ``overrides`` go on top, a nested mapping merged key by
     key (``problem={"horizon": 30}`` keeps the rest of a tuned problem), and an unknown key raises.
     ``name`` is a key of ``POLICIES`` or ``"module:factory"``. ``ValueError`` for an unknown name, or a ``config``
     tuned for another policy; ``TypeError`` for a factory whose policy lacks a member of :class:`Policy`."""
     factory = policy_factory(name)
-    if config is None and (TUNED_DIR / f"{name}.yaml").is_file():
-        config = TUNED_DIR / f"{name}.yaml"  # a shipped tuned config is the policy's default
+    shipped = TUNED_DIR / f"{name}.yaml"
+    base = load_tuned(name, shipped) if shipped.is_file() else None  # a shipped tuned config is the default
     if config is not None:
         tuned = load_tuned(name, config)
-        overrides = _merge(tuned, overrides) if tuned is not None else {"config": config, **overrides}
-    policy = factory(env, **overrides)
+        if tuned is not None:  # a tuned config of its own replaces the shipped one
+            base = tuned
+        elif base is not None:  # a plain file of overrides goes on top of the shipped tuned config, never instead
+            values = read_yaml(config) or {}
+            if not isinstance(values, dict):
+                raise ValueError(f"{config}: expected a mapping of overrides, got {type(values).__name__}")
+            base = _merge(base, values)
+        else:
+            overrides = {"config": config, **overrides}
+    policy = factory(env, **(_merge(base, overrides) if base is not None else overrides))
     missing = missing_members(policy)
     if missing:  # refused here, where the name is known, not as an AttributeError inside an episode
         raise TypeError(f"policy {name!r} ({type(policy).__name__}) lacks {', '.join(missing)} of the Policy "

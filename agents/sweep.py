@@ -1,6 +1,6 @@
 """``bimp sweep`` and ``bimp frontier``: policies evaluated along one axis of their configs.
 
-    bimp sweep --param enkts.sigma_barrier=0.05,0.1,0.2 --scenario overtaking --episodes 20 --seed 200 --out DIR
+    bimp sweep --param enkts.problem.sigma_barrier=0.05,0.1,0.2 --scenario overtaking --episodes 20 --seed 200 --out DIR
     bimp sweep --policy enkts enks --n 10 20 50 100 200 --episodes 10 --out DIR        # N, for each policy
     bimp frontier --scenario overtaking --policies enkts enks mppi nmpc ppo --n 10 20 50 100 200 500 1000 2000 \\
                   --iters 5 10 20 40 --episodes 20 --seed 2000 --out DIR

@@ -266,7 +266,7 @@ def objective(spec: Study, trial) -> float:
     params = {key: _suggest(trial, key, dist) for key, dist in spec.space.items()}
     overrides = with_params(spec.base, params)  # complete: no default of the day (a tuned config) leaks in
     folder = Path(spec.out) / "trials" / config_hash(spec.policy, overrides)
-    trial.set_user_attr("folder", str(folder))
+    trial.set_user_attr("folder", str(folder.relative_to(spec.out)))  # relative to the study: no machine's path
     value, episodes = math.nan, len(spec.seeds)
     for done in range(spec.rung, episodes + spec.rung, spec.rung):
         try:
@@ -360,7 +360,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
     space = search_space(policy)
     base = check_space(policy, scenarios, space)
     try:
-        out = check_out_dir(out).resolve()
+        out = check_out_dir(out).resolve()  # absolute for the trials, wherever they run (Ray workers too)
     except EvaluationError as err:
         raise TuneError(str(err)) from None
     url = storage or f"sqlite:///{out / 'study.db'}"

@@ -115,7 +115,6 @@ class EnKTSPlanner:
     (``{"fallback": (b_1, .., b_B)}``). The episode loops record it per step (:mod:`bimp.agents.rollout`).
     """
 
-    batched = True  # reset(seed=[...]) and act(obs (B, d)) plan B episodes in one call
 
     def __init__(self, scene: Scene | Callable[[], Scene | Sequence[Scene]], config: EnKTSConfig = EnKTSConfig()):
         self.config = config

@@ -126,3 +126,11 @@ def test_train_rl_file_errors_exit_2_in_one_line(tmp_path, monkeypatch, capsys, 
     assert exit_.value.code == 2
     one_line_error(capsys, named)
     assert sorted(tree(tmp_path)) == sorted(["afile"] + (["rl.yaml"] if config is not None else []))
+
+
+@pytest.mark.parametrize("backend", [["--backend", "bogus"], ["--ray-cpus", "2"]])
+def test_a_dry_run_checks_the_backend_request_as_a_real_run(tmp_path, capsys, backend):
+    """--dry-run skipped the backend checks: a request a real run refuses came out as fine (review finding)."""
+    assert main([*COMMANDS["evaluate"], *backend, "--out", str(tmp_path / "out"), "--dry-run"]) == 2
+    one_line_error(capsys, backend[0].lstrip("-"))
+    assert tree(tmp_path) == []

@@ -95,3 +95,21 @@ def test_a_scenario_registered_twice_or_malformed_is_refused_naming_it():
     with pytest.raises(ValueError, match="unknown scenario 'other'"):
         envs.env_id("other")
     assert "other" not in SCENARIOS and "bimp-test/Other-v0" not in gym.registry
+
+
+def test_a_plain_config_file_goes_on_top_of_a_shipped_tuned_config(tmp_path):
+    """``config=PATH`` holding only the horizon kept MPPI's class defaults and dropped its shipped tuned config
+    (temperature 1.0 instead of the tuned value): a file of overrides is layered on top, never instead."""
+    import gymnasium as gym
+
+    from bimp.agents.provenance import resolved_config
+
+    env = gym.make("bimp/EmergencyBrake-v0")
+    tuned = resolved_config(make_policy("mppi", env))["config"]
+    (tmp_path / "h.yaml").write_text("problem:\n  horizon: 25\n")
+    mine = resolved_config(make_policy("mppi", env, config=tmp_path / "h.yaml"))["config"]
+    assert mine["problem"]["horizon"] == 25 and tuned["problem"]["horizon"] != 25
+    assert {k: v for k, v in mine.items() if k != "problem"} == {k: v for k, v in tuned.items() if k != "problem"}
+    assert {k: v for k, v in mine["problem"].items() if k != "horizon"} == \
+        {k: v for k, v in tuned["problem"].items() if k != "horizon"}
+    assert tuned["temperature"] != 1.0  # the tuned value, not the class default: the test would see the drop

@@ -27,6 +27,9 @@ def test_a_two_trial_study_writes_a_study_and_a_config_that_make_policy_loads(tm
     (tmp_path / "study" / "best.yaml").rename(tmp_path / "best.yaml")
     assert (tmp_path / "study" / "study.db").is_file()
     assert [t.state for t in study.trials] == [optuna.trial.TrialState.COMPLETE] * 2
+    # The study records each trial's folder relative to itself: no path of the machine it ran on (issue 28).
+    assert all((tmp_path / "study" / t.user_attrs["folder"] / "episodes.jsonl").is_file()
+               and str(tmp_path) not in t.user_attrs["folder"] for t in study.trials)
     doc = yaml.safe_load((tmp_path / "best.yaml").read_text())
     assert doc["policy"] == "lane-keep" and doc["tuning"]["trial"] == study.best_trial.number
     policy = make_policy("lane-keep", gym.make("bimp/EmergencyBrake-v0"), config=tmp_path / "best.yaml")
