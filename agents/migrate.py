@@ -12,6 +12,8 @@ Per arm (the records sharing one config), the old config is brought to today's (
   (:func:`bimp.configs.added_field`: the value that reproduces the behaviour from before they existed, left out of
   the hash); a field declared without one (NMPC's ``slack_penalty``: the first wave's NMPC had hard constraints) is
   not filled, so such an arm no longer resolves to a current config and is left in place, reported;
+- planners: their weights by content, ``files = {"problem.dynamics": sha256}`` (the shipped ``mlp.pt``, unchanged
+  since before the first record: ``SHIPPED_WEIGHTS``); an arm that named another weights file is left in place;
 - PPO/SAC: the absolute ``model_path`` is dropped (``model_sha256`` names the file), and the shipped file with that
   sha256 goes into the arm's ``artifacts`` as ``bimp:agents/models/NAME``;
 - the hash recomputed with :func:`bimp.agents.provenance.config_hash`, and the config moved into ``arms.json``
@@ -61,6 +63,9 @@ from bimp.agents.records import (
 from bimp.agents.registry import load, make_policy, policy_spec
 from bimp.planners.problem import ProblemConfig
 
+# sha256 of planners/weights/mlp.pt as committed at ad50d20 and never changed since (git log): every planner record
+# that names "mlp" was made with it.
+SHIPPED_WEIGHTS = "81870b0390f5823b577ee618768fc82a51a2f4a32bd8e1518234d80306c54e52"
 MPPI_SEEDING = "667c57c"  # MPPI's generator seeding changed here; its config hash did not
 MODEL_DIR = REPO_ROOT / "agents" / "models"
 PROBLEM_KEYS = tuple(f.name for f in dataclasses.fields(ProblemConfig))
@@ -100,7 +105,14 @@ def new_shape(policy: str, config: dict) -> dict:
     if "model_sha256" in own:  # PPO, SAC: the file is its sha256; where it lay is no part of the config
         own.pop("model_path", None)
     config["config"] = _with_neutral(own, neutral_config(policy))
-    stray = sorted(set(config) - {"config", "scenario"})
+    dynamics = own.get("problem", {}).get("dynamics") if isinstance(own.get("problem"), dict) else None
+    if dynamics is not None and "files" not in config:  # a planner: its weights by content (issue 28)
+        if dynamics == "mlp":
+            # The shipped weights have not changed since they were first committed (ad50d20), before any record.
+            config["files"] = {"problem.dynamics": SHIPPED_WEIGHTS}
+        elif dynamics != "bicycle":
+            raise NotReproduced(f"its weights {dynamics!r} cannot be told by content now")
+    stray = sorted(set(config) - {"config", "files", "scenario"})
     if stray:
         raise MigrationError(f"the config holds {stray}, which no current config has")
     return config
@@ -176,9 +188,9 @@ def rebuild(policy: str, scenario: str, config: dict, given: str | None = None) 
         resolved["config"]["model_sha256"] = own["model_sha256"]
         # Only the name: an absolute path would tie the folder to the machine it was made on.
         artifacts = {"model": Path(given).name if given and Path(given).is_absolute() else given}
-    if resolved != plain({"config": own}):
-        raise NotReproduced("rebuilt, it resolves otherwise: "
-                             + "; ".join(config_diff(plain({"config": own}), resolved)[:4]))
+    expected = plain({"config": own, **({"files": config["files"]} if "files" in config else {})})
+    if resolved != expected:
+        raise NotReproduced("rebuilt, it resolves otherwise: " + "; ".join(config_diff(expected, resolved)[:4]))
     return artifacts, note
 
 

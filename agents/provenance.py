@@ -24,15 +24,20 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 
 def resolved_config(policy) -> dict:
     """The policy's complete configuration as plain JSON-able data, ``{"config": ...}``: its ``config``, a
-    dataclass (a planner's holds its ``problem``) or a dict. ``TypeError`` for a policy that exposes neither: its
-    results could not be attributed."""
+    dataclass (a planner's holds its ``problem``) or a dict, and ``"files"``: the files it loaded that its config
+    names only by name or path, by content, keyed by that config key (a planner's ``{"problem.dynamics": sha256}``
+    of its weights: new weights at the same path are another config, the same weights elsewhere the same), when it
+    has any. ``TypeError`` for a policy that exposes no config: its results could
+    not be attributed."""
     config = getattr(policy, "config", None)
     if dataclasses.is_dataclass(config) and not isinstance(config, type):
         config = dataclasses.asdict(config)
     if not isinstance(config, dict):
         raise TypeError(f"{type(policy).__name__} exposes no `config` (a dataclass or dict): "
                         "evaluation cannot record what produced its episodes")
-    return json.loads(json.dumps({"config": config}, default=str))  # tuples -> lists, paths -> str: as recorded
+    files = getattr(policy, "files", None)
+    resolved = {"config": config, **({"files": dict(files)} if files else {})}
+    return json.loads(json.dumps(resolved, default=str))  # tuples -> lists, paths -> str: as recorded
 
 
 def plain(value: Any) -> Any:
@@ -77,10 +82,21 @@ def without_neutral(value: dict, neutral: dict) -> dict:
 _NONE = object()  # no neutral value declared
 
 
+def _without_key(value: Any, path: list[str]) -> Any:
+    """``value`` (nested mappings) without the entry at the dotted ``path``."""
+    if not isinstance(value, dict) or path[0] not in value:
+        return value
+    if len(path) == 1:
+        return {k: v for k, v in value.items() if k != path[0]}
+    return {**value, path[0]: _without_key(value[path[0]], path[1:])}
+
+
 def config_hash(policy_name: str, config: dict) -> str:
     """16 hex digits of SHA-256 over the policy name and the config, canonical JSON as a record holds it
     (:func:`plain`: a record's own config hashes to its arm's), with every field of the policy's config
-    (``config["config"]``) left out that is at its neutral value (:func:`bimp.configs.added_field`).
+    (``config["config"]``) left out that is at its neutral value (:func:`bimp.configs.added_field`), and every
+    entry that names a file known by its content (``config["files"]``, keyed by the entry's dotted key) left out
+    for that content: the same weights at two paths are one config, new weights at one path two.
 
     Leaving those out is what lets a config grow: a field added later, at the value that reproduces the behaviour
     from before it existed, leaves every hash unchanged, so old records keep resuming (``docs/evaluation.md``). Every
@@ -90,6 +106,8 @@ def config_hash(policy_name: str, config: dict) -> str:
     neutral = neutral_config(policy_name)
     if neutral and isinstance(config.get("config"), dict):
         config = {**config, "config": without_neutral(config["config"], neutral)}
+    for key in config.get("files") or {}:  # a file known by its content is hashed by it, not by its name or path
+        config = {**config, "config": _without_key(config.get("config"), key.split("."))}
     blob = json.dumps({"policy": policy_name, "config": config}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

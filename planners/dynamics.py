@@ -20,6 +20,7 @@ highway-env's acceleration cap above ``max_speed`` is applied to the input, and 
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -346,6 +347,19 @@ def check_dynamics(name: str, key: str = "dynamics") -> None:
         raise ConfigError(key, requirement, name, str(err)) from None
 
 
+def dynamics_files(name: str) -> tuple[dict[str, str], dict[str, str]]:
+    """``(files, artifacts)`` of the model a planner config's ``problem.dynamics`` names (:func:`model_from_name`),
+    keyed by that config key: ``files`` its weights file by content, ``{"problem.dynamics": sha256}`` (``{}`` for the
+    exact bicycle, which loads no file), so a policy's config hash follows the weights, not where they lie
+    (:func:`bimp.agents.provenance.config_hash`); ``artifacts`` the file by name (``bimp:planners/weights/mlp.pt``
+    for the shipped weights, else the path as given), shown apart, not hashed."""
+    if name == "bicycle":
+        return {}, {}
+    path = WEIGHTS_PATH if name == "mlp" else Path(name)
+    shown = "bimp:planners/weights/mlp.pt" if name == "mlp" else name
+    return {"problem.dynamics": hashlib.sha256(path.read_bytes()).hexdigest()}, {"problem.dynamics": shown}
+
+
 def model_from_name(name: str) -> BicycleModel | LearnedDynamics:
     """The model a planner config's ``dynamics`` names: ``"mlp"`` the shipped weights (:func:`load_model`),
     ``"bicycle"`` the exact :class:`BicycleModel`, anything else the path of a weights file written by
@@ -357,5 +371,5 @@ def model_from_name(name: str) -> BicycleModel | LearnedDynamics:
     return load_model(name)
 
 
-__all__ = ["BicycleModel", "LearnedDynamics", "MLP", "WEIGHTS_PATH", "features", "apply_change", "load_model",
-           "model_from_name", "save_model"]
+__all__ = ["BicycleModel", "LearnedDynamics", "MLP", "WEIGHTS_PATH", "apply_change", "dynamics_files", "features",
+           "load_model", "model_from_name", "save_model"]

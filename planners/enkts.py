@@ -21,6 +21,7 @@ import numpy as np
 from bimp.configs import ConfigError, added_field, check_fields
 from bimp.envs.scene import Scene, real_array
 from bimp.planners import core
+from bimp.planners.dynamics import dynamics_files
 from bimp.planners.model import model_params
 from bimp.planners.problem import BarrierShape, Problem, ProblemConfig, Road, load_planner_config, make_problem
 from bimp.planners.problem import search_space as problem_search_space
@@ -118,6 +119,7 @@ class EnKTSPlanner:
 
     def __init__(self, scene: Scene | Callable[[], Scene | Sequence[Scene]], config: EnKTSConfig = EnKTSConfig()):
         self.config = config
+        self.files, self.artifacts = dynamics_files(config.problem.dynamics)  # the weights by content, and by name
         self._scene = scene if callable(scene) else (lambda: scene)
         self._model = jax.device_put(model_params(config.problem.dynamics))
         self._problem_scenes: list[Scene] = []

@@ -55,7 +55,7 @@ from pytorch_mppi import MPPI
 
 from bimp.configs import ConfigError, added_field, check_fields
 from bimp.envs.scene import Scene
-from bimp.planners.dynamics import model_from_name
+from bimp.planners.dynamics import dynamics_files, model_from_name
 from bimp.planners.problem import (
     Problem,
     ProblemConfig,
@@ -176,6 +176,8 @@ class MPPIPlanner:
         self.config = config
         self.n_particles, self.horizon = config.n_particles, config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
+        # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
+        self.files, self.artifacts = dynamics_files(config.problem.dynamics) if dynamics is None else ({}, {})
         if dynamics is None:
             dynamics = model_from_name(config.problem.dynamics)
         self.dynamics = dynamics

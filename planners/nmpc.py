@@ -59,7 +59,7 @@ import numpy as np
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import Scene
-from bimp.planners.dynamics import BicycleModel, load_model, model_from_name
+from bimp.planners.dynamics import BicycleModel, dynamics_files, load_model, model_from_name
 from bimp.planners.problem import (
     BarrierShape,
     ProblemConfig,
@@ -296,6 +296,8 @@ class NMPCPlanner:
         self.horizon = config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
+        # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
+        self.files, self.artifacts = dynamics_files(config.problem.dynamics) if dynamics is None else ({}, {})
         if dynamics is None:
             model = model_from_name(config.problem.dynamics)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function

@@ -83,12 +83,43 @@ def test_the_switches_added_for_the_claims_study_are_neutral_and_nmpc_slack_is_n
 
     env = gym.make("bimp/EmergencyBrake-v0")
     resolved = resolved_config(make_policy("enkts", env))
-    before = {"config": {k: v for k, v in resolved["config"].items()
-                         if k not in ("gate_barriers", "first_control_barriers", "update")}}
+    before = {**resolved, "config": {k: v for k, v in resolved["config"].items()
+                                     if k not in ("gate_barriers", "first_control_barriers", "update")}}
     assert config_hash("enkts", before) == config_hash("enkts", resolved)  # records made before the switches
     nmpc = resolved_config(make_policy("nmpc", env))
-    hard = {"config": {k: v for k, v in nmpc["config"].items() if k != "slack_penalty"}}
+    hard = {**nmpc, "config": {k: v for k, v in nmpc["config"].items() if k != "slack_penalty"}}
     assert config_hash("nmpc", hard) != config_hash("nmpc", nmpc)  # the first wave's hard-constraint NMPC
     # a record holds infinities as null (JSON): the same hash
     enks = resolved_config(make_policy("enks", env))
     assert config_hash("enks", json.loads(json.dumps(provenance.plain(enks)))) == config_hash("enks", enks)
+
+
+def test_planner_weights_are_hashed_by_content_not_by_path(tmp_path):
+    """Issue 28, item 1: the same weights at two paths are one config; new weights at the same path another (a
+    retrained planners/weights/mlp.pt must not adopt the records of the old one)."""
+    import gymnasium as gym
+
+    from bimp.planners.dynamics import WEIGHTS_PATH
+
+    env = gym.make("bimp/EmergencyBrake-v0")
+    copies = [tmp_path / "a" / "w.pt", tmp_path / "b" / "c" / "w.pt"]
+    for copy in copies:
+        copy.parent.mkdir(parents=True)
+        copy.write_bytes(WEIGHTS_PATH.read_bytes())
+
+    def hash_with(dynamics: str) -> str:
+        return config_hash("enkts", resolved_config(make_policy("enkts", env, **{"problem.dynamics": dynamics})))
+
+    assert hash_with("mlp") == hash_with(str(copies[0])) == hash_with(str(copies[1]))
+    policy = make_policy("enkts", env, **{"problem.dynamics": str(copies[1])})
+    assert policy.artifacts == {"problem.dynamics": str(copies[1])}
+    assert make_policy("enkts", env).artifacts == {"problem.dynamics": "bimp:planners/weights/mlp.pt"}
+    before = hash_with(str(copies[0]))
+    import torch
+
+    weights = torch.load(copies[0], weights_only=True)
+    weights["state_dict"] = {k: v + 1e-3 for k, v in weights["state_dict"].items()}  # retrained, same file name
+    torch.save(weights, copies[0])
+    assert hash_with(str(copies[0])) != before
+    assert hash_with("bicycle") != hash_with("mlp") and "files" not in resolved_config(
+        make_policy("enkts", env, **{"problem.dynamics": "bicycle"}))

@@ -8,6 +8,7 @@ import copy
 import dataclasses
 import json
 import math
+from hashlib import sha256
 from pathlib import Path
 
 import gymnasium as gym
@@ -18,6 +19,7 @@ from bimp.agents.baselines import LaneKeepingConfig
 from bimp.agents.provenance import resolved_config
 from bimp.agents.registry import make_policy
 from bimp.configs import ConfigError
+from bimp.planners.dynamics import WEIGHTS_PATH
 from bimp.planners.enkts import EnKTSConfig
 from bimp.planners.mppi import MPPIConfig
 from bimp.planners.nmpc import NMPCConfig
@@ -55,7 +57,11 @@ def migrate(old: dict) -> dict:
 @pytest.mark.parametrize("name", [*PLANNERS, "lane-keep"])
 def test_the_shipped_defaults_resolve_to_the_values_they_had(env, name):
     old = json.loads(BEFORE.read_text())[name]
-    assert resolved_config(make_policy(name, env)) == migrate(old)
+    resolved = resolved_config(make_policy(name, env))
+    assert {"config": resolved["config"]} == migrate(old)
+    # Beside the config, only the files it names, by content (issue 28): the shipped weights, for a planner.
+    assert resolved.get("files", {}) == ({"problem.dynamics": sha256(WEIGHTS_PATH.read_bytes()).hexdigest()}
+                                         if name in PLANNERS else {})
 
 
 @pytest.mark.parametrize("name", PLANNERS)
@@ -65,7 +71,7 @@ def test_problem_horizon_means_the_same_for_every_planner_and_is_recorded(env, n
         policy = make_policy(name, env, **given)
         assert policy.config.problem.horizon == 25
         resolved = resolved_config(policy)
-        assert set(resolved) == {"config"}  # one attribute: the separate `tuning` is gone
+        assert set(resolved) == {"config", "files"}  # one config (the separate `tuning` is gone), and its files
         assert resolved["config"] == {**default, "problem": {**default["problem"], "horizon": 25}}
 
 

@@ -176,7 +176,7 @@ def test_default_resolved_configs_are_unchanged():
     """Committed result records are keyed by the hash of each policy's resolved config: building a policy with no
     config and no overrides must give the same one. These are the hashes of the one config shape (issue 25: every
     planner's own fields plus ``problem``), hashed as issue 28 hashes (fields at their neutral value left out,
-    infinities as null); its values are those of commit e3c9e7b's, pinned key by key by
+    infinities as null, the weights by their sha256); its values are those of commit e3c9e7b's, pinned key by key by
     tests/planners/test_config_shape.py."""
     from bimp.agents import make_policy
     from bimp.agents.provenance import config_hash, resolved_config
@@ -184,5 +184,5 @@ def test_default_resolved_configs_are_unchanged():
     env = gym.make("bimp/Overtaking-v0")
     hashes = {name: config_hash(name, resolved_config(make_policy(name, env)))
               for name in ("enkts", "enks", "mppi", "nmpc", "nmpc-t")}
-    assert hashes == {"enkts": "689467911a27a40d", "enks": "485f4f5d5892fb1c", "mppi": "eee4fffdfb2b4dec",
-                      "nmpc": "38d176c3e2ee268c", "nmpc-t": "762bb56b515ec887"}
+    assert hashes == {"enkts": "f23240bc48a2bddc", "enks": "6043c5460fc5cffa", "mppi": "77ef3a9fc460d352",
+                      "nmpc": "27fb5c1163050d2f", "nmpc-t": "62b8821b93ef9fa4"}
