@@ -10,12 +10,12 @@ import dataclasses
 import functools
 import hashlib
 import json
-import math
 import subprocess
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from bimp.agents.records import finite
 from bimp.agents.registry import load, policy_spec
 from bimp.configs import neutral_values
 
@@ -42,14 +42,8 @@ def resolved_config(policy) -> dict:
 
 def plain(value: Any) -> Any:
     """``value`` as a record holds it: JSON data (tuples as lists, paths as strings), infinities and NaN as None
-    (JSON has no inf)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain(v) for v in value]
-    return json.loads(json.dumps(value, default=str))
+    (:func:`bimp.agents.records.finite`: JSON has no inf)."""
+    return finite(json.loads(json.dumps(value, default=str)))
 
 
 @functools.lru_cache(maxsize=None)
