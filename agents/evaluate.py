@@ -188,9 +188,12 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
     and resume must not count its episode as done."""
     entries = read_arms(out) if entries is None else entries
     by_row = {(arm.scenario, arm.label): arm for arm in arms}
+    checked = set()  # ids of the configs found to hash to their arm's key: each is hashed once, not per record
     for arm in arms:  # the arm's own entry must be its config: an edited arms.json would vouch for every record
         entry = entries.get(arm.config_hash)
-        if entry is not None and config_hash(entry["policy"], entry["config"]) != arm.config_hash:
+        if entry is not None and config_hash(entry["policy"], entry["config"]) == arm.config_hash:
+            checked.add(id(entry["config"]))
+        elif entry is not None:
             diff = config_diff(entry["config"], finite(arm.resolved)) or [f"policy: {entry['policy']!r}"]
             raise EvaluationError(
                 f"{Path(out) / ARMS_FILE}: the entry {arm.config_hash} ({arm.label!r} on {arm.scenario}) does not "
@@ -201,9 +204,10 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
         if arm is None:
             continue
         config = record_config(r, entries)
+        verified = id(config) in checked and r["policy"] == arm.policy  # its arm's entry, hashed above
         if r.get("config_hash") != arm.config_hash:
             others.setdefault(arm, []).append(r)
-        elif config is None or config_hash(r["policy"], config) != arm.config_hash:
+        elif config is None or (not verified and config_hash(r["policy"], config) != arm.config_hash):
             # A hash without the config it names proves nothing: such a record is foreign too.
             diff = (config_diff(config, finite(arm.resolved)) if config is not None
                     else [f"its hash is not in {ARMS_FILE} and it carries no config"]) \
