@@ -36,7 +36,6 @@ import argparse
 import copy
 import dataclasses
 import functools
-import hashlib
 import json
 import math
 import re
@@ -61,6 +60,7 @@ from bimp.agents.records import (
     write_atomic,
 )
 from bimp.agents.registry import load, make_policy, policy_spec
+from bimp.configs import file_sha256
 from bimp.planners.problem import ProblemConfig
 
 # sha256 of planners/weights/mlp.pt as committed at ad50d20 and never changed since (git log): every planner record
@@ -152,7 +152,7 @@ def new_overrides(old_config: dict, overrides: dict) -> dict:
 @functools.lru_cache(maxsize=None)
 def shipped_models() -> dict[str, str]:
     """``{sha256: file name}`` of the models under ``agents/models/``."""
-    return {hashlib.sha256(path.read_bytes()).hexdigest(): path.name for path in sorted(MODEL_DIR.glob("*.zip"))}
+    return {file_sha256(path): path.name for path in sorted(MODEL_DIR.glob("*.zip"))}
 
 
 @functools.lru_cache(maxsize=None)

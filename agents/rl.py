@@ -51,7 +51,7 @@ from bimp import envs
 from bimp.agents.baselines import ZeroAction
 from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.rollout import rollout
-from bimp.configs import check_fields, read_yaml
+from bimp.configs import check_fields, file_sha256, read_yaml
 from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
@@ -564,7 +564,7 @@ class SB3Policy:
         # The file is identified by its content, never by where it lies: a path would tie the config's hash (and
         # every record) to the machine and folder it was made in. Where it lies is shown apart, as an artifact.
         # trust_model enters the config only when set: the default config is as it was before it existed.
-        self.config = {"algo": algo, "model_sha256": _sha256(path)}
+        self.config = {"algo": algo, "model_sha256": file_sha256(path)}
         if trust_model:
             self.config["trust_model"] = True
         self.artifacts = {"model": artifact_name(path, model_path)}
@@ -587,12 +587,6 @@ def artifact_name(path: Path, given: str | Path) -> str:
     if path.resolve().parent == MODEL_DIR.resolve():
         return f"bimp:agents/models/{path.name}"
     return str(given)
-
-
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _scenario_of(env: gym.Env) -> str | None:

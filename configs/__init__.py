@@ -14,6 +14,7 @@ ranges. Both raise :class:`ConfigError` (a ``ValueError``) naming the key and th
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import numbers
 import types
@@ -241,6 +242,12 @@ def check_fields(config: Any, allow_inf: Iterable[str] = ()) -> None:
             object.__setattr__(config, f.name, checked)
 
 
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of the file ``path``, in hex: how a config names a file it loads (weights, a model), by content,
+    never by where it lies."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 # --- fields added after results were recorded ---------------------------------------------------------------
 def added_field(default: Any, *, neutral: Any) -> Any:
     """A config field added after records were made without it. ``neutral``: its value that reproduces the behaviour
@@ -269,5 +276,5 @@ def neutral_values(cls: type) -> dict[str, Any]:
     return out
 
 
-__all__ = ["CONFIG_DIR", "TUNED_DIR", "ConfigError", "added_field", "check_fields", "load_config", "load_tuned",
-           "neutral_values", "read_yaml"]
+__all__ = ["CONFIG_DIR", "TUNED_DIR", "ConfigError", "added_field", "check_fields", "file_sha256", "load_config",
+           "load_tuned", "neutral_values", "read_yaml"]

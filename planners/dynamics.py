@@ -20,7 +20,6 @@ highway-env's acceleration cap above ``max_speed`` is applied to the input, and 
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from bimp.configs import ConfigError
+from bimp.configs import ConfigError, file_sha256
 
 # The env's vehicle and actuators, from the module that defines them without loading highway-env and pygame.
 from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, VEHICLE_LENGTH
@@ -357,7 +356,7 @@ def dynamics_files(name: str) -> tuple[dict[str, str], dict[str, str]]:
         return {}, {}
     path = WEIGHTS_PATH if name == "mlp" else Path(name)
     shown = "bimp:planners/weights/mlp.pt" if name == "mlp" else name
-    return {"problem.dynamics": hashlib.sha256(path.read_bytes()).hexdigest()}, {"problem.dynamics": shown}
+    return {"problem.dynamics": file_sha256(path)}, {"problem.dynamics": shown}
 
 
 def model_from_name(name: str) -> BicycleModel | LearnedDynamics:
