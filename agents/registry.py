@@ -20,7 +20,7 @@ from types import MappingProxyType
 from typing import Any
 
 from bimp.agents.policy import Policy, missing_members
-from bimp.configs import TUNED_DIR, load_tuned, read_yaml
+from bimp.configs import TUNED_DIR, load_tuned, merged, read_overrides
 
 
 def _is_reference(value: object) -> bool:
@@ -169,26 +169,15 @@ def make_policy(name: str, env, config: str | Path | None = None, **overrides) -
         if tuned is not None:  # a tuned config of its own replaces the shipped one
             base = tuned
         elif base is not None:  # a plain file of overrides goes on top of the shipped tuned config, never instead
-            values = read_yaml(config) or {}
-            if not isinstance(values, dict):
-                raise ValueError(f"{config}: expected a mapping of overrides, got {type(values).__name__}")
-            base = _merge(base, values)
+            base = merged(base, read_overrides(config))
         else:
             overrides = {"config": config, **overrides}
-    policy = factory(env, **(_merge(base, overrides) if base is not None else overrides))
+    policy = factory(env, **(merged(base, overrides) if base is not None else overrides))
     missing = missing_members(policy)
     if missing:  # refused here, where the name is known, not as an AttributeError inside an episode
         raise TypeError(f"policy {name!r} ({type(policy).__name__}) lacks {', '.join(missing)} of the Policy "
                         "protocol (bimp.agents.policy)")
     return policy
-
-
-def _merge(base: dict, top: dict) -> dict:
-    """``top`` over ``base``, nested mappings merged key by key."""
-    out = dict(base)
-    for key, value in top.items():
-        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-    return out
 
 
 __all__ = ["POLICIES", "PolicySpec", "is_policy_name", "load", "make_policy", "policy_color", "policy_factory",

@@ -72,6 +72,29 @@ def read_yaml(path: str | Path) -> Any:
         raise ValueError(f"{path}: not valid YAML: {' '.join(str(err).split())}") from None
 
 
+def read_overrides(source: str | Path) -> dict[str, Any]:
+    """The mapping of a YAML file of overrides, ``source`` a path or a file name under ``configs/`` (an empty file:
+    ``{}``). ``ValueError`` naming the file when it is not YAML (:func:`read_yaml`) or not a mapping."""
+    path = Path(source)
+    if not path.is_file():
+        path = CONFIG_DIR / path
+    data = read_yaml(path) or {}
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping of overrides, got {type(data).__name__}")
+    return data
+
+
+def merged(base: dict, top: Mapping) -> dict:
+    """``top`` over ``base``, nested mappings (and configs, taken as their mappings) merged key by key."""
+    out = dict(base)
+    for key, value in top.items():
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            value = dataclasses.asdict(value)
+        nested = isinstance(value, Mapping) and isinstance(out.get(key), dict)
+        out[key] = merged(out[key], value) if nested else value
+    return out
+
+
 def load_config(cls: type[T], source: str | Path | Sequence[str | Path] | None = None, **overrides: Any) -> T:
     """Build ``cls`` from its defaults, then the YAML ``source`` (a path, or a file name under ``configs/``; or a
     list of them, later ones overriding earlier ones), then ``overrides``. Raises ``ValueError`` naming a file that is
@@ -83,13 +106,7 @@ def load_config(cls: type[T], source: str | Path | Sequence[str | Path] | None =
     values: dict[str, Any] = {}
     sources = [] if source is None else [source] if isinstance(source, (str, Path)) else list(source)
     for source in sources:  # later files override earlier ones
-        path = Path(source)
-        if not path.is_file():
-            path = CONFIG_DIR / path
-        data = read_yaml(path) or {}
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a mapping of overrides, got {type(data).__name__}")
-        values.update({k: _plain(v) for k, v in data.items()})
+        values.update({k: _plain(v) for k, v in read_overrides(source).items()})
     values.update({k: _plain(v) for k, v in overrides.items()})
     fields = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - fields, key=str)
@@ -277,4 +294,4 @@ def neutral_values(cls: type) -> dict[str, Any]:
 
 
 __all__ = ["CONFIG_DIR", "TUNED_DIR", "ConfigError", "added_field", "check_fields", "file_sha256", "load_config",
-           "load_tuned", "neutral_values", "read_yaml"]
+           "load_tuned", "merged", "neutral_values", "read_overrides", "read_yaml"]

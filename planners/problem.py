@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
-from bimp.configs import CONFIG_DIR, ConfigError, check_fields, load_config, read_yaml
+from bimp.configs import ConfigError, check_fields, load_config, merged, read_overrides
 from bimp.envs.road import array_module, curvature_at, heading_at, to_frenet
 from bimp.envs.scene import Scene, bound_constraints
 from bimp.planners.dynamics import check_dynamics
@@ -246,10 +246,7 @@ def load_planner_config(cls: type[C], *layers: Layer) -> C:
         if layer is None:
             continue
         if not isinstance(layer, Mapping):
-            path = Path(layer) if Path(layer).is_file() else CONFIG_DIR / layer
-            layer = read_yaml(path) or {}
-            if not isinstance(layer, Mapping):
-                raise ValueError(f"{path}: expected a mapping of overrides, got {type(layer).__name__}")
+            layer = read_overrides(layer)
         for key, value in layer.items():
             head, dot, rest = str(key).partition(".")
             if head in moved:
@@ -258,19 +255,8 @@ def load_planner_config(cls: type[C], *layers: Layer) -> C:
                                  f"--set POLICY.{new}=...)")
             for name in reversed(str(key).split(".")):
                 value = {name: value}
-            tree = _merged(tree, value)
+            tree = merged(tree, value)
     return load_config(cls, None, **tree)
-
-
-def _merged(base: dict, top: Mapping) -> dict:
-    """``top`` over ``base``, nested mappings (and configs, taken as their mappings) merged key by key."""
-    out = dict(base)
-    for key, value in top.items():
-        if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            value = dataclasses.asdict(value)
-        nested = isinstance(value, Mapping) and isinstance(out.get(key), dict)
-        out[key] = _merged(out[key], value) if nested else value
-    return out
 
 
 def make_problem(scene: Scene, config: ProblemConfig, model: tuple = ()) -> Problem:
