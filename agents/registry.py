@@ -21,6 +21,7 @@ from typing import Any
 
 from bimp.agents.policy import Policy, missing_members
 from bimp.configs import TUNED_DIR, load_tuned, merged, read_overrides
+from bimp.envs.scene import Scene
 
 
 def _is_reference(value: object) -> bool:
@@ -111,6 +112,9 @@ for _spec in (
                search_space="bimp.agents.baselines:search_space",
                config_class="bimp.agents.baselines:LaneKeepingConfig"),
     PolicySpec(name="zero", factory="bimp.agents.baselines:ZeroAction", label="zero action", color="black"),
+    # highway-env's rule-based driver (IDM + MOBIL + its steering controller) on a wrapped highway-env env
+    PolicySpec(name="idm", factory="bimp.agents.idm:IDMPolicy", label="IDM/MOBIL", color="tab:olive",
+               config_class="bimp.agents.idm:IDMConfig"),
 ):
     register_policy(_spec)
 
@@ -153,6 +157,17 @@ def policy_label(name: str) -> str:
     return spec.label if spec else name
 
 
+def check_env(env) -> None:
+    """``ValueError`` unless ``env`` (or each env of a list) publishes ``env.unwrapped.scene`` as a bimp
+    :class:`~bimp.envs.scene.Scene`, what every policy plans on: a raw highway-env env, a discrete-action env or an
+    env of another package is refused, saying what it needs."""
+    for one in env if isinstance(env, (list, tuple)) else [env]:
+        if not isinstance(getattr(getattr(one, "unwrapped", None), "scene", None), Scene):
+            raise ValueError(f"{type(getattr(one, 'unwrapped', one)).__name__} is not a bimp env: every policy needs "
+                             "a bimp env: wrap a highway-env env with bimp.envs.wrap(env) (or make it with "
+                             "gym.make('bimp/ID')), or use a bimp scenario (gym.make('bimp/Overtaking-v0'))")
+
+
 def make_policy(name: str, env, config: str | Path | None = None, **overrides) -> Policy:
     """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package). ``config``: a YAML written by
     ``bimp tune`` for this policy (default: ``configs/tuned/<name>.yaml`` if one ships), or a plain YAML of
@@ -162,6 +177,7 @@ def make_policy(name: str, env, config: str | Path | None = None, **overrides) -
     ``name`` is a key of ``POLICIES`` or ``"module:factory"``. ``ValueError`` for an unknown name, or a ``config``
     tuned for another policy; ``TypeError`` for a factory whose policy lacks a member of :class:`Policy`."""
     factory = policy_factory(name)
+    check_env(env)
     shipped = TUNED_DIR / f"{name}.yaml"
     base = load_tuned(name, shipped) if shipped.is_file() else None  # a shipped tuned config is the default
     if config is not None:

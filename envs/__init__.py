@@ -15,6 +15,8 @@ from types import MappingProxyType
 
 from gymnasium.envs.registration import register, registry
 
+from bimp.envs.highway.adapter import PROFILES as _HIGHWAY_PROFILES
+from bimp.envs.highway.adapter import wrap
 from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import Bounds, Scene
 from bimp.envs.wrappers import PlanningWrapper
@@ -85,6 +87,13 @@ for _spec in (
 ):
     register_scenario(_spec)
 
+# highway-env's envs through the adapter (issue 26): bimp/ID = bimp.envs.wrap(gym.make(ID)) with the adapter's defaults;
+# gym.make("bimp/ID", config={...}, n_obstacles=K) passes highway-env's config through. Not in the default set.
+for _id, _profile in _HIGHWAY_PROFILES.items():
+    register_scenario(ScenarioSpec(name=_id, id=f"bimp/{_id}",
+                                   entry_point=f"bimp.envs.highway.adapter:make_{_id.replace('-', '_')}",
+                                   max_episode_steps=int(round(_profile.duration * 10))))
+
 # The shipped scenarios as fixed name -> id views of the table (the default set, and the variants).
 ENV_IDS = {s.name: s.id for s in _SCENARIOS.values() if s.default}
 VARIANT_IDS = {s.name: s.id for s in _SCENARIOS.values() if not s.default}
@@ -115,4 +124,4 @@ def scenario_name(gym_id: str) -> str | None:
 
 
 __all__ = ["ENV_IDS", "SCENARIOS", "VARIANT_IDS", "Bounds", "PlanningWrapper", "RoadGeometry", "Scene", "ScenarioSpec",
-           "default_scenarios", "env_id", "register_scenario", "scenario_name", "scenario_spec"]
+           "default_scenarios", "env_id", "register_scenario", "scenario_name", "scenario_spec", "wrap"]

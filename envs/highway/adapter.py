@@ -1,0 +1,365 @@
+"""Any supported highway-env env as a bimp env: :func:`wrap` (``bimp.envs.wrap``) and the ``bimp/ID`` entry points.
+
+``wrap(gym.make(ID, config={...}))`` returns a :class:`HighwayAdapter` that every bimp policy drives:
+
+- **actions**: the normalized Box [-1, 1]^2 ``[acceleration, steering]``, mapped by highway-env's
+  ``ContinuousAction`` (clipped) onto the id's actuator ranges (:data:`PROFILES`), at ``policy_frequency`` 10 Hz
+  and ``simulation_frequency`` 10 Hz (or a multiple of 10 that the config names, e.g. 20);
+- **scene**: a new :class:`bimp.envs.scene.Scene` at every reset and step, published as ``env.unwrapped.scene``:
+  the road ahead of the EV (:func:`bimp.envs.highway.lanes.build_route`: the EV's lane continued along its route,
+  30 m behind to 250 m ahead, edges from the lanes beside it) and the id's planning bounds (:data:`PROFILES`);
+- **observation**: bimp's layout (:func:`bimp.envs.scene.join_obs`) with ``n_obstacles`` OV slots (default 8): the
+  nearest vehicles and road objects (merge-v0's end-of-ramp obstacle) by centre distance, absent slots zeros; an
+  OV's acceleration is its speed change over the last step; the reference ``[v_ref, a_ref, l_ref]`` comes from the
+  behaviour layer (:mod:`bimp.envs.highway.behaviour`): ``v_ref`` the EV's speed and ``a_ref`` highway-env's IDM
+  acceleration there (clipped to the planning bounds), so the reference speed over a horizon is IDM's, and
+  ``l_ref`` the lateral offset of MOBIL's target lane in the route's frame abreast of the EV (0 when it is the
+  EV's own lane);
+- **info**: highway-env's own keys (``speed``, ``crashed``, ``rewards`` ...) plus bimp's safety quantities:
+  ``collision`` (highway-env's crash flag, or a footprint gap <= 0 to any vehicle or object), ``offroad`` (a body
+  corner past the route's edges, or highway-env's ``on_road`` false), ``ov_distance`` (footprint gaps to the K
+  slots, inf where absent), ``edge_distance``, ``ttc``, ``s`` (the EV's progress along its route [m], cumulative
+  across the republished scenes), ``reference``, ``lateral_error``, ``speed_error`` (speed minus the free-road
+  target speed), ``longitudinal_speed``, ``input``, ``constraints`` (as the paper's envs report them) and
+  ``ahead_of_ov1`` (None);
+- **reward and termination**: highway-env's (crash, its off-road where it has one, its goals, its duration), and
+  the episode also terminates on bimp's ``collision`` or ``offroad``; a step after termination raises
+  ``gymnasium.error.ResetNeeded``.
+
+The env under the adapter is a new instance of the id's adapted class (:func:`bimp.envs.highway.fixed
+.adapted_class`: highway-env's own, or the fixed subclass where highway-env fails under continuous actions) built
+from the given env's configuration; the given env is left as it was. highway-env's ``observation`` config is
+replaced by the adapter's. A config the adapter cannot honour raises ``ValueError`` naming the key: an action type
+other than ``ContinuousAction`` (discrete actions), a one-axis or dynamical ``ContinuousAction``, a
+``policy_frequency`` other than 10 Hz (the planners plan at dt = 0.1 s), a ``simulation_frequency`` that is not a
+multiple of 10 Hz; and so does an id outside :data:`SUPPORTED`.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.error import ResetNeeded
+
+from bimp.envs.highway.behaviour import Behaviour
+from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
+from bimp.envs.highway.lanes import build_route
+from bimp.envs.road import Route
+from bimp.envs.scene import (
+    ACTUATOR_ACCEL,
+    ACTUATOR_STEER,
+    BOUND_CONSTRAINTS,
+    OV_FIELDS,
+    POLICY_FREQUENCY,
+    VEHICLE_LENGTH,
+    VEHICLE_WIDTH,
+    Bounds,
+    Scene,
+    bound_constraints,
+    join_obs,
+)
+
+N_OBSTACLES = 8
+OBS_BOUND = 1e4  # as the paper's envs: finite (SB3 and check_env dislike infinite boxes), beyond any road here
+
+
+@dataclass(frozen=True)
+class Profile:
+    """What the adapter needs per id: the planning ``bounds``, the ``actuator_steer`` range [rad] that the
+    normalized steering maps onto (the acceleration maps onto bimp's ±10 m/s^2 everywhere), the free-road
+    ``target_speed`` [m/s] of the behaviour layer (from the env's config: the top of its reward speed range or of
+    its discrete action's target speeds), and ``duration`` [s] (highway-env's, for the registration's step limit)."""
+
+    bounds: Bounds
+    actuator_steer: tuple[float, float]
+    target_speed: float
+    duration: float
+
+
+def _curve_bounds(steer: float) -> Bounds:
+    # The paper's bounds with a steering bound that takes the road's tightest curve, and a steering rate that
+    # reaches it in 1 s (10 steps): highway-env's bicycle needs tan(delta) = 2 tan(asin(L / (2 R))), L = 5 m.
+    return Bounds(steer=steer, steer_rate=steer / 10.0)
+
+
+_STRAIGHT = Bounds()  # the paper's: straight roads and lane changes need no more than 0.05 rad
+# The one table of per-id numbers. Tightest radius on the EV's route -> steering needed -> planning bound (about 20%
+# above it) -> actuator range (wider still, so violations of the bound stay measurable).
+PROFILES: dict[str, Profile] = {
+    # straight multi-lane roads; target: the top of reward_speed_range (30 m/s)
+    "highway-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
+    "highway-fast-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 30.0),
+    "merge-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),  # no duration of its own: highway-env's goal x > 370
+    # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
+    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0),
+    # ring of radius 20 m (inner lane): 0.247 rad needed
+    "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 11.0),
+    # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
+    "two-way-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
+    # a half turn of radius 20 m (inner lane): 0.247 rad; the lanes' speed limit (16 m/s) caps IDM
+    "u-turn-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 24.0, 10.0),
+    # tightest turn radius 15 m: 0.326 rad; speed limit 10 m/s
+    "racetrack-v0": Profile(_curve_bounds(0.4), (-0.6, 0.6), 10.0, 30.0),
+    # right turn of radius 9 m: 0.524 rad; target: the top of its target_speeds (9 m/s)
+    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 13.0),
+}
+SUPPORTED = tuple(PROFILES)
+# racetrack-v0's duration (300 s) is shortened to 30 s for bimp: its step limit is the registration's.
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def adapter_config(highway_id: str, config: Mapping | None) -> dict:
+    """``config`` (highway-env keys, as for ``gym.make(highway_id, config=...)``) with the adapter's action and
+    frequencies, checked: ``ValueError`` naming a key whose value the adapter cannot honour."""
+    if highway_id not in PROFILES:
+        raise ValueError(f"bimp.envs.wrap does not support {highway_id!r}; supported ids: {list(SUPPORTED)}")
+    if config is not None and not isinstance(config, Mapping):
+        raise ValueError(f"config must be a mapping of highway-env config keys (a dict), got {config!r}")
+    config = dict(config or {})
+    profile = PROFILES[highway_id]
+    action = dict(config.get("action") or {"type": "ContinuousAction"})
+    if action.get("type") != "ContinuousAction":
+        raise ValueError(f"{highway_id}: config action type {action.get('type')!r} cannot be honoured: bimp drives "
+                         "continuous [acceleration, steering] actions (leave 'action' out, or 'ContinuousAction')")
+    for key, wanted in (("longitudinal", True), ("lateral", True), ("dynamical", False)):
+        if action.get(key, wanted) != wanted:
+            raise ValueError(f"{highway_id}: config action {key}={action[key]!r} cannot be honoured: bimp drives "
+                             f"both acceleration and steering of the kinematic vehicle ({key} must be {wanted})")
+    accel = tuple(action.get("acceleration_range", ACTUATOR_ACCEL))
+    steer = tuple(action.get("steering_range", profile.actuator_steer))
+    b = profile.bounds
+    if not (accel[0] <= b.accel[0] and accel[1] >= b.accel[1] and steer[0] <= -b.steer and steer[1] >= b.steer):
+        raise ValueError(f"{highway_id}: config action ranges {accel}, {steer} must contain the planning bounds "
+                         f"accel {b.accel}, steer ±{b.steer}")
+    policy = config.get("policy_frequency", POLICY_FREQUENCY)
+    if policy != POLICY_FREQUENCY:
+        raise ValueError(f"{highway_id}: config policy_frequency={policy!r} cannot be honoured: bimp's planners "
+                         f"plan at dt = 0.1 s (policy_frequency {POLICY_FREQUENCY})")
+    simulation = config.get("simulation_frequency", POLICY_FREQUENCY)
+    if not _is_int(simulation) or simulation <= 0 or simulation % POLICY_FREQUENCY:
+        raise ValueError(f"{highway_id}: config simulation_frequency={simulation!r} must be a positive multiple "
+                         f"of the policy frequency {POLICY_FREQUENCY} Hz")
+    config.pop("observation", None)
+    config.update(action={"type": "ContinuousAction", "acceleration_range": accel, "steering_range": steer,
+                          "longitudinal": True, "lateral": True, "dynamical": False, "clip": True},
+                  policy_frequency=POLICY_FREQUENCY, simulation_frequency=int(simulation))
+    if highway_id == "racetrack-v0" and "duration" not in config:
+        config["duration"] = profile.duration
+    return config
+
+
+def make(highway_id: str, config: Mapping | None = None, render_mode: str | None = None,
+         n_obstacles: int = N_OBSTACLES) -> "HighwayAdapter":
+    """The adapted env of ``highway_id`` (what ``gym.make("bimp/" + highway_id, config=..., n_obstacles=...)``
+    builds, without gymnasium's wrappers)."""
+    config = adapter_config(highway_id, config)
+    if not _is_int(n_obstacles) or n_obstacles < 1:
+        raise ValueError(f"n_obstacles must be an int >= 1, got {n_obstacles!r}")
+    env = adapted_class(HIGHWAY_CLASSES[highway_id])(config=config, render_mode=render_mode)
+    return HighwayAdapter(env, highway_id, n_obstacles)
+
+
+def highway_id_of(env: gym.Env) -> str:
+    """The supported highway-env id of ``env`` (its spec's id, else its class's); ``ValueError`` otherwise."""
+    spec_id = getattr(getattr(env, "spec", None), "id", None)
+    if spec_id in PROFILES:
+        return spec_id
+    base = getattr(env, "unwrapped", env)
+    for highway_id, cls in HIGHWAY_CLASSES.items():
+        if type(base) is cls or type(base) is adapted_class(cls):
+            return highway_id
+    raise ValueError(f"bimp.envs.wrap does not support {spec_id or type(base).__name__!r}; supported highway-env "
+                     f"ids: {list(SUPPORTED)}")
+
+
+def wrap(env: gym.Env, n_obstacles: int = N_OBSTACLES) -> "HighwayAdapter":
+    """``env`` (``gym.make(ID, config=...)`` of a supported highway-env id) as a bimp env: see the module docstring.
+    The config keys the env was given (those differing from its class's defaults) carry over; ``ValueError`` for an
+    unsupported id or a config the adapter cannot honour."""
+    if isinstance(env, HighwayAdapter):
+        return env
+    highway_id = highway_id_of(env)
+    base = env.unwrapped
+    defaults = HIGHWAY_CLASSES[highway_id].default_config()
+    given = {k: v for k, v in base.config.items() if k != "offscreen_rendering" and defaults.get(k, object()) != v}
+    return make(highway_id, given, render_mode=base.render_mode, n_obstacles=n_obstacles)
+
+
+def _entry(highway_id: str):
+    def make_env(config: Mapping | None = None, render_mode: str | None = None, n_obstacles: int = N_OBSTACLES):
+        return make(highway_id, config, render_mode, n_obstacles)
+
+    make_env.__name__ = make_env.__qualname__ = "make_" + highway_id.replace("-", "_")
+    make_env.__doc__ = f"``bimp/{highway_id}``: :func:`make` of {highway_id!r}."
+    return make_env
+
+
+# The registered entry points (envs/__init__.py): one per id, "bimp.envs.highway.adapter:make_highway_v0" ...
+make_highway_v0 = _entry("highway-v0")
+make_highway_fast_v0 = _entry("highway-fast-v0")
+make_merge_v0 = _entry("merge-v0")
+make_exit_v0 = _entry("exit-v0")
+make_roundabout_v0 = _entry("roundabout-v0")
+make_two_way_v0 = _entry("two-way-v0")
+make_u_turn_v0 = _entry("u-turn-v0")
+make_racetrack_v0 = _entry("racetrack-v0")
+make_intersection_v0 = _entry("intersection-v0")
+
+
+class HighwayAdapter(gym.Wrapper):
+    """A highway-env env (an instance of an adapted class) as a bimp env; see the module docstring."""
+
+    def __init__(self, env: gym.Env, highway_id: str, n_obstacles: int = N_OBSTACLES):
+        super().__init__(env)
+        self.highway_id, self.profile, self.n_obstacles = highway_id, PROFILES[highway_id], int(n_obstacles)
+        self._start()  # highway-env's __init__ has reset the env: the scene exists before the first reset
+        self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, shape=(self.scene.obs_dim,), dtype=np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+
+    @property
+    def scene(self) -> Scene:
+        return self.env.unwrapped.scene
+
+    # --- episode ---------------------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        options = dict(options or {})
+        if "config" in options:  # highway-env's per-reset configure: held to what the adapter can honour
+            options["config"] = adapter_config(self.highway_id, {**options["config"]})
+        _, info = self.env.reset(seed=seed, options=options or None)
+        self._start()
+        return self._observe(), {**info, **self._safety()}
+
+    def _start(self) -> None:
+        base = self.env.unwrapped
+        self.dt = 1.0 / base.config["policy_frequency"]
+        self.behaviour = Behaviour(base, self.profile.target_speed)
+        self.last_input, self.prev_input = np.zeros(2), np.zeros(2)
+        self.progress = 0.0
+        self._speeds: dict[int, float] = {}
+        self._accels: dict[int, float] = {}
+        self._ended = False
+        self.behaviour.decide(0.0)
+        self._publish()
+
+    def step(self, action):
+        if self._ended:
+            raise ResetNeeded("step() after the episode terminated (collision, off the road or highway-env's own "
+                              "end): call reset() first")
+        action = np.asarray(action, dtype=float).reshape(-1)
+        if action.shape != (2,):
+            raise ValueError(f"action must have shape (2,), got {np.shape(action)}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite, got {action}")
+        base, road_before = self.env.unwrapped, self.scene.road
+        ev = base.vehicle
+        before = np.array(ev.position, float)
+        self.prev_input, self.last_input = self.last_input, self.scene.to_physical(action)
+        self._speeds = {id(v): float(v.speed) for v in self._others()}
+        _, reward, terminated, truncated, info = self.env.step(np.clip(action, -1, 1).astype(np.float32))
+        # Progress on the road the EV drove along this step (the scene before it): the republished roads differ.
+        self.progress += float(road_before.project(np.array(ev.position, float)).s - road_before.project(before).s)
+        self._accels = {id(v): (float(v.speed) - self._speeds[id(v)]) / self.dt
+                        for v in self._others() if id(v) in self._speeds}
+        self.behaviour.decide(self.dt)
+        self._publish()
+        safety = self._safety()
+        terminated = bool(terminated or safety["collision"] or safety["offroad"])
+        self._ended = terminated
+        return self._observe(), float(reward), terminated, bool(truncated), {**info, **safety}
+
+    # --- the scene -------------------------------------------------------------------------------------------
+    def _publish(self) -> None:
+        base = self.env.unwrapped
+        ev = base.vehicle
+        network = base.road.network
+        road, _ = build_route(network, ev.lane_index, ev.position, getattr(ev, "route", None) or self.behaviour.route)
+        # Headings are continuous along the route; shift them by whole turns to the EV's own (unwrapped) heading.
+        turns = np.round((ev.heading - float(road.project(np.array(ev.position, float)).heading)) / (2 * np.pi))
+        if turns:
+            road = Route(xy=road.xy, s=road.s, heading=road.heading + 2 * np.pi * turns, curvature=road.curvature,
+                         left=road.left, right=road.right)
+        p = self.profile
+        base.scene = Scene(road=road, bounds=p.bounds, dt=self.dt, vehicle_length=VEHICLE_LENGTH,
+                           vehicle_width=VEHICLE_WIDTH, actuator_accel=tuple(base.action_type.acceleration_range),
+                           actuator_steer=tuple(base.action_type.steering_range), n_obstacles=self.n_obstacles)
+        self._cache = None
+
+    def _others(self) -> list:
+        base = self.env.unwrapped
+        return [v for v in base.road.vehicles if v is not base.vehicle] + list(base.road.objects)
+
+    def _rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every other vehicle and road object as an OV row ``(N, 6)``, nearest first, and their centre
+        distances ``(N,)``."""
+        ev = self.env.unwrapped.vehicle
+        rows = np.array([[1.0, *v.position, v.heading, v.speed, self._accels.get(id(v), 0.0)]
+                         for v in self._others()]).reshape(-1, len(OV_FIELDS))
+        distance = np.hypot(*(rows[:, 1:3] - ev.position).T) if len(rows) else np.zeros(0)
+        order = np.argsort(distance, kind="stable")
+        return rows[order], distance[order]
+
+    def reference(self) -> np.ndarray:
+        """``[v_ref m/s, a_ref m/s^2, l_ref m]`` (module docstring)."""
+        base, scene = self.env.unwrapped, self.scene
+        ev = base.vehicle
+        lane = base.road.network.get_lane(self.behaviour.target_lane_index)
+        s_t, _ = lane.local_coordinates(ev.position)
+        p = scene.road.project(np.array(lane.position(s_t, 0.0), float))
+        half = scene.vehicle_width / 2
+        e = scene.road.project(np.array(ev.position, float))
+        l_ref = float(np.clip(p.l, e.left + half, e.right - half)) if e.right - e.left > 2 * half else 0.0
+        a_ref = float(np.clip(self.behaviour.action["acceleration"], *scene.bounds.accel))
+        return np.array([max(float(ev.speed), 0.0), a_ref, l_ref])
+
+    def _ev_state(self) -> np.ndarray:
+        ev = self.env.unwrapped.vehicle
+        return np.array([*ev.position, ev.heading, ev.speed], float)
+
+    def _observe(self) -> np.ndarray:
+        rows, _ = self._rows()
+        ovs = np.zeros((self.n_obstacles, len(OV_FIELDS)))
+        ovs[:min(len(rows), self.n_obstacles)] = rows[:self.n_obstacles]
+        obs = join_obs(self._ev_state(), self.last_input, ovs, self.reference())
+        return np.clip(obs, -OBS_BOUND, OBS_BOUND).astype(np.float32)
+
+    def _safety(self) -> dict:
+        base, scene = self.env.unwrapped, self.scene
+        ev = base.vehicle
+        state = self._ev_state()
+        rows, _ = self._rows()
+        gaps_all = scene.ov_gaps(state, rows) if len(rows) else np.zeros(0)
+        gaps = np.full(self.n_obstacles, np.inf)
+        gaps[:min(len(rows), self.n_obstacles)] = gaps_all[:self.n_obstacles]
+        edge = float(scene.edge_distance(state))
+        e = scene.road.project(state[:2])
+        slots = rows[:self.n_obstacles]
+        if len(slots):
+            o = scene.road.project(slots[:, 1:3])
+            ahead = (o.s > e.s) & (np.abs(o.l - e.l) < scene.vehicle_width + 0.5)
+            closing = ev.speed - slots[:, 4] * np.cos(slots[:, 3] - o.heading)
+            ttc = np.where(ahead & (closing > 1e-6), np.maximum(gaps[:len(slots)], 0.0) / np.maximum(closing, 1e-6),
+                           np.inf)
+        else:
+            ttc = np.array([np.inf])
+        ref = self.reference()
+        b, u = scene.bounds, self.last_input
+        constraints = {
+            **dict(zip(BOUND_CONSTRAINTS, bound_constraints(b, u, u - self.prev_input).tolist())),
+            "ov_distance": (b.d_min - gaps).tolist(), "road_edge": b.edge_margin - edge,
+        }
+        return {
+            "collision": bool(ev.crashed or (len(gaps_all) and gaps_all.min() <= 0.0)),
+            "offroad": bool(edge < 0.0 or not ev.on_road), "ov_distance": gaps.tolist(), "edge_distance": edge,
+            "ttc": float(ttc.min()), "s": self.progress, "reference": ref.tolist(),
+            "lateral_error": float(e.l - ref[2]), "speed_error": float(ev.speed - self.profile.target_speed),
+            "longitudinal_speed": float(ev.speed * np.cos(ev.heading - e.heading)), "input": u.tolist(),
+            "constraints": constraints, "ahead_of_ov1": None, "target_lane": list(self.behaviour.target_lane_index),
+        }

@@ -1,0 +1,71 @@
+"""The behaviour layer of a wrapped highway-env env: highway-env's own driver decides, as it decides for its traffic.
+
+A *shadow* :class:`highway_env.vehicle.behavior.IDMVehicle` is synced to the EV's state at every step (never
+simulated, never in the road's vehicle list) and asked what highway-env's driver would do there:
+
+- route: the EV's route (its destination in exit, roundabout, u-turn and intersection; on the other roads the lane
+  graph's own choice, ``RoadNetwork.next_lane``), followed by ``follow_road``;
+- lane: MOBIL (``change_lane_policy`` / ``mobil``, politeness and thresholds as highway-env's traffic has them) on
+  multi-lane roads; an ending lane is left when highway-env's driver leaves it (its route moves to the next road's
+  nearest lane at the end, and MOBIL's incentive comes from the lane's end as an obstacle only where highway-env
+  models one);
+- speed: IDM (``acceleration``) towards the target speed of the env's config (the adapter's table), capped by the
+  lane's speed limit as IDM caps it, behind the vehicle ahead in the EV's lane and, during a lane change, in the
+  target lane too;
+- steering: highway-env's lane-following controller (``steering_control``) towards the target lane.
+
+:meth:`Behaviour.decide` returns the shadow's ``{"acceleration", "steering"}`` (what ``IDMVehicle.act`` commands)
+and keeps its target lane, which the adapter turns into the reference. For the decision the EV's slot in the
+road's vehicle list holds the shadow, so the EV is not its own neighbour; the list is restored at once.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+from highway_env.vehicle.behavior import IDMVehicle
+
+
+class Behaviour:
+    """highway-env's IDM + MOBIL driver shadowing the EV of ``env`` (a highway-env env). ``target_speed`` [m/s]:
+    the speed it aims for on a free road."""
+
+    def __init__(self, env, target_speed: float):
+        self.env, self.target_speed = env, float(target_speed)
+        ev = env.vehicle
+        self.shadow = IDMVehicle(env.road, np.array(ev.position, float), heading=ev.heading, speed=ev.speed,
+                                 target_lane_index=ev.lane_index, target_speed=self.target_speed,
+                                 route=copy.deepcopy(getattr(ev, "route", None)) or None, timer=0.0)
+        self.action = {"acceleration": 0.0, "steering": 0.0}
+
+    @property
+    def target_lane_index(self):
+        return self.shadow.target_lane_index
+
+    @property
+    def route(self):
+        """The shadow's route (lane indices ahead; None where the EV has none): what the adapter's road follows."""
+        return self.shadow.route
+
+    def decide(self, dt: float = 0.0) -> dict:
+        """Sync the shadow to the EV (``dt`` [s] since the last decision advances MOBIL's decision timer) and return
+        highway-env's driver's ``{"acceleration" m/s^2, "steering" rad}`` there."""
+        env, shadow = self.env, self.shadow
+        ev = env.vehicle
+        shadow.position = np.array(ev.position, float)
+        shadow.heading, shadow.speed = float(ev.heading), float(ev.speed)
+        shadow.lane_index, shadow.lane = ev.lane_index, ev.lane
+        shadow.timer += dt
+        vehicles = env.road.vehicles
+        slot = next((i for i, v in enumerate(vehicles) if v is ev), None)
+        if slot is not None:
+            vehicles[slot] = shadow
+        try:
+            shadow.act()
+        finally:
+            if slot is not None:
+                vehicles[slot] = ev
+        self.action = {"acceleration": float(shadow.action["acceleration"]),
+                       "steering": float(shadow.action["steering"])}
+        return self.action

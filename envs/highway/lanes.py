@@ -1,0 +1,113 @@
+"""The road ahead of the EV read from highway-env's lane graph, as the :class:`bimp.envs.road.Route` a planner knows.
+
+The route polyline is the centreline of a lane continued along a route through the lane graph (highway-env's own
+``RoadNetwork.next_lane``: the planned route where the vehicle has one, else the successor lane nearest to where
+the lane ends), sampled every ``spacing`` m from ``behind`` m before a point to ``ahead`` m after it, and padded
+straight past the end of the network (a route that ends mid-horizon is padded, never NaN). Its edges at each point
+are the outer sides of the lanes beside it: every lane of the same road ``(from, to)`` and of the reverse road
+``(to, from)`` where the network has one (two-way roads: the oncoming lane is drivable), as signed lateral offsets
+in the route's frame (``l`` > 0 to the right of travel, highway-env's +y at heading 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bimp.envs.road import Route
+
+BEHIND, AHEAD, SPACING = 30.0, 250.0, 1.0  # m
+EDGE_EVERY = 5  # edges are measured at every 5th point (every 5 m) and interpolated: lanes are smooth at that scale
+MAX_LANES = 64  # a lane graph walk longer than this is a cycle walked again (racetrack): stop there
+NEAR = 30.0  # m: a lane whose centre is further to the side than this is not beside the route
+
+
+def lane_walk(network, index, s_from: float, length: float, route=None, spacing: float = SPACING):
+    """Points along lane ``index`` from its arc length ``s_from`` for ``length`` m, continuing into the next lanes
+    (``network.next_lane`` along a copy of ``route``): ``(xy (P, 2), heading (P,) wrapped, lanes (P,) list of lane
+    indices)``; fewer metres where the network ends."""
+    plan = list(route) if route else None  # next_lane pops the route's first road as it goes: never the vehicle's
+    xy, heading, lanes = [], [], []
+    s, remaining = s_from, length
+    for _ in range(MAX_LANES):
+        lane = network.get_lane(index)
+        end = min(lane.length, s + remaining)
+        for si in np.append(np.arange(s, end, spacing), end):
+            xy.append(lane.position(si, 0.0))
+            heading.append(lane.heading_at(si))
+            lanes.append(index)
+        remaining -= max(end - s, 0.0)
+        if remaining <= 1e-6:
+            break
+        following = network.next_lane(index, route=plan, position=lane.position(lane.length, 0.0))
+        if following == index:  # the end of the network
+            break
+        index, s = following, 0.0
+    return np.asarray(xy, float), np.asarray(heading, float), lanes
+
+
+def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, float]:
+    """Left and right edge offsets [m] at the route point ``xy (2,)`` of heading ``heading`` on lane ``index``."""
+    _from, _to, _ = index
+    graph = network.graph
+    beside = list(graph[_from][_to])
+    if _to in graph and _from in graph[_to]:
+        beside += list(graph[_to][_from])
+    normal = np.array([-np.sin(heading), np.cos(heading)])
+    own = network.get_lane(index)
+    s_own, _ = own.local_coordinates(xy)
+    left, right = -own.width_at(s_own) / 2.0, own.width_at(s_own) / 2.0
+    for lane in beside:
+        s, _ = lane.local_coordinates(xy)
+        if not -1.0 <= s <= lane.length + 1.0:
+            continue
+        lat = float(np.dot(lane.position(s, 0.0) - xy, normal))
+        if abs(lat) > NEAR:
+            continue
+        half = lane.width_at(s) / 2.0
+        left, right = min(left, lat - half), max(right, lat + half)
+    return left, right
+
+
+def build_route(network, index, position, route=None, behind: float = BEHIND, ahead: float = AHEAD,
+                spacing: float = SPACING) -> tuple[Route, list]:
+    """The :class:`Route` along lane ``index`` through ``position (2,)``: from ``behind`` m before it (at most to
+    the lane's start) to ``ahead`` m after it along ``route``, padded straight to ``ahead`` where the network ends.
+    Also the lane index of every point (the padding repeats the last). Headings are unwrapped along the route."""
+    lane = network.get_lane(index)
+    s0, _ = lane.local_coordinates(np.asarray(position, float))
+    start = float(np.clip(s0 - behind, 0.0, max(lane.length - spacing, 0.0)))
+    xy, heading, lanes = lane_walk(network, index, start, ahead + (s0 - start), route_from(route, index), spacing)
+    keep = np.concatenate([[True], np.hypot(*np.diff(xy, axis=0).T) > 1e-3])  # lane joins repeat a point
+    xy, heading, lanes = xy[keep], np.unwrap(heading[keep]), [lane_ for lane_, k in zip(lanes, keep) if k]
+    if len(xy) < 2:  # a lane shorter than a point's spacing at the network's end: one step along its heading
+        xy = np.vstack([xy, xy[-1] + spacing * np.array([np.cos(heading[-1]), np.sin(heading[-1])])])
+        heading, lanes = np.append(heading, heading[-1]), lanes + lanes[-1:]
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    missing = (s0 - start) + ahead - s[-1]
+    if missing > spacing:  # the network ended: straight on along the last heading
+        extra = spacing * np.arange(1, int(np.ceil(missing / spacing)) + 1)
+        direction = np.array([np.cos(heading[-1]), np.sin(heading[-1])])
+        xy = np.vstack([xy, xy[-1] + extra[:, None] * direction])
+        s = np.concatenate([s, s[-1] + extra])
+        heading = np.concatenate([heading, np.full(len(extra), heading[-1])])
+        lanes = lanes + [lanes[-1]] * len(extra)
+    measured = np.arange(0, len(xy), EDGE_EVERY)
+    if measured[-1] != len(xy) - 1:
+        measured = np.append(measured, len(xy) - 1)
+    edges = np.array([_edges(network, xy[i], heading[i], lanes[i]) for i in measured])
+    left = np.interp(np.arange(len(xy)), measured, edges[:, 0])
+    right = np.interp(np.arange(len(xy)), measured, edges[:, 1])
+    curvature = np.gradient(heading, s)
+    return Route(xy=xy, s=s, heading=heading, curvature=curvature, left=left, right=right), lanes
+
+
+def route_from(route, index):
+    """The part of ``route`` (a list of lane indices) from the road of lane ``index`` on: ``next_lane`` follows a
+    route only from its first road, and the EV's route starts where its episode did. None where the route does not
+    pass that road (the lane graph's own choice then)."""
+    if not route:
+        return None
+    for k, step in enumerate(route):
+        if tuple(step[:2]) == tuple(index[:2]):
+            return list(route[k:])
+    return None
