@@ -1,0 +1,120 @@
+"""The highway-env adapter (issue 26 item 2): every supported id passes gymnasium's checker, is seeded, reports
+collisions as highway-env does, refuses what it cannot honour, and pads a route that ends."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import highway_env  # noqa: F401  (registers highway-env's ids)
+import numpy as np
+import pytest
+from gymnasium.error import ResetNeeded
+from gymnasium.utils.env_checker import check_env
+
+import bimp  # noqa: F401  (registers bimp/ID)
+from bimp.envs import scenario_spec, wrap
+from bimp.envs.highway.adapter import SUPPORTED
+from bimp.envs.highway.lanes import build_route
+from bimp.envs.scene import Scene
+
+pytestmark = pytest.mark.filterwarnings("ignore")
+
+
+@pytest.mark.parametrize("highway_id", SUPPORTED)
+def test_check_env_and_scene(highway_id):
+    env = gym.make(f"bimp/{highway_id}")
+    check_env(env, skip_render_check=True)
+    obs, info = env.reset(seed=0)
+    scene = env.unwrapped.scene
+    assert isinstance(scene, Scene) and obs.shape == (scene.obs_dim,) and np.all(np.isfinite(obs))
+    obs, _, _, _, info = env.step(np.zeros(2, np.float32))
+    assert env.unwrapped.scene is not scene  # a new scene every step
+    for key in ("collision", "offroad", "ov_distance", "edge_distance", "ttc", "s", "reference", "input",
+                "constraints", "crashed", "speed", "lateral_error", "speed_error", "ahead_of_ov1"):
+        assert key in info, key
+    assert len(info["ov_distance"]) == scene.n_obstacles
+    assert scenario_spec(highway_id).id == f"bimp/{highway_id}"
+
+
+def test_wrap_carries_config_and_options():
+    env = wrap(gym.make("highway-v0", config={"vehicles_count": 7, "lanes_count": 3}), n_obstacles=3)
+    assert env.unwrapped.config["vehicles_count"] == 7 and env.unwrapped.config["lanes_count"] == 3
+    assert env.unwrapped.scene.n_obstacles == 3 and env.observation_space.shape == (env.unwrapped.scene.obs_dim,)
+    assert env.unwrapped.config["policy_frequency"] == 10 and env.unwrapped.config["simulation_frequency"] == 10
+    made = gym.make("bimp/highway-fast-v0", config={"simulation_frequency": 20})
+    assert made.unwrapped.config["simulation_frequency"] == 20
+
+
+def test_determinism_same_seed_same_observations():
+    envs = [gym.make("bimp/highway-fast-v0") for _ in range(2)]
+    runs = []
+    for env in envs:
+        obs, _ = env.reset(seed=3)
+        seq = [obs]
+        for k in range(15):
+            obs, *_ = env.step(np.array([0.1, 0.02 * np.sin(k)], np.float32))
+            seq.append(obs)
+        runs.append(np.array(seq))
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_scripted_crash_agrees_with_highway_env():
+    env = gym.make("bimp/highway-fast-v0", config={"vehicles_count": 20, "vehicles_density": 2.0})
+    obs, info = env.reset(seed=0)
+    for _ in range(300):  # full throttle straight on: into the vehicle ahead
+        obs, _, terminated, truncated, info = env.step(np.array([1.0, 0.0], np.float32))
+        assert info["collision"] == (env.unwrapped.vehicle.crashed or min(info["ov_distance"]) <= 0)
+        if terminated or truncated:
+            break
+    assert terminated and info["collision"] and info["crashed"] == env.unwrapped.vehicle.crashed
+    with pytest.raises(ResetNeeded):
+        env.step(np.zeros(2, np.float32))
+
+
+@pytest.mark.parametrize(("config", "match"), [
+    ({"action": {"type": "DiscreteAction"}}, "DiscreteAction"),
+    ({"policy_frequency": 5}, "policy_frequency"),
+    ({"simulation_frequency": 25}, "simulation_frequency"),
+    ({"action": {"type": "ContinuousAction", "longitudinal": False}}, "longitudinal"),
+])
+def test_config_it_cannot_honour(config, match):
+    with pytest.raises(ValueError, match=match):
+        gym.make("bimp/highway-v0", config=config)
+    with pytest.raises(ValueError, match=match):
+        wrap(gym.make("highway-v0", config=config))
+
+
+def test_discrete_meta_action_forced():
+    # gym.make("bimp/ID") sees the config given; wrap sees a config equal to highway-env's default (its discrete
+    # actions) as the default, which the adapter replaces, and a forced other action type as forced.
+    with pytest.raises(ValueError, match="DiscreteMetaAction"):
+        gym.make("bimp/highway-v0", config={"action": {"type": "DiscreteMetaAction"}})
+    with pytest.raises(ValueError, match="DiscreteMetaAction"):
+        wrap(gym.make("highway-v0", config={"action": {"type": "DiscreteMetaAction", "target_speeds": [10, 20]}}))
+
+
+def test_unsupported_id():
+    with pytest.raises(ValueError, match="parking-v0"):
+        wrap(gym.make("parking-v0"))
+
+
+def test_bad_action():
+    env = wrap(gym.make("highway-fast-v0"))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.nan, 0.0]))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(3))
+
+
+def test_route_past_the_end_of_the_network_is_padded():
+    env = gym.make("bimp/u-turn-v0")
+    env.reset(seed=0)
+    network = env.unwrapped.road.network
+    index = ("c", "d", 0)  # the last road of the u-turn
+    lane = network.get_lane(index)
+    road, _ = build_route(network, index, lane.position(lane.length - 5.0, 0.0))
+    assert road.s[-1] - road.project(lane.position(lane.length - 5.0, 0.0)).s >= 249.0
+    for field in ("xy", "s", "heading", "curvature", "left", "right"):
+        assert np.all(np.isfinite(getattr(road, field)))
+    window = road.window(road.s[-1] - 10.0, 50, 1.0)  # a planner's window past the end: still finite
+    assert np.all(np.isfinite(window.xy))
