@@ -17,14 +17,16 @@
   EV's own lane);
 - **info**: highway-env's own keys (``speed``, ``crashed``, ``rewards`` ...) plus bimp's safety quantities:
   ``collision`` (highway-env's crash flag, or a footprint gap <= 0 to any vehicle or object), ``offroad`` (a body
-  corner past the route's edges, or highway-env's ``on_road`` false), ``ov_distance`` (footprint gaps to the K
+  corner on no lane of the network, asked where the route's edges put a corner outside; or highway-env's
+  ``on_road`` false), ``ov_distance`` (footprint gaps to the K
   slots, inf where absent), ``edge_distance``, ``ttc``, ``s`` (the EV's progress along its route [m], cumulative
   across the republished scenes), ``reference``, ``lateral_error``, ``speed_error`` (speed minus the free-road
   target speed), ``longitudinal_speed``, ``input``, ``constraints`` (as the paper's envs report them) and
   ``ahead_of_ov1`` (None);
 - **reward and termination**: highway-env's (crash, its off-road where it has one, its goals, its duration), and
-  the episode also terminates on bimp's ``collision`` or ``offroad``; a step after termination raises
-  ``gymnasium.error.ResetNeeded``.
+  the episode also terminates on bimp's ``collision`` or ``offroad``, and at ``info["goal"]``: exit-v0's exit taken,
+  roundabout-v0's last road reached (highway-env rewards them but drives on, off the end of its network); a step
+  after termination raises ``gymnasium.error.ResetNeeded``.
 
 The env under the adapter is a new instance of the id's adapted class (:func:`bimp.envs.highway.fixed
 .adapted_class`: highway-env's own, or the fixed subclass where highway-env fails under continuous actions) built
@@ -48,8 +50,8 @@ from gymnasium.error import ResetNeeded
 
 from bimp.envs.highway.behaviour import Behaviour
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
-from bimp.envs.highway.lanes import build_route
-from bimp.envs.road import Route
+from bimp.envs.highway.lanes import build_route, route_from
+from bimp.envs.road import Route, body_corners
 from bimp.envs.scene import (
     ACTUATOR_ACCEL,
     ACTUATOR_STEER,
@@ -65,6 +67,7 @@ from bimp.envs.scene import (
 )
 
 N_OBSTACLES = 8
+JUNCTION_MARGIN = 1.0  # m: see HighwayAdapter._corner_off_lanes
 OBS_BOUND = 1e4  # as the paper's envs: finite (SB3 and check_env dislike infinite boxes), beyond any road here
 
 
@@ -265,13 +268,15 @@ class HighwayAdapter(gym.Wrapper):
         self._speeds = {id(v): float(v.speed) for v in self._others()}
         _, reward, terminated, truncated, info = self.env.step(np.clip(action, -1, 1).astype(np.float32))
         # Progress on the road the EV drove along this step (the scene before it): the republished roads differ.
-        self.progress += float(road_before.project(np.array(ev.position, float)).s - road_before.project(before).s)
+        # Projected on a window of it about the EV: a looping road (racetrack) passes near itself within 250 m.
+        local = road_before.window(float(road_before.project(before).s) - 20.0, 81, 1.0)
+        self.progress += float(local.project(np.array(ev.position, float)).s - local.project(before).s)
         self._accels = {id(v): (float(v.speed) - self._speeds[id(v)]) / self.dt
                         for v in self._others() if id(v) in self._speeds}
         self.behaviour.decide(self.dt)
         self._publish()
         safety = self._safety()
-        terminated = bool(terminated or safety["collision"] or safety["offroad"])
+        terminated = bool(terminated or safety["collision"] or safety["offroad"] or safety["goal"])
         self._ended = terminated
         return self._observe(), float(reward), terminated, bool(truncated), {**info, **safety}
 
@@ -280,7 +285,8 @@ class HighwayAdapter(gym.Wrapper):
         base = self.env.unwrapped
         ev = base.vehicle
         network = base.road.network
-        road, _ = build_route(network, ev.lane_index, ev.position, getattr(ev, "route", None) or self.behaviour.route)
+        route = getattr(ev, "route", None) or self.behaviour.route
+        road, _ = build_route(network, self._route_lane(ev, route), ev.position, route)
         # Headings are continuous along the route; shift them by whole turns to the EV's own (unwrapped) heading.
         turns = np.round((ev.heading - float(road.project(np.array(ev.position, float)).heading)) / (2 * np.pi))
         if turns:
@@ -291,6 +297,45 @@ class HighwayAdapter(gym.Wrapper):
                            vehicle_width=VEHICLE_WIDTH, actuator_accel=tuple(base.action_type.acceleration_range),
                            actuator_steer=tuple(base.action_type.steering_range), n_obstacles=self.n_obstacles)
         self._cache = None
+
+    def _route_lane(self, ev, route):
+        """The EV's lane on its route: highway-env's closest lane, unless that lane's road is off the route and a
+        lane of the route holds the EV (at a junction: a roundabout's ring beside the entry the EV is on); then the
+        route's lane nearest to the EV's centre."""
+        index = ev.lane_index
+        if not route or route_from(route, index) is not None:
+            return index
+        graph, position = self.env.unwrapped.road.network.graph, np.array(ev.position, float)
+        best, least = index, np.inf
+        for _from, _to, _ in route:
+            for k, lane in enumerate(graph.get(_from, {}).get(_to, [])):
+                s, lat = lane.local_coordinates(position)
+                if lane.on_lane(position, s, lat) and abs(lat) < least:
+                    best, least = (_from, _to, k), abs(lat)
+        return best
+
+    def _goal(self) -> bool:
+        """highway-env's goal where its env has one but does not end the episode there: exit-v0's ``_is_success``
+        (the exit taken) and, on roundabout-v0, the last road of the EV's route reached (the roundabout left);
+        past either the EV runs off the end of the network. (intersection-v0 ends on arrival itself.)"""
+        base = self.env.unwrapped
+        if self.highway_id == "exit-v0":
+            return bool(base._is_success())
+        route = getattr(base.vehicle, "route", None)
+        return bool(self.highway_id == "roundabout-v0" and route and base.vehicle.lane_index[:2] == route[-1][:2])
+
+    def _corner_off_lanes(self, state: np.ndarray) -> bool:
+        """Whether a body corner lies on no lane of the network: the drivable area exactly, as the union of
+        highway-env's lanes. Asked only where the route's edges put a corner outside (``edge_distance < 0``): those
+        edges are the planner's view of the road ahead, and at a junction (a roundabout's entry, an exit) the EV
+        crosses lanes beside its route that they leave out. highway-env's lanes leave slivers uncovered where they
+        meet at an angle (a roundabout's entry and ring): a corner within ``JUNCTION_MARGIN`` of a lane is on it."""
+        lanes = self.env.unwrapped.road.network.lanes_list()
+        for corner in body_corners(state[:2], state[2], VEHICLE_LENGTH, VEHICLE_WIDTH):
+            if not any(lane.on_lane(corner, *lane.local_coordinates(corner), margin=JUNCTION_MARGIN)
+                       for lane in lanes):
+                return True
+        return False
 
     def _others(self) -> list:
         base = self.env.unwrapped
@@ -357,9 +402,11 @@ class HighwayAdapter(gym.Wrapper):
         }
         return {
             "collision": bool(ev.crashed or (len(gaps_all) and gaps_all.min() <= 0.0)),
-            "offroad": bool(edge < 0.0 or not ev.on_road), "ov_distance": gaps.tolist(), "edge_distance": edge,
+            "offroad": bool(not ev.on_road or (edge < 0.0 and self._corner_off_lanes(state))),
+            "ov_distance": gaps.tolist(), "edge_distance": edge,
             "ttc": float(ttc.min()), "s": self.progress, "reference": ref.tolist(),
             "lateral_error": float(e.l - ref[2]), "speed_error": float(ev.speed - self.profile.target_speed),
             "longitudinal_speed": float(ev.speed * np.cos(ev.heading - e.heading)), "input": u.tolist(),
             "constraints": constraints, "ahead_of_ov1": None, "target_lane": list(self.behaviour.target_lane_index),
+            "goal": self._goal(),
         }

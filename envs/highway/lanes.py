@@ -4,8 +4,9 @@ The route polyline is the centreline of a lane continued along a route through t
 ``RoadNetwork.next_lane``: the planned route where the vehicle has one, else the successor lane nearest to where
 the lane ends), sampled every ``spacing`` m from ``behind`` m before a point to ``ahead`` m after it, and padded
 straight past the end of the network (a route that ends mid-horizon is padded, never NaN). Its edges at each point
-are the outer sides of the lanes beside it: every lane of the same road ``(from, to)`` and of the reverse road
-``(to, from)`` where the network has one (two-way roads: the oncoming lane is drivable), as signed lateral offsets
+are the outer sides of the lanes beside it: every lane of the same road ``(from, to)``, of the reverse road
+``(to, from)`` where the network has one (two-way roads: the oncoming lane is drivable), and of the roads merging into
+``to`` or diverging from ``from`` where they run beside it (junctions), as signed lateral offsets
 in the route's frame (``l`` > 0 to the right of travel, highway-env's +y at heading 0).
 """
 
@@ -52,6 +53,10 @@ def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, 
     beside = list(graph[_from][_to])
     if _to in graph and _from in graph[_to]:
         beside += list(graph[_to][_from])
+    # Junctions: the roads merging into the route road's end (a roundabout's entry beside its ring, merge-v0's ramp)
+    # and diverging from its start (an intersection's other turns) are drivable where they run beside it.
+    beside += [lane for node, roads in graph.items() if node != _from and _to in roads for lane in roads[_to]]
+    beside += [lane for node, lanes_ in graph[_from].items() if node != _to for lane in lanes_]
     normal = np.array([-np.sin(heading), np.cos(heading)])
     own = network.get_lane(index)
     s_own, _ = own.local_coordinates(xy)
@@ -61,7 +66,8 @@ def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, 
         if not -1.0 <= s <= lane.length + 1.0:
             continue
         lat = float(np.dot(lane.position(s, 0.0) - xy, normal))
-        if abs(lat) > NEAR:
+        turn = abs((lane.heading_at(s) - heading + np.pi) % (2 * np.pi) - np.pi)
+        if abs(lat) > NEAR or np.pi / 3 < turn < 2 * np.pi / 3:  # beside the route: along it, or against it
             continue
         half = lane.width_at(s) / 2.0
         left, right = min(left, lat - half), max(right, lat + half)
