@@ -48,7 +48,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
-from bimp.envs.highway.behaviour import Behaviour
+from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import build_route, route_from
 from bimp.envs.road import Route, body_corners
@@ -67,6 +67,8 @@ from bimp.envs.scene import (
 )
 
 N_OBSTACLES = 8
+_VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "scaling", "show_trajectories",
+                        "render_agent", "offscreen_rendering", "manual_control", "real_time_rendering"})
 JUNCTION_MARGIN = 1.0  # m: see HighwayAdapter._corner_off_lanes
 OBS_BOUND = 1e4  # as the paper's envs: finite (SB3 and check_env dislike infinite boxes), beyond any road here
 
@@ -242,6 +244,11 @@ class HighwayAdapter(gym.Wrapper):
 
     def _start(self) -> None:
         base = self.env.unwrapped
+        # What bimp's evaluation records as the scenario's definition (as the paper's envs publish it): no drawn
+        # parameters, highway-env's config as options (every key but rendering), the behaviour layer's rule.
+        base.PARAMS, base.drawn_params = {}, {}
+        base.OPTIONS = {k: (v,) for k, v in base.config.items() if k not in _VIEW_KEYS}
+        base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles)
         self.dt = 1.0 / base.config["policy_frequency"]
         self.behaviour = Behaviour(base, self.profile.target_speed)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)

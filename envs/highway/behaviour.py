@@ -22,9 +22,29 @@ road's vehicle list holds the shadow, so the EV is not its own neighbour; the li
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 
 import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
+
+_IDM_KEYS = ("ACC_MAX", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "DISTANCE_WANTED", "TIME_WANTED", "DELTA", "POLITENESS",
+             "LANE_CHANGE_MIN_ACC_GAIN", "LANE_CHANGE_MAX_BRAKING_IMPOSED", "LANE_CHANGE_DELAY")
+
+
+@dataclass(frozen=True)
+class BehaviourRule:
+    """The behaviour layer's rule as an evaluation arm records it (``env.unwrapped.BEHAVIOUR``, as the paper's envs
+    publish theirs): the free-road ``target_speed`` [m/s], highway-env's IDM and MOBIL parameters as its
+    ``IDMVehicle`` class holds them now (intersection-v0 changes some for every ``IDMVehicle``), and the adapter's
+    ``n_obstacles``. A changed rule is a changed scenario."""
+
+    target_speed: float
+    idm: tuple
+    n_obstacles: int
+
+    @classmethod
+    def current(cls, target_speed: float, n_obstacles: int) -> "BehaviourRule":
+        return cls(float(target_speed), tuple((k, float(getattr(IDMVehicle, k))) for k in _IDM_KEYS), n_obstacles)
 
 
 class Behaviour:
