@@ -9,6 +9,7 @@ import gymnasium as gym
 import numpy as np
 
 from bimp.configs import ConfigError, check_fields, load_config
+from bimp.envs.road import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -58,9 +59,9 @@ class LaneKeeping:
     def act(self, obs: np.ndarray) -> np.ndarray:
         scene, gains = self.env.unwrapped.scene, self.config
         ego, _, _, ref = scene.split_obs(scene.check_obs(obs))
-        s, lat = scene.road.to_frenet(ego[:2])
-        heading_err = ego[2] - scene.road.heading_at(s)
-        feedforward = np.arctan(scene.vehicle_length * scene.road.curvature_at(s))
+        here = scene.road.project(ego[:2])
+        lat, heading_err = here.l, wrap_angle(ego[2] - here.heading)
+        feedforward = np.arctan(scene.vehicle_length * here.curvature)
         steer = feedforward - gains.k_lat * (lat - ref[2]) - gains.k_head * heading_err
         accel = gains.k_speed * (ref[0] - ego[3])
         b = scene.bounds

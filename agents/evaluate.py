@@ -266,8 +266,10 @@ def run_group(group: tuple[Job, ...]) -> list[dict]:
             if "policy_info" in episode.trace:
                 record["policy_info"] = step_info_summary(episode.trace["policy_info"])
             if job.trace:
-                record.update(trace=episode.trace, road=dataclasses.asdict(scene.road),
-                              bounds=dataclasses.asdict(scene.bounds))
+                # The closed-form road where there is one (the paper's: what plots redraw), else the last route.
+                road = {"road": dataclasses.asdict(scene.geometry)} if scene.geometry is not None else \
+                    {"route": {k: np.round(getattr(scene.road, k), 3).tolist() for k in ("xy", "left", "right")}}
+                record.update(trace=episode.trace, bounds=dataclasses.asdict(scene.bounds), **road)
             env.close()
     except Exception as err:  # recorded, never fatal: one broken episode must not end a long run
         for record in records:

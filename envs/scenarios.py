@@ -466,7 +466,7 @@ class BimpEnv(AbstractEnv):
         self.action_space = self.action_type.space()
 
     def _make_scene(self, road: RoadGeometry) -> Scene:
-        return Scene(road=road, bounds=Bounds(), dt=1.0 / self.config["policy_frequency"],
+        return Scene(road=road.route(), geometry=road, bounds=Bounds(), dt=1.0 / self.config["policy_frequency"],
                      vehicle_length=VEHICLE_LENGTH, vehicle_width=VEHICLE_WIDTH,
                      actuator_accel=ACTUATOR_ACCEL, actuator_steer=ACTUATOR_STEER, n_obstacles=N_OBSTACLES)
 
@@ -474,11 +474,11 @@ class BimpEnv(AbstractEnv):
     def _reset(self) -> None:
         self.drawn_params: dict[str, Any] = {}
         self.scene = self._make_scene(self._scene_road())
-        self.road = Road(network=_build_network(self.scene.road, speed_limit=40.0),
+        self.road = Road(network=_build_network(self.scene.geometry, speed_limit=40.0),
                          np_random=self.np_random, record_history=self.config["show_trajectories"])
         self.obstacles: list[ObstacleVehicle] = []
         ego_speed, lane = self._populate()
-        road = self.scene.road
+        road = self.scene.geometry
         pos = road.position(0.0, road.lane_offset(lane))
         ego = EgoVehicle(self.road, pos, float(road.heading_at(0.0)), ego_speed)
         ego.color = (50, 200, 0)  # highway-env draws crashed vehicles red; keep the EV distinct
@@ -492,7 +492,7 @@ class BimpEnv(AbstractEnv):
         self._ended = False  # a step terminated the episode: the next step raises until a reset
 
     def _add_obstacle(self, lane: int, s: float, speed: float, **braking) -> None:
-        road = self.scene.road
+        road = self.scene.geometry
         index = ("a", "b", lane) if s < road.straight_in else ("b", "c", lane)
         ov = ObstacleVehicle(self.road, road.position(s, road.lane_offset(lane)), float(road.heading_at(s)),
                              speed, index, **braking)
@@ -500,7 +500,7 @@ class BimpEnv(AbstractEnv):
 
     def reference(self) -> np.ndarray:
         """``[v_ref m/s, dv_ref/dt m/s^2, lane offset m]`` at the current time (see subclasses)."""
-        return np.array([self.cruise_speed, 0.0, self.scene.road.lane_offset(self.ego_lane)])
+        return np.array([self.cruise_speed, 0.0, self.scene.geometry.lane_offset(self.ego_lane)])
 
     def render(self):
         """highway-env's frame; in ``rgb_array`` mode (videos) with the reference lane drawn under the vehicles,
@@ -513,7 +513,7 @@ class BimpEnv(AbstractEnv):
 
         surface, road = self.viewer.sim_surface, self.scene.road
         v_ref, _, lane = self.reference()
-        s_e, _ = road.to_frenet(self.vehicle.position)
+        s_e, _ = road.frenet(self.vehicle.position)
         s = s_e + np.linspace(0.0, 2.0 * max(v_ref, 5.0), 24)
         pygame.draw.lines(surface, REFERENCE_COLOUR, False, [surface.vec2pix(p) for p in road.position(s, lane)], 3)
         RoadGraphics.display_traffic(self.road, surface, simulation_frequency=self.config["simulation_frequency"],
@@ -586,8 +586,8 @@ class BimpEnv(AbstractEnv):
         state, ovs = self._ev_state(), self._ov_rows()
         gaps = scene.ov_gaps(state, ovs)
         edge = float(scene.edge_distance(state))
-        s_e, l_e = scene.road.to_frenet(ev.position)
-        s_o, l_o = scene.road.to_frenet(ovs[:, 1:3])
+        s_e, l_e = scene.road.frenet(ev.position)
+        s_o, l_o = scene.road.frenet(ovs[:, 1:3])
         ahead_same_lane = (s_o > s_e) & (np.abs(l_o - l_e) < scene.vehicle_width + 0.5)
         closing = ev.speed - ovs[:, 4]
         ttc = np.where(ahead_same_lane & (closing > 1e-6), np.maximum(gaps, 0.0) / np.maximum(closing, 1e-6), np.inf)
@@ -705,11 +705,11 @@ class OvertakingEnv(BimpEnv):
         speed (``keep-lane``, the discovery variant: passing is left to the planner)."""
         if self.config["reference"] == "keep-lane":
             return super().reference()
-        return np.array([self.reference_speed, 0.0, self.scene.road.lane_offset(self.target_lane)])
+        return np.array([self.reference_speed, 0.0, self.scene.geometry.lane_offset(self.target_lane)])
 
     def _traffic(self) -> tuple[float, float, list[tuple[float, float, int]]]:
         """The EV's arc length and speed, and each OV's ``(s, speed, lane)`` (lane: the nearest centre)."""
-        road = self.scene.road
+        road = self.scene.geometry
         s_e, _ = road.to_frenet(self.vehicle.position)
         rows = []
         for ov in self.obstacles:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bimp.envs.road import RoadGeometry, array_module, corner_edge_distance, rect_gap
+from bimp.envs.road import RoadGeometry, Route, array_module, rect_gap
 
 # --- the scenarios' vehicle and actuators -----------------------------------------------------------------------
 # highway-env's Vehicle.LENGTH, WIDTH and MAX_SPEED (tests/envs/test_scenarios.py pins them): here so that the vehicle
@@ -113,11 +113,15 @@ class Bounds:
 class Scene:
     """Static description of one episode's scene.
 
-    ``actuator_accel`` / ``actuator_steer``: physical ranges that the normalized action [-1, 1] maps onto.
+    ``road``: the road a planner knows (:class:`bimp.envs.road.Route`, the EV's route as a polyline with its
+    drivable area); an env whose road changes as the EV drives (a wrapped highway-env env) publishes a new scene each
+    step. ``actuator_accel`` / ``actuator_steer``: physical ranges that the normalized action [-1, 1] maps onto.
     ``n_obstacles``: fixed number of OV slots in the observation (absent ones are masked, ``present = 0``).
+    ``geometry``: the closed-form road where the env has one (the paper's scenarios: what NMPC's CasADi program
+    plans on), else None.
     """
 
-    road: RoadGeometry
+    road: Route
     bounds: Bounds
     dt: float
     vehicle_length: float
@@ -125,6 +129,7 @@ class Scene:
     actuator_accel: tuple[float, float]
     actuator_steer: tuple[float, float]
     n_obstacles: int
+    geometry: RoadGeometry | None = None
 
     # --- observation layout --------------------------------------------------------------------------
     @property
@@ -167,10 +172,9 @@ class Scene:
 
     # --- geometry --------------------------------------------------------------------------------------
     def edge_distance(self, states: np.ndarray) -> np.ndarray:
-        """Least signed distance [m] of the body corners to the road edge, ``(...)`` for ``states (..., 4)``."""
-        r = self.road
-        return corner_edge_distance(np.asarray(states, float), self.vehicle_length, self.vehicle_width,
-                                    r.straight_in, r.radius, r.arc_angle, r.half_width)
+        """Least signed distance [m] of the body corners to the drivable area's edges, ``(...)`` for ``states
+        (..., 4)`` (:meth:`bimp.envs.road.Route.edge_distance`)."""
+        return self.road.edge_distance(states, self.vehicle_length, self.vehicle_width)
 
     def ov_gaps(self, ego: np.ndarray, ovs: np.ndarray) -> np.ndarray:
         """Footprint gaps [m] ``(K,)`` between the ego state ``[x, y, heading, ..] (>=3,)`` and OV rows ``(K, >=4)``

@@ -22,6 +22,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
+from bimp.envs.road import wrap_angle
 from bimp.envs.scene import Scene
 
 # Feature scales: typical magnitudes, so features are O(1) without running statistics.
@@ -33,6 +34,7 @@ _CURVATURE_SCALE = 100.0  # 1/m -> 0.5 on a 200 m radius
 _ACCEL_SCALE = 7.0  # m/s^2
 _LOOKAHEAD_S = 2.0  # s of travel for the curvature ahead
 _FEATURE_CLIP = 5.0
+LANE_WIDTH = 4.0  # m: highway-env's lane width, the features' lateral unit
 
 N_EGO_FEATURES = 11
 N_OV_FEATURES = 5
@@ -40,10 +42,6 @@ N_OV_FEATURES = 5
 
 def n_features(scene: Scene) -> int:
     return N_EGO_FEATURES + scene.n_obstacles * N_OV_FEATURES
-
-
-def _wrap(angle: np.ndarray | float) -> np.ndarray:
-    return np.arctan2(np.sin(angle), np.cos(angle))
 
 
 def _input_to_unit(u: np.ndarray, scene: Scene) -> np.ndarray:
@@ -65,27 +63,27 @@ def features(obs: np.ndarray, scene: Scene) -> np.ndarray:
     ego, prev_u, ovs, ref = scene.split_obs(obs)
     road = scene.road
     # One road-coordinate query for the EV and all OVs: it is the costly part of the features.
-    s, lat = road.to_frenet(np.concatenate([ego[None, :2], ovs[:, 1:3]]))
-    s_e, l_e, s_o, l_o = s[0], lat[0], s[1:], lat[1:]
+    p = road.project(np.concatenate([ego[None, :2], ovs[:, 1:3]]))
+    s_e, l_e, s_o, l_o = p.s[0], p.l[0], p.s[1:], p.l[1:]
+    half_width = (p.right[0] - p.left[0]) / 2
     v_ref, a_ref, l_ref = ref
-    lane = road.lane_width
     ego_f = [
-        (l_e - l_ref) / lane,
-        l_e / road.half_width,
-        _wrap(ego[2] - road.heading_at(s_e)) / _HEADING_SCALE,
+        (l_e - l_ref) / LANE_WIDTH,
+        (l_e - (p.left[0] + half_width)) / half_width,
+        wrap_angle(ego[2] - p.heading[0]) / _HEADING_SCALE,
         (ego[3] - v_ref) / _SPEED_SCALE,
         ego[3] / _V_SCALE,
         v_ref / _V_SCALE,
         a_ref / _ACCEL_SCALE,
         *_input_to_unit(prev_u, scene),
-        road.curvature_at(s_e) * _CURVATURE_SCALE,
+        p.curvature[0] * _CURVATURE_SCALE,
         road.curvature_at(s_e + ego[3] * _LOOKAHEAD_S) * _CURVATURE_SCALE,
     ]
     present = ovs[:, 0] > 0
     ov_f = np.stack([
         np.ones_like(s_o),
         (s_o - s_e) / _GAP_SCALE,
-        (l_o - l_e) / lane,
+        (l_o - l_e) / LANE_WIDTH,
         (ovs[:, 4] - ego[3]) / _SPEED_SCALE,
         ovs[:, 5] / _ACCEL_SCALE,
     ], axis=-1) * present[:, None]

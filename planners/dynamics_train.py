@@ -238,9 +238,9 @@ def rollout_scenarios(rng: np.random.Generator, episodes: int = 6,
             while True:
                 if rng.random() < 0.08:
                     accel_target = rng.uniform(*b.accel)
-                s_road, lat = scene.road.to_frenet(ev.position)
-                heading_err = ev.heading - float(scene.road.heading_at(s_road))
-                lane_lat = scene.road.lane_offset(base.ego_lane)
+                s_road, lat = scene.geometry.to_frenet(ev.position)
+                heading_err = ev.heading - float(scene.geometry.heading_at(s_road))
+                lane_lat = scene.geometry.lane_offset(base.ego_lane)
                 steer_target = -0.004 * (lat - lane_lat) - 0.05 * heading_err + rng.normal(0, 0.02)
                 du = np.array([accel_target - u[0], steer_target - u[1]])
                 du += rng.normal(0, [0.3, 0.002])

@@ -23,7 +23,15 @@ from bimp.envs.scene import Scene, real_array
 from bimp.planners import core
 from bimp.planners.dynamics import dynamics_files
 from bimp.planners.model import model_params
-from bimp.planners.problem import BarrierShape, Problem, ProblemConfig, Road, load_planner_config, make_problem
+from bimp.planners.problem import (
+    BarrierShape,
+    Problem,
+    ProblemConfig,
+    Road,
+    load_planner_config,
+    make_problem,
+    road_window,
+)
 from bimp.planners.problem import search_space as problem_search_space
 
 
@@ -159,7 +167,7 @@ class EnKTSPlanner:
         if rows is None:
             raise ValueError(f"a batch of {self.batch} needs observations ({self.batch}, obs_dim), got {obs.shape}")
         obs = np.stack([scene.check_obs(row) for scene, row in zip(scenes, rows)]).astype(np.float32)
-        problem = self._problem_of(scenes)
+        problem = self._problem_of(scenes, obs)
         cfg = self.config.settings(scenes[0].n_obstacles)
         # One key per episode, one draw per step: fold the step count into the episode's key.
         if self.batch is None:
@@ -187,19 +195,20 @@ class EnKTSPlanner:
         return Plan(states=np.asarray(states, float), controls=np.asarray(plan.controls, float),
                     control_particles=np.asarray(plan.control_particles, float))
 
-    def _problem_of(self, scenes: list[Scene]) -> Problem:
-        """The problem of the current scene(s), rebuilt only when a scene changes (the env redraws it at reset).
-        Compared by value, not ``id``: a freed scene's id can be reused by the next one."""
+    def _problem_of(self, scenes: list[Scene], obs: np.ndarray) -> Problem:
+        """The problem of the current scene(s) seen from each row's EV (``obs (B or 1, obs_dim)``): the road is a
+        window of the scene's route ahead of the EV, rebuilt every step; the rest only when a scene changes (the
+        env redraws it at reset; a wrapped highway-env env every step). Compared by value, not ``id``: a freed
+        scene's id can be reused by the next one."""
         if scenes != self._problem_scenes:
-            problems = [make_problem(s, self.config.problem, self._model) for s in scenes]
-            problem = problems[0]
-            if self.batch is not None:  # the roads differ per episode; everything else is shared
-                roads = zip(*(p.road for p in problems))
-                problem = problem._replace(road=Road(*(np.array(v, np.float32) for v in roads)))
-            self._problem = jax.device_put(jax.tree.map(
-                lambda a: np.asarray(a, np.float32) if isinstance(a, (float, np.ndarray)) else a, problem))
+            problem = make_problem(scenes[0], self.config.problem, self._model)
+            self._static = jax.device_put(jax.tree.map(
+                lambda a: np.asarray(a, np.float32) if isinstance(a, (float, np.ndarray)) else a,
+                problem._replace(road=None)))
             self._problem_scenes = scenes
-        return self._problem
+        roads = [road_window(s.road, row[:2], self.config.problem) for s, row in zip(scenes, obs)]
+        road = roads[0] if self.batch is None else Road(*(np.stack(v) for v in zip(*roads)))
+        return self._static._replace(road=Road(*(np.asarray(v, np.float32) for v in road)))
 
 
 CONFIG_FILE = "planner.yaml"

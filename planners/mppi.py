@@ -222,7 +222,7 @@ class MPPIPlanner:
             torch.from_numpy(np.tile(u_prev, (self.horizon, 1)))
         if not self._warm:
             mppi.U = hold
-        problem = make_problem(scene, self.config.problem)
+        problem = make_problem(scene, self.config.problem, ego_xy=ego[:2])
         v_ref, a_ref, lane = reference_profile(problem, ref, ego, self.horizon)
         self._context = _Context(problem, u_prev, lane, v_ref, a_ref,
                                  predict_obstacles(problem, ovs, self.horizon))

@@ -189,6 +189,16 @@ def bicycle_function(model=None) -> ca.Function:
 ROAD_PARAMS = ("straight_in", "radius", "arc_angle")
 
 
+def closed_form(scene: Scene) -> RoadGeometry:
+    """The scene's closed-form road, what NMPC's CasADi program is written on; ``ValueError`` for a scene without
+    one (a wrapped highway-env env: a polyline route, which the smooth NLP cannot take as it is)."""
+    if scene.geometry is None:
+        raise ValueError("NMPC plans on a closed-form road (the paper's straight-arc-straight: bimp/Overtaking-v0, "
+                         "bimp/EmergencyBrake-v0); this scene's road is a polyline route only (a wrapped "
+                         "highway-env env): use enkts, enks, mppi or idm there")
+    return scene.geometry
+
+
 def road_params(road: RoadGeometry) -> np.ndarray:
     """The road's shape as NLP parameters ``(3,)``: ``[straight_in m, radius m, arc_angle rad]``."""
     return np.array([road.straight_in, road.radius, road.arc_angle])
@@ -402,15 +412,15 @@ class NMPCPlanner:
     def _params(self, scene: Scene, ego, u_prev, ovs, ref) -> np.ndarray:
         """NLP parameters, in the order :meth:`_build` declares them."""
         H = self.horizon
-        problem = make_problem(scene, self.config.problem)
+        problem = make_problem(scene, self.config.problem, ego_xy=ego[:2])
         s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
         v_ref, a_ref, lane = reference_profile(problem, ref, ego, H)
-        return np.concatenate([ego, u_prev, lane, v_ref, a_ref, road_params(scene.road),
+        return np.concatenate([ego, u_prev, lane, v_ref, a_ref, road_params(closed_form(scene)),
                                s_o.ravel(), l_o.ravel(), v_o.ravel(), a_o.ravel(), present.astype(float)])
 
     def _problem(self, scene: Scene) -> _Problem:
         # The road shape is a parameter; everything else in a scene is fixed per env, so this builds once.
-        key = (scene.bounds, scene.dt, scene.vehicle_length, scene.vehicle_width, scene.road.half_width,
+        key = (scene.bounds, scene.dt, scene.vehicle_length, scene.vehicle_width, closed_form(scene).half_width,
                scene.n_obstacles)
         if key not in self._problems:
             self._problems[key] = self._build(scene)
@@ -478,7 +488,7 @@ class NMPCPlanner:
         for sign_l in (1.0, -1.0):
             for sign_h in (1.0, -1.0):
                 corner = sign_l * lat[:, 1:] + sign_h * half_l * ca.sin(dpsi[:, 1:]) + half_w * ca.cos(dpsi[:, 1:])
-                add(corner - S_edge, -np.inf, scene.road.half_width - shape.edge_margin)
+                add(corner - S_edge, -np.inf, closed_form(scene).half_width - shape.edge_margin)
         p_exp = cfg.keep_out_power
         for k in range(K):
             ds = s[:, 1:] - s_o[k, 1:]

@@ -40,7 +40,7 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 
 from bimp.configs import ConfigError, check_fields, load_config, merged, read_overrides
-from bimp.envs.road import array_module, curvature_at, heading_at, to_frenet
+from bimp.envs.road import Route, array_module, project, wrap_angle
 from bimp.envs.scene import Scene, bound_constraints
 from bimp.planners.dynamics import check_dynamics
 
@@ -111,7 +111,10 @@ class ProblemConfig:
     sigma_barrier: of each barrier value (the barriers' tightness);
     lane_change_rate [m/s]: the reference lane over the horizon leaves the EV's lateral offset toward the
     reference lane at most this fast, a lane-change path rather than a step (``inf``: the step);
-    barrier: margins and widths (:class:`BarrierShape`); dynamics: ``"mlp"`` (the shipped model), ``"bicycle"``
+    barrier: margins and widths (:class:`BarrierShape`); road_points, road_spacing [m]: the road the planner
+    sees, P points of the scene's route every ``road_spacing`` m from ``ROAD_BEHIND`` m behind the EV (one compiled
+    program per P; the plan's reach at 40 m/s over 2 s is 80 m, the default window 139 m); dynamics: ``"mlp"`` (the
+    shipped model), ``"bicycle"``
     (the exact model) or the path of a weights file written by ``bimp train-dynamics`` (checked when the config is
     built). A bad value raises :class:`bimp.configs.ConfigError` naming the key and the value.
 
@@ -128,9 +131,17 @@ class ProblemConfig:
     lane_change_rate: float = math.inf
     barrier: BarrierShape = field(default_factory=BarrierShape)
     dynamics: str = "mlp"
+    # The general road (issue 26): no value reproduces the closed-form road of before, so these are plain fields
+    # and every planner's config hash changed with them (docs/evaluation.md).
+    road_points: int = 160
+    road_spacing: float = 1.0
 
     def __post_init__(self) -> None:
         check_fields(self, allow_inf=("nu", "lane_change_rate"))
+        if self.road_points < 2:
+            raise ConfigError("road_points", "an int >= 2", self.road_points)
+        if not 0.1 <= self.road_spacing <= 10.0:
+            raise ConfigError("road_spacing", "in [0.1, 10] m", self.road_spacing)
         if self.horizon < 1:
             raise ConfigError("horizon", "an int >= 1", self.horizon)
         if not self.nu >= NU_MIN:
@@ -147,13 +158,19 @@ class ProblemConfig:
 
 # --- the problem as pytrees -----------------------------------------------------------------------------------
 class Road(NamedTuple):
-    """Road geometry as traced numbers (:class:`bimp.envs.road.RoadGeometry`): a redrawn road is new data, not a new
-    program."""
+    """The road ahead as traced arrays, ``(P,)`` each (``xy (P, 2)``): a window of the scene's
+    :class:`bimp.envs.road.Route` with the same fields (:func:`bimp.envs.road.project` reads both), so a new road is
+    new data, not a new program."""
 
-    straight_in: float
-    radius: float
-    arc_angle: float
-    half_width: float
+    xy: np.ndarray
+    s: np.ndarray
+    heading: np.ndarray
+    curvature: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+
+
+ROAD_BEHIND = 20.0  # m of road behind the EV in the planner's window: OVs beside and just behind it
 
 
 class Limits(NamedTuple):
@@ -259,13 +276,22 @@ def load_planner_config(cls: type[C], *layers: Layer) -> C:
     return load_config(cls, None, **tree)
 
 
-def make_problem(scene: Scene, config: ProblemConfig, model: tuple = ()) -> Problem:
-    """The problem of ``scene`` under ``config`` (numpy leaves; ``jax.device_put`` or any jnp call takes them)."""
-    road, b, shape = scene.road, scene.bounds, config.barrier
+def road_window(route: Route, ego_xy: np.ndarray, config: ProblemConfig) -> Road:
+    """The planner's road: ``config.road_points`` points of ``route`` every ``config.road_spacing`` m from
+    ``ROAD_BEHIND`` m behind the EV at ``ego_xy (2,)`` (padded straight past the route's ends)."""
+    s_ev = float(route.project(np.asarray(ego_xy, float)).s)
+    w = route.window(s_ev - ROAD_BEHIND, config.road_points, config.road_spacing)
+    return Road(w.xy, w.s, w.heading, w.curvature, w.left, w.right)
+
+
+def make_problem(scene: Scene, config: ProblemConfig, model: tuple = (), ego_xy: np.ndarray | None = None) -> Problem:
+    """The problem of ``scene`` under ``config`` with the road seen from ``ego_xy (2,)`` (the EV's position; the
+    route's start if None) (numpy leaves; ``jax.device_put`` or any jnp call takes them)."""
+    b, shape = scene.bounds, config.barrier
     lo, hi = scene.actuator_range
     f = float
     return Problem(
-        road=Road(f(road.straight_in), f(road.radius), f(road.arc_angle), f(road.half_width)),
+        road=road_window(scene.road, scene.road.xy[0] if ego_xy is None else ego_xy, config),
         limits=Limits(np.array(b.accel, float), f(b.steer), f(b.accel_rate), f(b.steer_rate), f(b.d_min),
                       f(scene.vehicle_length), f(scene.vehicle_width), f(scene.dt), lo, hi),
         barrier=Barrier(f(shape.headway), f(shape.brake_decel), f(shape.lateral_clearance), f(shape.edge_margin),
@@ -278,37 +304,43 @@ def make_problem(scene: Scene, config: ProblemConfig, model: tuple = ()) -> Prob
 
 # --- functions of the problem ---------------------------------------------------------------------------------
 def frenet(road: Road, xy):
-    """Road coordinates ``(s, l)`` of points ``xy (..., 2)``."""
-    return to_frenet(xy, road.straight_in, road.radius, road.arc_angle)
+    """Road coordinates ``(s, l)`` of points ``xy (..., 2)`` (:func:`bimp.envs.road.project`)."""
+    p = project(road, xy)
+    return p.s, p.l
 
 
-def edge_distance_local(road: Road, limits: Limits, lat, dpsi):
+def edge_distance_local(left, right, limits: Limits, lat, dpsi):
     """The edge distance (eq. 3; exact for the rectangle: :meth:`bimp.envs.scene.Scene.edge_distance`) from the
-    centre's road coordinates: the body corners' lateral offsets in the road
-    frame at the centre, ``|lat| + L/2 |sin dpsi| + W/2 cos dpsi``, taken as straight over the car's length.
+    centre's road coordinates and the edges ``left < right`` there: the body corners' lateral offsets in the road
+    frame at the centre, ``lat +- (L/2 |sin dpsi| + W/2 cos dpsi)``, taken as straight over the car's length.
     What the planners measure (NMPC too, as four smooth rows): a quarter of the transcendental work of the exact
     corners, and within 2 cm of them on the scenarios' curves (the road bends by (L/2)^2 / 2R = 1.7 cm over half a
     car at R = 180 m; the barrier's edge margin is 0.3 m; a test pins it)."""
     xp = array_module(lat, dpsi)
-    extent = xp.abs(lat) + 0.5 * limits.length * xp.abs(xp.sin(dpsi)) + 0.5 * limits.width * xp.cos(dpsi)
-    return road.half_width - extent
+    extent = 0.5 * limits.length * xp.abs(xp.sin(dpsi)) + 0.5 * limits.width * xp.cos(dpsi)
+    return xp.minimum(right - lat, lat - left) - extent
 
 
 def predict_obstacles(problem: Problem, ovs, horizon: int):
-    """Constant-acceleration prediction of the OVs along the road, speed never below 0.
+    """Constant-acceleration prediction of the OVs along their own heading relative to the road (a vehicle in a
+    lane moves along it; an oncoming one against ``s``, a crossing one across it), speed never below 0.
 
     ovs: observation rows ``(K, 6)`` ``[present, x, y, heading, speed, accel]``. Returns ``s, l, v, a`` of shapes
-    ``(horizon + 1, K)`` (index 0 = now) and ``present`` (bool ``(K,)``).
+    ``(horizon + 1, K)`` (index 0 = now; ``v``, ``a`` along the road, signed: < 0 for oncoming traffic) and
+    ``present`` (bool ``(K,)``).
     """
-    xp = array_module(ovs, problem.limits.dt, problem.road.radius)
-    s0, l0 = frenet(problem.road, ovs[:, 1:3])
+    xp = array_module(ovs, problem.limits.dt, problem.road.xy)
+    p = project(problem.road, ovs[:, 1:3])
+    dh = wrap_angle(ovs[:, 3] - p.heading)
+    along, across = xp.cos(dh), xp.sin(dh)
     v0, a = ovs[:, 4], ovs[:, 5]
     t = xp.arange(horizon + 1)[:, None] * problem.limits.dt
     t_stop = xp.where(a < 0, v0 / xp.maximum(-a, 1e-9), xp.inf)
     tc = xp.minimum(t, t_stop)
-    s = s0 + v0 * tc + 0.5 * a * tc**2
+    travel = v0 * tc + 0.5 * a * tc**2
     v = xp.maximum(v0 + a * t, 0.0)
-    return s, xp.broadcast_to(l0, s.shape), v, xp.where(t < t_stop, a, 0.0), ovs[:, 0] > 0
+    return (p.s + along * travel, p.l + across * travel, along * v, along * xp.where(t < t_stop, a, 0.0),
+            ovs[:, 0] > 0)
 
 
 def reference_profile(problem: Problem, ref, ego, horizon: int):
@@ -332,12 +364,13 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     ``ref_lane``, ``v_ref``, ``a_ref`` the reference at the state's time; ``obstacles``: ``(s, l, v, a)`` each
     ``(K,)`` at that time and ``present (K,)`` (one row of :func:`predict_obstacles`). Observed value: zeros.
     """
-    xp = array_module(x, u, du, u0, problem.limits.accel, problem.road.radius)
+    xp = array_module(x, u, du, u0, problem.limits.accel, problem.road.xy)
     road, lim, bar = problem.road, problem.limits, problem.barrier
-    s, lat = frenet(road, x[:, :2])
-    dpsi = x[:, 2] - heading_at(s, road.straight_in, road.radius, road.arc_angle)
+    p = project(road, x[:, :2])
+    s, lat = p.s, p.l
+    dpsi = wrap_angle(x[:, 2] - p.heading)
     v = x[:, 3]
-    feedforward = xp.arctan(lim.length * curvature_at(s, road.straight_in, road.radius, road.arc_angle))
+    feedforward = xp.arctan(lim.length * p.curvature)
     tracking = xp.stack([lat - ref_lane, dpsi, v - v_ref, u[:, 0] - a_ref, u[:, 1] - feedforward], axis=1)
 
     s_o, l_o, v_o, a_o, present = obstacles
@@ -348,7 +381,7 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     # OV's lane gets credit for the lateral escape (within the lane, swerving buys nothing and heads for the edge).
     ds = s[:, None] - s_o
     behind = ds < 0
-    v_follow = xp.where(behind, v[:, None], v_o)
+    v_follow = xp.where(behind, v[:, None], v_o)  # < 0: an oncoming OV, which follows nothing
     v_lead = xp.where(behind, v_o, v[:, None])
     # Braking room: to match a leader that holds speed, closing^2 / 2b; behind an OV predicted to brake to a stop,
     # the difference of the stopping distances (the danger the 2 s horizon alone would see too late).
@@ -356,7 +389,7 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     a_lead = xp.where(behind, a_o, 0.0)
     stop = v_follow**2 / (2 * bar.brake_decel) - v_lead**2 / (2 * xp.maximum(-a_lead, 1e-6))
     room = xp.maximum(room, xp.where(a_lead < -0.5, stop, 0.0))
-    semi_s = lim.length + lim.d_min + bar.headway * v_follow + room
+    semi_s = lim.length + lim.d_min + bar.headway * xp.maximum(v_follow, 0.0) + room
     semi_l = lim.width + bar.lateral_clearance
     phi_ov = xp.minimum(1.0 - xp.abs(ds) / semi_s, 1.0 - xp.abs(lat[:, None] - l_o) / semi_l)
     phi_ov = xp.where(present, phi_ov / w[0], -1e3)
@@ -367,7 +400,7 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
         c = bound_constraints(lim, u, du, keep)
         return xp.stack([xp.maximum(c[:, 0], c[:, 1]), c[:, 2], c[:, 3], c[:, 4]], axis=1) / w[2:6]
 
-    edge = (bar.edge_margin - edge_distance_local(road, lim, lat, dpsi)) / w[1]
+    edge = (bar.edge_margin - edge_distance_local(p.left, p.right, lim, lat, dpsi)) / w[1]
     phi = xp.concatenate([phi_ov, edge[:, None], bounds(u, du), bounds(u0, u0 - u_prev)], axis=1)
     return xp.concatenate([tracking, xp.logaddexp(0.0, bar.sharpness * phi) / bar.sharpness], axis=1)
 
@@ -375,4 +408,4 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
 __all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance_local", "frenet",
            "Limits", "load_planner_config", "load_problem", "make_problem", "measure",
            "measurement_noise", "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles",
-           "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road"]
+           "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road", "ROAD_BEHIND", "road_window"]

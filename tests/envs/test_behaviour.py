@@ -24,7 +24,7 @@ def test_a_free_left_lane_is_taken_to_pass_the_slower_ov_and_the_ev_returns_afte
     assert episode.trace["ahead_of_ov1"][-1] and not any(episode.trace["collision"])
     back = first_left + lanes[first_left:].index(RIGHT)
     ev_s, ov1_xy = episode.trace["s"][back], episode.trace["ov_xy"][back][0]
-    ov1_s, _ = env.unwrapped.scene.road.to_frenet(np.array(ov1_xy))
+    ov1_s, _ = env.unwrapped.scene.geometry.to_frenet(np.array(ov1_xy))
     assert ev_s - ov1_s >= 5.0  # the passed OV is behind by more than a car before the EV returns
 
 

@@ -66,13 +66,13 @@ def test_overtaking_ovs_slower_than_ev_and_hold_lanes():
         ego, _, ovs, ref = scene.split_obs(obs)
         assert np.all(ovs[:, 4] < ego[3])
         # The behaviour layer passes at the EV's speed, or first follows OV1 at its speed (too close to pass).
-        passing = ref[2] != scene.road.lane_offset(1)
+        passing = ref[2] != scene.geometry.lane_offset(1)
         assert ref[0] == pytest.approx(ego[3] if passing else ovs[0, 4], rel=1e-6)
-        lanes = scene.road.lane_offset(np.array([1, 0]))
+        lanes = scene.geometry.lane_offset(np.array([1, 0]))
         for _ in range(100):  # the EV idles behind: steer straight, brake gently; OVs must not care
             obs, _, term, _, _ = env.step(np.array([-0.3, 0.0]))
             _, _, ovs2, _ = scene.split_obs(obs)
-            _, lat = scene.road.to_frenet(ovs2[:, 1:3])
+            _, lat = scene.geometry.to_frenet(ovs2[:, 1:3])
             np.testing.assert_allclose(lat, lanes, atol=0.15)
             np.testing.assert_allclose(ovs2[:, 4], ovs[:, 4], atol=1e-6)
             if term:
@@ -124,7 +124,7 @@ def test_steering_off_the_road_sets_offroad_and_terminates():
 def test_config_fixes_parameters_and_rejects_typos():
     env = gym.make("bimp/Overtaking-v0", config={"ov1_speed": 16.0, "radius": 250.0})
     obs, _ = env.reset(seed=0)
-    assert env.unwrapped.scene.road.radius == 250.0
+    assert env.unwrapped.scene.geometry.radius == 250.0
     assert env.unwrapped.scene.split_obs(obs)[2][0, 4] == pytest.approx(16.0)
     with pytest.raises(ValueError, match="ov1_sped"):
         gym.make("bimp/Overtaking-v0", config={"ov1_sped": 16.0})
@@ -167,7 +167,7 @@ def test_the_frame_draws_the_reference_lane():
         drawn = np.all(env.render() == REFERENCE_COLOUR, axis=-1)
         assert drawn.sum() > 100
         rows[reference] = np.nonzero(drawn)[0].mean()
-    lane_px = env.unwrapped.config["scaling"] * env.unwrapped.scene.road.lane_width
+    lane_px = env.unwrapped.config["scaling"] * env.unwrapped.scene.geometry.lane_width
     assert rows["keep-lane"] - rows["behaviour"] == pytest.approx(lane_px, abs=2)
 
 
@@ -228,7 +228,7 @@ def test_keep_lane_variant_is_overtaking_with_the_lane_kept_as_reference():
     behaviour = gym.make("bimp/Overtaking-v0")
     (obs_v, _), (obs_b, _), (obs_p, _) = (e.reset(seed=2000) for e in (variant, base, behaviour))
     np.testing.assert_array_equal(obs_v, obs_b)  # the same draws, the same reference
-    road = variant.unwrapped.scene.road
+    road = variant.unwrapped.scene.geometry
     assert obs_v[-1] == pytest.approx(road.lane_offset(1))  # the EV's own (right) lane
     assert obs_p[-1] != obs_v[-1]  # here the behaviour layer asks for the pass at once
     switched = gym.make(envs.env_id("overtaking-keep-lane"), config={"reference": "behaviour"})

@@ -50,7 +50,9 @@ def migrate(old: dict) -> dict:
             problem["barrier"]["bound_margin"] = config.pop("bound_tightening")
         config["problem"] = problem
     elif "horizon" in config:
-        config["problem"] = {f.name: config.pop(f.name) for f in dataclasses.fields(ProblemConfig)}
+        config["problem"] = {f.name: config.pop(f.name) for f in dataclasses.fields(ProblemConfig) if f.name in config}
+    if "problem" in config:  # issue 26 added the general road's window: plain fields, at their defaults
+        config["problem"].update(road_points=ProblemConfig.road_points, road_spacing=ProblemConfig.road_spacing)
     return {"config": config}
 
 

@@ -188,7 +188,7 @@ def small(problem: dict | None = None, **kw):
 def test_batched_plan_equals_single_plans_row_by_row():
     envs_, obs = zip(*(episode("bimp/Overtaking-v0", seed) for seed in (1, 2, 3)))
     scenes = [e.unwrapped.scene for e in envs_]
-    assert len({s.road.radius for s in scenes}) == 3  # three different roads in one batch
+    assert len({s.geometry.radius for s in scenes}) == 3  # three different roads in one batch
     batch = EnKTSPlanner(lambda: scenes, small())
     batch.reset(seed=[11, 12, 13])
     singles = [EnKTSPlanner(scene, small()) for scene in scenes]

@@ -28,7 +28,9 @@ from bimp.planners.problem import (
 
 
 def straight_scene() -> Scene:
-    return Scene(road=RoadGeometry(arc_angle=0.0), bounds=Bounds(), dt=0.1, vehicle_length=5.0, vehicle_width=2.0,
+    straight = RoadGeometry(arc_angle=0.0)
+    return Scene(road=straight.route(), geometry=straight, bounds=Bounds(), dt=0.1, vehicle_length=5.0,
+                 vehicle_width=2.0,
                  actuator_accel=(-10.0, 10.0), actuator_steer=(-0.3, 0.3), n_obstacles=2)
 
 
@@ -49,7 +51,7 @@ def test_running_cost_by_hand():
     steering past its bound: its input residual, two steering barriers (the step's and the first control's) and the
     first control's steering-rate barrier against the last input."""
     scene, tun = straight_scene(), ProblemConfig()
-    lane = float(scene.road.lane_offset(1))
+    lane = float(scene.geometry.lane_offset(1))
     obs = obs_of(scene, [50.0, lane, 0.0, 20.0], [0.8, 0.0], np.zeros((2, 6)), [25.0, 0.0, lane])
     planner = planner_with_context(scene, obs, tun)
     block = torch.tensor([[60.0, lane, 0.0, 20.0, 1.0, 0.0, 0.2, 0.0, 1.0, 0.0]], dtype=torch.float64)
@@ -155,7 +157,7 @@ def test_actions_are_finite_in_the_space_and_seeded(scenario):
 @pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
 def test_non_finite_plan_falls_back_to_the_last_input():
     scene = straight_scene()
-    lane = float(scene.road.lane_offset(1))
+    lane = float(scene.geometry.lane_offset(1))
     broken = lambda x, u: np.full_like(x, np.nan)  # noqa: E731 - a model that has gone wrong
     planner = MPPIPlanner(scene, MPPIConfig(n_particles=8, problem={"horizon": 3}), dynamics=broken)
     u_prev = np.array([-2.0, 0.01])
@@ -190,7 +192,7 @@ def test_default_dynamics_follow_the_problem_key(tmp_path):
 
 def small_mppi(**config) -> tuple[MPPIPlanner, np.ndarray]:
     scene = straight_scene()
-    lane = float(scene.road.lane_offset(1))
+    lane = float(scene.geometry.lane_offset(1))
     obs = obs_of(scene, [0.0, lane, 0.0, 20.0], [0.0, 0.0], np.zeros((2, 6)), [25.0, 0.0, lane])
     return MPPIPlanner(scene, MPPIConfig(n_particles=8, problem={"horizon": 3}, **config), dynamics=load_model()), obs
 

@@ -184,5 +184,5 @@ def test_default_resolved_configs_are_unchanged():
     env = gym.make("bimp/Overtaking-v0")
     hashes = {name: config_hash(name, resolved_config(make_policy(name, env)))
               for name in ("enkts", "enks", "mppi", "nmpc", "nmpc-t")}
-    assert hashes == {"enkts": "f23240bc48a2bddc", "enks": "6043c5460fc5cffa", "mppi": "77ef3a9fc460d352",
-                      "nmpc": "27fb5c1163050d2f", "nmpc-t": "62b8821b93ef9fa4"}
+    assert hashes == {"enkts": "ada7a18278dc8436", "enks": "6c01a29ff1dfbc29", "mppi": "b6a1b4c492b2d4ca",
+                      "nmpc": "b8345e259d166962", "nmpc-t": "64a063f2cf50263e"}
