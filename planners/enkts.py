@@ -9,6 +9,7 @@ PRNG key, and counts fallbacks. The same policy plans a batch: ``reset(seed=[s1,
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -197,15 +198,16 @@ class EnKTSPlanner:
 
     def _problem_of(self, scenes: list[Scene], obs: np.ndarray) -> Problem:
         """The problem of the current scene(s) seen from each row's EV (``obs (B or 1, obs_dim)``): the road is a
-        window of the scene's route ahead of the EV, rebuilt every step; the rest only when a scene changes (the
-        env redraws it at reset; a wrapped highway-env env every step). Compared by value, not ``id``: a freed
-        scene's id can be reused by the next one."""
-        if scenes != self._problem_scenes:
+        window of the scene's route ahead of the EV, rebuilt every step; the rest only when the rest of a scene
+        changes (the env redraws it at reset; a wrapped highway-env env publishes a new scene, same but for its road,
+        every step). Compared by value, not ``id``: a freed scene's id can be reused by the next one."""
+        static = [dataclasses.replace(s, road=None) for s in scenes]  # a Route compares by identity: leave it out
+        if static != self._problem_scenes:
             problem = make_problem(scenes[0], self.config.problem, self._model)
             self._static = jax.device_put(jax.tree.map(
                 lambda a: np.asarray(a, np.float32) if isinstance(a, (float, np.ndarray)) else a,
                 problem._replace(road=None)))
-            self._problem_scenes = scenes
+            self._problem_scenes = static
         roads = [road_window(s.road, row[:2], self.config.problem) for s, row in zip(scenes, obs)]
         road = roads[0] if self.batch is None else Road(*(np.stack(v) for v in zip(*roads)))
         return self._static._replace(road=Road(*(np.asarray(v, np.float32) for v in road)))
