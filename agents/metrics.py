@@ -31,8 +31,9 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
     """Scalar metrics of one episode. ``truncated``: the episode reached its time limit (not terminated).
 
     Rates over steps (``input_violation_rate``, ``rate_violation_rate``) are the share of steps whose
-    commanded input breaks a bound; ``success_rate`` of one episode is 1 when it reached the time limit
-    without collision or leaving the road. ``min_ttc_s`` is ``None`` when no OV was ever closing in.
+    commanded input breaks a bound; ``success_rate`` of one episode is 1 when it reached the time limit, or the
+    env's goal (``info["goal"]``: a wrapped highway-env env's exit taken, intersection crossed, roundabout left,
+    merge road's end), without collision or leaving the road. ``min_ttc_s`` is ``None`` when no OV was ever closing in.
     """
     c = trace["constraints"]
     inputs = np.array(trace["input"], dtype=float).reshape(-1, 2)
@@ -43,7 +44,7 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
     jerk = np.abs(np.diff(inputs[:, 0])) / dt if len(inputs) > 1 else np.zeros(1)
     plan = np.array(trace["plan_ms"], dtype=float)
     return {
-        "success_rate": float(truncated and not collision and not offroad),
+        "success_rate": float((truncated or any(trace.get("goal") or ())) and not collision and not offroad),
         "collision_rate": float(collision),
         "offroad_rate": float(offroad),
         "input_violation_rate": float(np.mean(input_viol)),

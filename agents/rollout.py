@@ -25,7 +25,7 @@ SEEDING = "np.random.SeedSequence(seed).spawn(2) -> (env, policy); each: generat
 
 # Per-step trace keys read from ``info`` (the env measures; the loop never re-derives).
 INFO_KEYS = ("input", "ov_distance", "edge_distance", "ttc", "lateral_error", "speed_error", "collision",
-             "offroad", "constraints", "s", "reference", "ahead_of_ov1")
+             "offroad", "constraints", "s", "reference", "ahead_of_ov1", "goal")
 
 
 def episode_seeds(seed: int) -> tuple[int, int]:

@@ -322,12 +322,18 @@ class HighwayAdapter(gym.Wrapper):
         return best
 
     def _goal(self) -> bool:
-        """highway-env's goal where its env has one but does not end the episode there: exit-v0's ``_is_success``
-        (the exit taken) and, on roundabout-v0, the last road of the EV's route reached (the roundabout left);
-        past either the EV runs off the end of the network. (intersection-v0 ends on arrival itself.)"""
+        """highway-env's goal where its env has one (``info["goal"]``; success needs it or the time limit):
+        exit-v0's ``_is_success`` (the exit taken), intersection-v0's ``has_arrived`` (crossed, on the exit road),
+        merge-v0's end of the road (x > 370 m, where highway-env ends it) and, on roundabout-v0, the last road of
+        the EV's route reached (the roundabout left); past exit's and roundabout's the EV would run off the end of
+        the network, so the adapter ends the episode there."""
         base = self.env.unwrapped
         if self.highway_id == "exit-v0":
             return bool(base._is_success())
+        if self.highway_id == "intersection-v0":
+            return bool(base.has_arrived(base.vehicle))
+        if self.highway_id == "merge-v0":
+            return bool(base.vehicle.position[0] > 370)
         route = getattr(base.vehicle, "route", None)
         return bool(self.highway_id == "roundabout-v0" and route and base.vehicle.lane_index[:2] == route[-1][:2])
 
