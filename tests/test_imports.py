@@ -28,8 +28,11 @@ def modules() -> dict[str, Path]:
     """``{module name: file}`` of every module of the package."""
     found = {}
     for package, folder in PACKAGES.items():
-        for path in sorted(folder.glob("*.py")):
-            found[package if path.stem == "__init__" else f"{package}.{path.stem}"] = path
+        for path in sorted(folder.rglob("*.py")):  # subpackages too (bimp.envs.highway)
+            parts = path.relative_to(folder).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            found[".".join((package, *parts))] = path
     return found
 
 
@@ -135,7 +138,23 @@ def test_the_package_is_read_whole():
     files = modules()
     assert Path(bimp.__file__).resolve() == files["bimp"]
     assert {"bimp.agents.evaluate", "bimp.agents.registry", "bimp.envs.scenarios", "bimp.planners.core",
-            "bimp.configs"} <= set(files)
+            "bimp.configs", "bimp.envs.highway.adapter"} <= set(files)
+
+
+# The layers, bottom up: a module imports its own layer and those below, never one above (envs <- planners <- agents).
+LAYERS = ("bimp.configs", "bimp.envs", "bimp.planners", "bimp.agents")
+
+
+def _layer(module: str) -> int | None:
+    return next((i for i, p in enumerate(LAYERS) if module == p or module.startswith(p + ".")), None)
+
+
+def test_imports_point_down_the_layers():
+    """Nothing in envs/ imports a planner or an agent, nothing in planners/ an agent (DESIGN section 8): a user of
+    the envs alone never loads JAX or torch through them."""
+    upward = [f"{m} imports {t}" for m, targets in graph()[0].items() for t in targets
+              if _layer(m) is not None and _layer(t) is not None and _layer(t) > _layer(m)]
+    assert not upward, upward
 
 
 def test_the_package_has_no_import_cycle():
