@@ -6,7 +6,8 @@ indented) or in inline code. Blocks are read as the shell would, as far as the d
 process with ``--dry-run`` from the repository root and must find every episode done. A command that cannot be read
 (an unbalanced quote, an elided ``...`` in a block that writes ``results/``, an unknown variable) fails naming its
 file and line: the docs must stay runnable. A command that only older code can run is printed as history,
-``(git switch --detach COMMIT && bimp ...)``: not a command of the current code, so not run here.
+``(git switch --detach COMMIT && bimp ...)``: not a command of the current code, so not run here; such a subshell
+may hold a loop or go on over several lines, and everything up to its closing ``)`` is history.
 ``make check-results`` runs this file alone.
 """
 
@@ -23,7 +24,7 @@ from bimp.agents.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-HEADLINE = {"results/safety", "results/peers", "results/rl", "results/frontier"}
+HEADLINE = {"results/paper", "results/rl"}
 RESULTS_COMMAND = re.compile(r"\bbimp\s+(evaluate|sweep|frontier)\b")
 VARIABLE = re.compile(r"\$(?:\{(\w+)\}|(\w+))")
 ASSIGNMENT = re.compile(r"[A-Za-z_]\w*=\S*")
@@ -118,6 +119,14 @@ def expand(path: str, stmts: list[tuple[int, str]], env: dict[str, str] | None =
         line, text = stmts[i]
         where = f"{path}:{line}" + "".join(f" {k}={v}" for k, v in env.items())
         word = text.split()[0]
+        if text.startswith("("):  # a subshell, `(git switch --detach COMMIT && ...)`: history, skipped to its `)`
+            depth = 0
+            while i < len(stmts):
+                depth += stmts[i][1].count("(") - stmts[i][1].count(")")
+                i += 1
+                if depth <= 0:
+                    break
+            continue
         if word == "for":
             head = text.split()
             if len(head) < 4 or head[2] != "in" or i + 1 >= len(stmts) or stmts[i + 1][1].split()[0] != "do":
@@ -191,6 +200,10 @@ def test_the_reader_unrolls_loops_and_joins_lines():
     assert [c.argv for c in commands] == [["evaluate", "--policy", a, "--label", f"{a}-s{s}", "--episodes", "3",
                                            "--out", "results/x"] for a in ("ppo", "sac") for s in ("1", "2")]
     assert [c.where for c in commands][:2] == ["doc.md:11 N=3 A=ppo S=1", "doc.md:11 N=3 A=ppo S=2"]
+    history = ["(git switch --detach abc1234 && for P in enkts enks; do", "  bimp evaluate --policy $P \\",
+               "      --out results/old", "done)   # history", "bimp evaluate --policy enkts --out results/new"]
+    assert [c.argv for c in expand("doc.md", statements(1, history))] == [
+        ["evaluate", "--policy", "enkts", "--out", "results/new"]]
     assert "elided" in command("doc.md:1", "bimp evaluate ... --out results/x").problem
     assert "cannot be parsed" in command("doc.md:1", "bimp evaluate --set 'a=1 --out results/x").problem
 
