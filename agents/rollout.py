@@ -12,6 +12,7 @@ planner noise consume the same random bits.
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -98,6 +99,7 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
     ``on_step(env, obs, info)`` is called after the reset (``info`` of the reset) and after every step (for
     rendering); ``observations``, if given, receives every observation the policy acted on.
     """
+    _show_plan(env, None)  # the first frames draw no plan, and none of the episode before
     episode, obs, info = _start(env, seed)
     policy.reset(episode.policy_seed)
     scene = env.unwrapped.scene
@@ -110,6 +112,7 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
         start = time.perf_counter()
         action = policy.act(obs)
         plan_ms = 1e3 * (time.perf_counter() - start)
+        _show_plan(env, policy)  # the frame of this step (a video's, bimp render's) draws the plan just made
         obs, reward, terminated, truncated, info = env.step(action)
         _record(episode, scene, obs, reward, terminated, truncated, info, plan_ms)
         episode.trace["policy_info"].append(dict(policy.step_info))
@@ -163,7 +166,8 @@ def _said(episode: Episode) -> Episode:
 def with_video(env: gym.Env, folder: str | Path, name: str) -> gym.Env:
     """``env`` (made with ``render_mode="rgb_array"``) wrapped to write every episode to
     ``folder/{name}-episode-{i}.mp4`` at one frame per control step, i.e. real time (10 fps for dt = 0.1 s), through
-    gymnasium's ``RecordVideo`` (moviepy), headless."""
+    gymnasium's ``RecordVideo`` (moviepy), headless. Run by :func:`rollout`, each frame draws the policy's latest
+    plan (:func:`plan_overlay`)."""
     if env.render_mode != "rgb_array":
         raise ValueError(f"video needs an env made with render_mode='rgb_array', got {env.render_mode!r}")
     with warnings.catch_warnings():  # many episodes share one folder; each file has its own name
@@ -172,4 +176,50 @@ def with_video(env: gym.Env, folder: str | Path, name: str) -> gym.Env:
                                         fps=env.unwrapped.config["policy_frequency"], disable_logger=True)
 
 
-__all__ = ["Episode", "INFO_KEYS", "SEEDING", "episode_seeds", "rollout", "rollout_batch", "with_video"]
+# The plan in a frame: colours no road marking, vehicle or reference lane (bimp.envs.scenarios) is drawn in.
+PLAN_COLOUR = (255, 0, 255)  # magenta, 3 px: the mean plan's positions
+PARTICLE_COLOUR = (255, 175, 255)  # light magenta, 1 px: a few of the ensemble's particles rolled out
+PLAN_PARTICLES = 6
+
+
+def plan_overlay(policy, particles: int = PLAN_PARTICLES) -> list:
+    """The latest plan of ``policy`` as lines for a frame (:mod:`bimp.envs.overlay`, world ``[x, y]``): the mean
+    plan's states (EnKTS, EnKS: ``plan.states``; NMPC: ``plan[0]``) and, under them, the first ``particles`` of the
+    ensemble's controls (``plan.control_particles``) rolled out from the plan's first state with the planner's own
+    model (:func:`bimp.planners.core.roll_out`, as the mean's states are). Nothing for a policy that exposes no plan
+    (MPPI, the baselines), before its first ``act``, or for a batch."""
+    plan = getattr(policy, "plan", None)
+    states = plan[0] if isinstance(plan, tuple) else getattr(plan, "states", None)
+    if states is None or np.ndim(states) != 2:
+        return []
+    states = np.asarray(states, dtype=float)
+    lines = []
+    controls = getattr(plan, "control_particles", None)
+    model = getattr(policy, "_model", None)  # the EnKTS planner's vehicle model (bicycle or learned)
+    if particles > 0 and controls is not None and model is not None:
+        x0, u = np.asarray(states[0], np.float32), np.asarray(controls[:particles], np.float32)
+        rolled = np.asarray(_particle_roll_out()(model, x0, u), dtype=float)
+        lines += [(x[:, :2], PARTICLE_COLOUR, 1) for x in rolled]
+    return lines + [(states[:, :2], PLAN_COLOUR, 3)]
+
+
+@functools.cache
+def _particle_roll_out():
+    """:func:`bimp.planners.core.roll_out` over particles ``(n, H, 2)``, compiled once (un-compiled, a call traced
+    the scan anew: 0.2 s a frame)."""
+    import jax
+
+    from bimp.planners import core  # lazy: JAX, needed only for a rendered episode
+
+    return jax.jit(jax.vmap(core.roll_out, in_axes=(None, None, 0)))
+
+
+def _show_plan(env: gym.Env, policy) -> None:
+    """The frame hook: ``env``'s next frames draw the latest plan of ``policy`` (None: no plan), through
+    ``env.unwrapped.overlay``; only for an env rendering into arrays (videos, ``bimp render``): no cost otherwise."""
+    if env.render_mode == "rgb_array":
+        env.unwrapped.overlay = plan_overlay(policy) if policy is not None else []
+
+
+__all__ = ["Episode", "INFO_KEYS", "PARTICLE_COLOUR", "PLAN_COLOUR", "SEEDING", "episode_seeds", "plan_overlay",
+           "rollout", "rollout_batch", "with_video"]

@@ -65,6 +65,7 @@ from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from bimp.envs.overlay import draw_lines
 from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import (
     ACTUATOR_ACCEL,
@@ -504,21 +505,17 @@ class BimpEnv(AbstractEnv):
 
     def render(self):
         """highway-env's frame; in ``rgb_array`` mode (videos) with the reference lane drawn under the vehicles,
-        ahead of the EV over the paper's 2 s horizon at the reference speed: what the behaviour layer asks for."""
+        ahead of the EV over the paper's 2 s horizon at the reference speed: what the behaviour layer asks for; then
+        the lines a caller set in ``self.overlay`` (an agent's plan: :mod:`bimp.envs.overlay`)."""
         frame = super().render()
         if self.render_mode != "rgb_array" or self.viewer is None:
             return frame
-        import pygame  # highway-env's renderer, loaded by the render above
-        from highway_env.road.graphics import RoadGraphics
-
-        surface, road = self.viewer.sim_surface, self.scene.road
+        road = self.scene.road
         v_ref, _, lane = self.reference()
         s_e, _ = road.frenet(self.vehicle.position)
         s = s_e + np.linspace(0.0, 2.0 * max(v_ref, 5.0), 24)
-        pygame.draw.lines(surface, REFERENCE_COLOUR, False, [surface.vec2pix(p) for p in road.position(s, lane)], 3)
-        RoadGraphics.display_traffic(self.road, surface, simulation_frequency=self.config["simulation_frequency"],
-                                     offscreen=self.viewer.offscreen)
-        return self.viewer.get_image()
+        drawn = draw_lines(self, [(road.position(s, lane), REFERENCE_COLOUR, 3)])
+        return frame if drawn is None else drawn
 
     def step(self, action):
         """highway-env's step with the action checked (shape (2,), finite; clipped to [-1, 1]). After a step that

@@ -51,6 +51,7 @@ from gymnasium.error import ResetNeeded
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import build_route, route_from
+from bimp.envs.overlay import draw_lines
 from bimp.envs.road import Route, body_corners
 from bimp.envs.scene import (
     ACTUATOR_ACCEL,
@@ -286,6 +287,13 @@ class HighwayAdapter(gym.Wrapper):
         terminated = bool(terminated or safety["collision"] or safety["offroad"] or safety["goal"])
         self._ended = terminated
         return self._observe(), float(reward), terminated, bool(truncated), {**info, **safety}
+
+    def render(self):
+        """highway-env's own frame, in ``rgb_array`` mode with the lines a caller set in ``env.unwrapped.overlay``
+        (an agent's plan: :mod:`bimp.envs.overlay`) drawn under the vehicles."""
+        frame = self.env.render()
+        drawn = draw_lines(self.env.unwrapped) if frame is not None else None
+        return frame if drawn is None else drawn
 
     # --- the scene -------------------------------------------------------------------------------------------
     def _publish(self) -> None:
