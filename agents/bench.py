@@ -21,6 +21,20 @@ One thread everywhere: ``torch.set_num_threads(1)`` and ``OPENBLAS_NUM_THREADS=1
 latter only when numpy loads, and ``bimp`` has loaded numpy before this module (the ``agents`` package imports
 gymnasium), so unless the variable is already 1 the benchmark reruns itself in a fresh interpreter with it set.
 On a shared machine the numbers move with the load: compare ratios from one run, not times across runs.
+
+``--scenario ID`` (a wrapped highway-env id, e.g. ``highway-v0``; default ``overtaking``, the above) times EnKTS and
+EnKS on the general road instead: ``gym.make("bimp/ID", n_obstacles=K)`` from episode seed 0, driven by highway-env's
+IDM/MOBIL (the ``idm`` policy), its first observations recorded together with the scene that was current at each
+(the wrapped env republishes its scene, the road ahead of the EV, every step); each planner plans on a stand-in env
+whose scene is set to the recorded one before each call, so it sees what it would have seen in closed loop.
+Reported: EnKTS and EnKS at N = 50, H = 20, K = 8 OV slots, P = 160 road points every 1 m (``problem.road_points``,
+``problem.road_spacing``) with the floor at N = 50 and their ratios to it (target: EnKTS <= 5 ms); EnKTS for K in
+{2, 4, 8, 16} at P = 160 (observations recorded anew for each K: the same IDM episode, K slots) and for P in
+{40, 80, 160, 320, 640} at K = 8, the window's length held at 160 m (spacing 160 m / P: the same road ahead at a
+finer or coarser resolution), each with its ratio to the K = 8, P = 160 point of the same run. All of them (the
+floor too) are timed interleaved (:func:`time_interleaved`): each compiled first, then in rounds of one call each on
+the same recorded step, so a load that comes and goes falls on all alike. ``--quick``: K in
+{2, 8}, P in {40, 160}, 5 repeats. ``--note TEXT`` is stored in the JSON (e.g. what else loaded the machine).
 """
 
 from __future__ import annotations
@@ -41,6 +55,7 @@ from bimp import envs
 from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.registry import POLICIES, make_policy
 from bimp.agents.rollout import rollout
+from bimp.envs.highway.adapter import SUPPORTED as HIGHWAY_IDS
 from bimp.planners.dynamics import load_model
 
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -49,6 +64,12 @@ N_VALUES, N_QUICK = (50, 500, 2000), (50, 500)
 N_LARGE = 10_000  # EnKTS and EnKS only: MPPI and the floor take seconds there
 N_DEVICE = (50, 2000, 10_000, 100_000)
 H_DEFAULT, H_VALUES = 20, (10, 20, 40)
+# --scenario ID (a wrapped highway-env env): the point and the sweeps around it
+HIGHWAY_N, HIGHWAY_K, HIGHWAY_P = 50, 8, 160
+K_VALUES, K_QUICK = (2, 4, 8, 16), (2, 8)
+P_VALUES, P_QUICK = (40, 80, 160, 320, 640), (40, 160)
+ROAD_WINDOW = 160.0  # m: the P sweep's window length, road_spacing = ROAD_WINDOW / P (1 m at the default P = 160)
+TARGET_MS = 5.0  # issue 26 item 6: EnKTS median plan step at the point above
 
 
 def sampled() -> list[str]:
@@ -71,6 +92,32 @@ def observations(count: int):
     if len(recorded) < count:
         raise RuntimeError(f"the EnKTS driver ended the episode after {len(recorded)} steps; use fewer")
     return env, recorded
+
+
+class _Replay:
+    """A stand-in env for a planner on recorded (observation, scene) pairs: ``unwrapped.scene`` is whatever the
+    benchmark set last, the recorded scene of the observation about to be planned on."""
+
+    def __init__(self, scene):
+        self.scene = scene
+
+    @property
+    def unwrapped(self):
+        return self
+
+
+def highway_observations(scenario: str, count: int, n_obstacles: int) -> list[tuple]:
+    """The first ``count`` observations of ``bimp/<scenario>`` with ``n_obstacles`` OV slots, episode seed 0,
+    driven by highway-env's IDM/MOBIL (``idm``), each with the scene that was current when it was observed:
+    ``[(obs, scene), ...]``."""
+    env = gym.make(f"bimp/{scenario}", n_obstacles=n_obstacles)
+    pairs: list = []
+    episode = rollout(env, make_policy("idm", env), 0, max_steps=count,
+                      on_step=lambda e, obs, _: pairs.append((obs, e.unwrapped.scene)))
+    env.close()
+    if episode.steps < count:
+        raise RuntimeError(f"the IDM driver's episode on {scenario} ended after {episode.steps} steps; use fewer")
+    return pairs[:count]  # on_step also saw the observation after the last step, which nothing acted on
 
 
 def time_policy(name: str, env, sequence: list, repeats: int, horizon: int = H_DEFAULT, **overrides) -> dict:
@@ -97,6 +144,66 @@ def time_policy(name: str, env, sequence: list, repeats: int, horizon: int = H_D
         row["solver_failures"] = int(policy.failures)
         row["ipopt_statuses"] = dict(policy.statuses)
     return row
+
+
+def time_interleaved(entries: list[dict], repeats: int, progress=print) -> list[dict]:
+    """Time several planners side by side on recorded (observation, scene) pairs, interleaved: each entry
+    ``{"name", "pairs", "problem", "overrides", "row"}`` (``pairs``: ``[(obs, scene), ...]``, ``problem``: problem
+    keys besides the horizon, ``row``: fields for its row) is built and called once on ``pairs[0]`` after
+    ``jax.clear_caches()`` (its first call: compile + one plan), then every planner is reset and warmed anew (the
+    cache cleared for the later ones), and the timed calls go in rounds: round ``i`` calls each planner once on its
+    ``pairs[i + 1]``, the scene it sees set to that pair's (the order rotated each round). A load that comes and goes
+    on a shared machine then falls on every planner alike, and ratios within a run hold. ``None`` as an entry's
+    name times the floor (:func:`floor_ms`'s 20 MLP passes, on ``HIGHWAY_N`` rows) in the same rounds. Returns one
+    row per entry."""
+    import jax
+    import numpy as np
+
+    model, rng = load_model(), np.random.default_rng(0)
+    x = np.column_stack([np.zeros((HIGHWAY_N, 3)), rng.uniform(0, 30, HIGHWAY_N)])
+    u = np.column_stack([rng.uniform(-7, 3, HIGHWAY_N), rng.uniform(-0.05, 0.05, HIGHWAY_N)])
+
+    def floor_call(_: int) -> None:
+        for _ in range(H_DEFAULT):
+            model.change(x, u)
+
+    calls, firsts = [], []
+    for entry in entries:
+        if entry["name"] is None:
+            calls.append(floor_call)
+            firsts.append(None)
+            continue
+        pairs, env = entry["pairs"], _Replay(entry["pairs"][0][1])
+        jax.clear_caches()  # the first call then includes its compile, whatever ran before
+        policy = make_policy(entry["name"], env, problem={"horizon": H_DEFAULT, **entry["problem"]},
+                             **entry["overrides"])
+        policy.reset(0)
+        start = time.perf_counter()
+        policy.act(pairs[0][0])
+        firsts.append(1e3 * (time.perf_counter() - start))
+        progress(f"  built {entry['name']} {entry['row']} (first call {firsts[-1]:.0f} ms)")
+
+        def call(i: int, policy=policy, env=env, pairs=pairs) -> None:
+            obs, env.scene = pairs[i]
+            policy.act(obs)
+
+        calls.append((policy, env, pairs, call))
+    for c in calls:  # every planner from its start again, compiled anew (untimed) after the last cache clear
+        if isinstance(c, tuple):
+            policy, env, pairs, _ = c
+            policy.reset(0)
+            env.scene = pairs[0][1]
+            policy.act(pairs[0][0])
+    calls = [c[3] if isinstance(c, tuple) else c for c in calls]
+    times = np.empty((len(calls), repeats))
+    for i in range(repeats):
+        for j in np.roll(np.arange(len(calls)), -i):
+            start = time.perf_counter()
+            calls[j](i + 1)
+            times[j, i] = 1e3 * (time.perf_counter() - start)
+    return [{"planner": e["name"] or "floor", **e["row"], "horizon": H_DEFAULT, "repeats": repeats,
+             "median_ms": float(np.median(t)), "p95_ms": float(np.percentile(t, 95)),
+             **({"first_call_ms": f} if f is not None else {})} for e, t, f in zip(entries, times, firsts)]
 
 
 def floor_ms(n: int, repeats: int, horizon: int = H_DEFAULT) -> float:
@@ -153,10 +260,58 @@ def run(repeats: int, quick: bool, steps: int, progress=print) -> dict:
     return {
         "scenario": SCENARIO, "env_seed": 0, "steps_before": steps, "horizon": H_DEFAULT, "repeats": repeats,
         "threads": {"torch": torch.get_num_threads(), **{v: os.environ.get(v) for v in THREAD_VARS}},
-        "machine": {"python": platform.python_version(), "processor": platform.machine(), "cpus": os.cpu_count(),
-                    "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None},
+        "machine": _machine(),
         "float": "float32", "floor_ms": {str(n): f for n, f in floors.items()},
         "rows": rows, "nmpc": nmpc, "enkts_vs_horizon": h_rows, "ratios": ratios,
+    }
+
+
+def _machine() -> dict:
+    return {"python": platform.python_version(), "processor": platform.machine(), "cpus": os.cpu_count(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+
+
+def run_highway(scenario: str, repeats: int, quick: bool, steps: int, progress=print) -> dict:
+    """EnKTS and EnKS on a wrapped highway-env env's recorded observations (module docstring): the point
+    (N = 50, H = 20, K = 8, P = 160), the floor, the K and P sweeps; returns the JSON-ready result."""
+    import torch
+
+    torch.set_num_threads(1)
+    k_values, p_values = (K_QUICK, P_QUICK) if quick else (K_VALUES, P_VALUES)
+    count = steps + repeats + 1
+    recorded = {k: highway_observations(scenario, count, k)[steps:] for k in sorted({*k_values, HIGHWAY_K})}
+    point = [(HIGHWAY_K, HIGHWAY_P), *((k, HIGHWAY_P) for k in k_values if k != HIGHWAY_K),
+             *((HIGHWAY_K, p) for p in p_values if p != HIGHWAY_P)]  # the point first, then the sweeps' others
+    entries = [{"name": None, "pairs": None, "problem": {}, "overrides": {}, "row": {"n_particles": HIGHWAY_N}}]
+    for name, (k, p) in [("enkts", point[0]), ("enks", point[0]), *(("enkts", kp) for kp in point[1:])]:
+        entries.append({"name": name, "pairs": recorded[k], "problem": {"road_points": p,
+                                                                         "road_spacing": ROAD_WINDOW / p},
+                        "overrides": {"n_particles": HIGHWAY_N},
+                        "row": {"n_particles": HIGHWAY_N, "n_obstacles": k, "road_points": p,
+                                "road_spacing": ROAD_WINDOW / p}})
+    timed = time_interleaved(entries, repeats, progress)
+    floor_row, rows = timed[0], timed[1:3]
+    floor, base = floor_row["median_ms"], rows[0]
+    by_kp = {(r["n_obstacles"], r["road_points"]): r for r in [rows[0], *timed[3:]]}
+    k_sweep = [{**by_kp[k, HIGHWAY_P], "ratio": by_kp[k, HIGHWAY_P]["median_ms"] / base["median_ms"]}
+               for k in k_values]
+    p_sweep = [{**by_kp[HIGHWAY_K, p], "ratio": by_kp[HIGHWAY_K, p]["median_ms"] / base["median_ms"]}
+               for p in p_values]
+    for r in [*rows, floor_row]:
+        progress(f"  {r['planner']:<6} {r['median_ms']:9.2f} ms (p95 {r['p95_ms']:.2f})")
+    median = {r["planner"]: r["median_ms"] for r in rows}
+    return {
+        "scenario": scenario, "driver": "idm", "env_seed": 0, "steps_before": steps, "horizon": H_DEFAULT,
+        "n_particles": HIGHWAY_N, "n_obstacles": HIGHWAY_K, "road_points": HIGHWAY_P,
+        "road_spacing": ROAD_WINDOW / HIGHWAY_P, "repeats": repeats, "quick": quick,
+        "p_sweep_spacing": f"road_spacing = {ROAD_WINDOW:g} m / P: the window's length held, resolution varied",
+        "threads": {"torch": torch.get_num_threads(), **{v: os.environ.get(v) for v in THREAD_VARS}},
+        "machine": _machine(), "float": "float32", "timing": "interleaved",
+        "floor_ms": {str(HIGHWAY_N): floor}, "floor_p95_ms": floor_row["p95_ms"], "rows": rows,
+        "k_sweep": k_sweep, "p_sweep": p_sweep,
+        "ratios": {"enkts/floor": median["enkts"] / floor, "enks/floor": median["enks"] / floor,
+                   "enkts/enks": median["enkts"] / median["enks"]},
+        "target_ms": TARGET_MS, "target_met": median["enkts"] <= TARGET_MS,
     }
 
 
@@ -219,6 +374,39 @@ def report(result: dict) -> str:
     return "\n".join(lines)
 
 
+def report_highway(result: dict) -> str:
+    """The highway section as text: the point, then the K and P sweeps with their ratios to it."""
+    fmt = lambda r: f"{r['median_ms']:8.2f} ({r['p95_ms']:7.2f})"  # noqa: E731
+    load = result["machine"]["load_average"]
+    floor = result["floor_ms"][str(result["n_particles"])]
+    lines = [
+        f"plan-step time [ms], median (p95) of {result['repeats']} calls, one thread; bimp/{result['scenario']}, "
+        f"seed 0, IDM-driven steps {result['steps_before'] + 1}..{result['steps_before'] + result['repeats']}; "
+        f"N = {result['n_particles']}, H = {result['horizon']}"
+        + (f"; load average {load[0]:.2f} on {result['machine']['cpus']} CPUs" if load else ""),
+        f"K = {result['n_obstacles']} OVs, P = {result['road_points']} road points every "
+        f"{result['road_spacing']:g} m:",
+    ]
+    for r in result["rows"]:
+        lines.append(f"  {r['planner']:<6} {fmt(r)}  {r['median_ms'] / floor:5.1f}x floor"
+                     f"  (first call {r['first_call_ms']:.0f} ms)")
+    enkts = result["rows"][0]["median_ms"]
+    lines.append(f"  floor  {floor:8.2f}            (20 MLP passes on N rows, numpy float32)")
+    lines.append(f"  target EnKTS <= {result['target_ms']:g} ms: {'met' if result['target_met'] else 'NOT met'} "
+                 f"({enkts:.2f} ms, {result['ratios']['enkts/floor']:.1f}x floor)")
+    lines.append(f"EnKTS vs K (P = {result['road_points']}):")
+    lines.append(f"  {'K':>5} {'median (p95)':>18} {'vs K=' + str(result['n_obstacles']):>8}")
+    for r in result["k_sweep"]:
+        lines.append(f"  {r['n_obstacles']:>5} {fmt(r)} {r['ratio']:>7.2f}x")
+    lines.append(f"EnKTS vs P (K = {result['n_obstacles']}; {result['p_sweep_spacing']}):")
+    lines.append(f"  {'P':>5} {'spacing':>8} {'median (p95)':>18} {'vs P=' + str(result['road_points']):>8}")
+    for r in result["p_sweep"]:
+        lines.append(f"  {r['road_points']:>5} {r['road_spacing']:>6.2f} m {fmt(r)} {r['ratio']:>7.2f}x")
+    if result.get("note"):
+        lines.append(f"note: {result['note']}")
+    return "\n".join(lines)
+
+
 def report_device(result: dict) -> str:
     lines = [f"EnKTS on {result['device']}, H = {result['horizon']}, {result['float']}, median (p95) of "
              f"{result['repeats']} calls:"]
@@ -231,14 +419,22 @@ def report_device(result: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per planner (default 30, quick 5)")
-    parser.add_argument("--quick", action="store_true", help="N in {50, 500} and 5 repeats")
-    parser.add_argument("--steps", type=int, default=5, help="EnKTS-driven env steps before the timed ones")
+    parser.add_argument("--quick", action="store_true",
+                        help="N in {50, 500} and 5 repeats (--scenario ID: K in {2, 8}, P in {40, 160})")
+    parser.add_argument("--steps", type=int, default=5,
+                        help="env steps before the timed ones (driven by EnKTS; by IDM with --scenario ID)")
     parser.add_argument("--device", action="store_true", help="EnKTS alone on JAX's default device, N up to 10^5")
+    parser.add_argument("--scenario", default=SCENARIO, choices=(SCENARIO, *HIGHWAY_IDS),
+                        help="overtaking (the paper's, default) or a wrapped highway-env id: EnKTS and EnKS on its "
+                             "road, with K and P sweeps")
+    parser.add_argument("--note", default=None, help="a remark stored in the JSON (e.g. what else loaded the machine)")
     parser.add_argument("--out", type=Path, default=None, help="also write the result as JSON here")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     repeats = args.repeats if args.repeats is not None else (5 if args.quick else 30)
     if repeats < 1 or args.steps < 0:
         parser.error("--repeats must be >= 1 and --steps >= 0")
+    if args.device and args.scenario != SCENARIO:
+        parser.error("--device times the overtaking scenario only")
     if args.out is not None:  # before minutes of timing, not after
         try:
             if args.out.is_dir() or not args.out.name:
@@ -252,12 +448,16 @@ def main(argv: list[str] | None = None) -> int:
         forwarded = list(sys.argv[1:] if argv is None else argv)
         return subprocess.run([sys.executable, "-m", "bimp.agents.bench", *forwarded], env=env).returncode
     print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
+    progress = lambda s: print(s, flush=True)  # noqa: E731
     if args.device:
-        result = run_device(repeats, args.steps, progress=lambda s: print(s, flush=True))
-        text = report_device(result)
+        result, render = run_device(repeats, args.steps, progress=progress), report_device
+    elif args.scenario != SCENARIO:
+        result, render = run_highway(args.scenario, repeats, args.quick, args.steps, progress=progress), report_highway
     else:
-        result = run(repeats, args.quick, args.steps, progress=lambda s: print(s, flush=True))
-        text = report(result)
+        result, render = run(repeats, args.quick, args.steps, progress=progress), report
+    if args.note:
+        result["note"] = args.note
+    text = render(result) + (f"\nnote: {args.note}" if args.note and render is not report_highway else "")
     print()
     print(text)
     if args.out is not None:

@@ -1,8 +1,12 @@
-"""bimp.agents.bench: the report of a synthetic result (no timing here: benchmarks are never timed tests) and the
-argument checks."""
+"""bimp.agents.bench: the report of a synthetic result (no timing here: benchmarks are never timed tests), the
+argument checks, the highway scenario's recorded (observation, scene) pairs and (slow) one quick highway run."""
 
 from __future__ import annotations
 
+import json
+import math
+
+import numpy as np
 import pytest
 
 from bimp.agents import bench
@@ -37,7 +41,61 @@ def test_report_lists_every_planner_and_ratio():
     assert text.count("\n") >= 6
 
 
-@pytest.mark.parametrize("argv", [["--repeats", "0"], ["--steps", "-1"], ["--bogus"]])
+@pytest.mark.parametrize("argv", [["--repeats", "0"], ["--steps", "-1"], ["--bogus"], ["--scenario", "bogus-v0"],
+                                  ["--device", "--scenario", "highway-v0"]])
 def test_bad_arguments_exit(argv):
     with pytest.raises(SystemExit):
         bench.main(argv)
+
+
+def synthetic_highway_result() -> dict:
+    row = lambda p, m, **kw: {"planner": p, "n_particles": 50, "horizon": 20, "repeats": 3,  # noqa: E731
+                              "median_ms": m, "p95_ms": 2 * m, "first_call_ms": 4000.0, **kw}
+    base = row("enkts", 2.0, n_obstacles=8, road_points=160, road_spacing=1.0)
+    k_sweep = [{**row("enkts", 2.0 * k / 8, n_obstacles=k, road_points=160, road_spacing=1.0), "ratio": k / 8}
+               for k in (2, 8)]
+    p_sweep = [{**row("enkts", 2.0 * p / 160, n_obstacles=8, road_points=p, road_spacing=160 / p), "ratio": p / 160}
+               for p in (40, 160)]
+    return {"scenario": "highway-v0", "steps_before": 5, "horizon": 20, "n_particles": 50, "n_obstacles": 8,
+            "road_points": 160, "road_spacing": 1.0, "repeats": 3, "p_sweep_spacing": "road_spacing = 160 m / P",
+            "machine": {"load_average": [4.0, 4.0, 4.0], "cpus": 2}, "floor_ms": {"50": 0.5},
+            "rows": [base, row("enks", 1.5, n_obstacles=8, road_points=160, road_spacing=1.0)],
+            "k_sweep": k_sweep, "p_sweep": p_sweep, "ratios": {"enkts/floor": 4.0, "enks/floor": 3.0},
+            "target_ms": 5.0, "target_met": True, "note": "loaded"}
+
+
+def test_highway_report_lists_point_and_sweeps():
+    text = bench.report_highway(synthetic_highway_result())
+    assert "bimp/highway-v0" in text and "K = 8 OVs, P = 160" in text and "4.0x floor" in text and "3.0x floor" in text
+    assert "target EnKTS <= 5 ms: met" in text and "load average 4.00" in text and "note: loaded" in text
+    assert "EnKTS vs K" in text and "0.25x" in text and "EnKTS vs P" in text and "4.00 m" in text
+
+
+def test_highway_observations_pair_each_observation_with_its_scene():
+    """The wrapped env republishes its scene (the road from 30 m behind the EV) every step: each recorded
+    observation comes with the scene that was current then, so the EV sits 30 m along that scene's road."""
+    pairs = bench.highway_observations("highway-fast-v0", 4, 2)
+    assert len(pairs) == 4 and len({id(scene) for _, scene in pairs}) == 4
+    for obs, scene in pairs:
+        assert obs.shape == (scene.obs_dim,) and scene.n_obstacles == 2
+        assert abs(float(scene.road.project(np.asarray(obs[:2], float)).s) - float(scene.road.s[0]) - 30.0) < 1.0
+
+
+@pytest.mark.slow
+def test_highway_quick_run_has_both_sweeps():
+    """A real (quick) highway run: the point, the K and P sweeps with finite times and their ratios (not a timed
+    test: nothing is asserted about the times themselves)."""
+    result = bench.run_highway("highway-fast-v0", repeats=2, quick=True, steps=0, progress=lambda _: None)
+    json.dumps(result)
+    assert [r["planner"] for r in result["rows"]] == ["enkts", "enks"]
+    assert [r["n_obstacles"] for r in result["k_sweep"]] == list(bench.K_QUICK)
+    assert [r["road_points"] for r in result["p_sweep"]] == list(bench.P_QUICK)
+    for r in [*result["rows"], *result["k_sweep"], *result["p_sweep"]]:
+        assert math.isfinite(r["median_ms"]) and math.isfinite(r["p95_ms"]) and r["median_ms"] > 0
+    for r in [*result["k_sweep"], *result["p_sweep"]]:
+        assert math.isfinite(r["ratio"]) and r["ratio"] > 0
+        assert r["road_spacing"] * r["road_points"] == pytest.approx(bench.ROAD_WINDOW)
+    point = [r for r in result["k_sweep"] if r["n_obstacles"] == 8]
+    assert point[0]["ratio"] == 1.0 and point[0]["road_points"] == 160
+    assert all(math.isfinite(v) for v in result["ratios"].values()) and isinstance(result["target_met"], bool)
+    assert "EnKTS vs K" in bench.report_highway(result)
