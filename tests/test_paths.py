@@ -66,7 +66,10 @@ def test_no_other_tracked_text_file_names_a_folder_of_a_machine():
 
 def test_no_resolved_config_names_the_checkout():
     # What a record's config and hash are made of, for every registered policy on every scenario.
-    for arm in resolve_arms(envs.default_scenarios(), sorted(POLICIES)):
+    # idm drives highway-env's own roads only (it is highway-env's driver, through bimp.envs.wrap)
+    arms = [*resolve_arms(envs.default_scenarios(), sorted(set(POLICIES) - {"idm"})),
+            *resolve_arms(["highway-fast-v0"], ["idm", "enkts", "mppi", "lane-keep"])]
+    for arm in arms:
         assert not MACHINE_PATH.search(arm.config.encode()), (arm.scenario, arm.label, arm.config)
 
 
