@@ -6,7 +6,8 @@ simulated, never in the road's vehicle list) and asked what highway-env's driver
 - route: the EV's route (its destination in exit, roundabout, u-turn and intersection; on the other roads the lane
   graph's own choice, ``RoadNetwork.next_lane``), followed by ``follow_road``;
 - lane: MOBIL (``change_lane_policy`` / ``mobil``, politeness and thresholds as highway-env's traffic has them) on
-  multi-lane roads; an ending lane is left when highway-env's driver leaves it (its route moves to the next road's
+  multi-lane roads, never into a lane that oncoming traffic drives on (:class:`ShadowDriver`); an ending lane is
+  left when highway-env's driver leaves it (its route moves to the next road's
   nearest lane at the end, and MOBIL's incentive comes from the lane's end as an obstacle only where highway-env
   models one);
 - speed: IDM (``acceleration``) towards the target speed of the env's config (the adapter's table), capped by the
@@ -47,6 +48,28 @@ class BehaviourRule:
         return cls(float(target_speed), tuple((k, float(getattr(IDMVehicle, k))) for k in _IDM_KEYS), n_obstacles)
 
 
+class ShadowDriver(IDMVehicle):
+    """highway-env's IDM + MOBIL driver, except that MOBIL never picks a lane that oncoming traffic drives on as a
+    lane to travel in. two-way-v0 draws its left lane twice, once per direction (``("a", "b", 0)`` and
+    ``("b", "a", 0)``, the same centreline): highway-env's MOBIL sees no vehicle on the former (the oncoming ones are
+    on the latter), moved the EV into it, and the EV then met the oncoming traffic head on and stopped there (EnKTS,
+    development seeds). Overtaking in the oncoming lane is a decision of its own (the suite's two-way-overtake)."""
+
+    def mobil(self, lane_index) -> bool:
+        return not carries_oncoming_traffic(self.road.network, lane_index) and super().mobil(lane_index)
+
+
+def carries_oncoming_traffic(network, lane_index) -> bool:
+    """Whether a lane of the opposite direction between the same nodes runs along ``lane_index``'s centreline (its
+    start on the lane's end, within half a lane width)."""
+    _from, _to, _ = lane_index
+    lane = network.get_lane(lane_index)
+    start, end = lane.position(0.0, 0.0), lane.position(lane.length, 0.0)
+    return any(np.linalg.norm(other.position(0.0, 0.0) - end) < lane.width_at(0.0) / 2
+               and np.linalg.norm(other.position(other.length, 0.0) - start) < lane.width_at(0.0) / 2
+               for other in network.graph.get(_to, {}).get(_from, []))
+
+
 class Behaviour:
     """highway-env's IDM + MOBIL driver shadowing the EV of ``env`` (a highway-env env). ``target_speed`` [m/s]:
     the speed it aims for on a free road."""
@@ -54,7 +77,7 @@ class Behaviour:
     def __init__(self, env, target_speed: float):
         self.env, self.target_speed = env, float(target_speed)
         ev = env.vehicle
-        self.shadow = IDMVehicle(env.road, np.array(ev.position, float), heading=ev.heading, speed=ev.speed,
+        self.shadow = ShadowDriver(env.road, np.array(ev.position, float), heading=ev.heading, speed=ev.speed,
                                  target_lane_index=ev.lane_index, target_speed=self.target_speed,
                                  route=copy.deepcopy(getattr(ev, "route", None)) or None, timer=0.0)
         self.action = {"acceleration": 0.0, "steering": 0.0}

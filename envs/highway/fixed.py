@@ -43,6 +43,12 @@ class RoutedVehicle(Vehicle):
     route = None
     plan_route_to = ControlledVehicle.plan_route_to
 
+    def step(self, dt: float) -> None:
+        # Never in reverse: highway-env's Vehicle brakes through 0 into reverse (MIN_SPEED = -40 m/s); bimp's EV
+        # stops at 0, as the paper's EV does and as the planners' vehicle model (trained with that clamp) predicts.
+        super().step(dt)
+        self.speed = max(self.speed, 0.0)
+
 
 class RoutedContinuousAction(ContinuousAction):
     """highway-env's ``ContinuousAction`` whose EV is a :class:`RoutedVehicle`."""

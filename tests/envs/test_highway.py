@@ -118,3 +118,22 @@ def test_route_past_the_end_of_the_network_is_padded():
         assert np.all(np.isfinite(getattr(road, field)))
     window = road.window(road.s[-1] - 10.0, 50, 1.0)  # a planner's window past the end: still finite
     assert np.all(np.isfinite(window.xy))
+
+
+def test_the_behaviour_layer_never_travels_in_the_oncoming_lane_and_the_ev_never_reverses():
+    """two-way-v0 draws its left lane once per direction: highway-env's MOBIL took the EV into it, where it met the
+    oncoming traffic head on and stopped (EnKTS on development seeds: 235 m of progress in 40 s against IDM's 665).
+    The shadow driver refuses that lane; and the EV stops at 0 instead of braking into reverse."""
+    from bimp.envs.highway.behaviour import carries_oncoming_traffic
+
+    env = gym.make("bimp/two-way-v0")
+    env.reset(seed=3)
+    network = env.unwrapped.road.network
+    assert carries_oncoming_traffic(network, ("a", "b", 0)) and not carries_oncoming_traffic(network, ("a", "b", 1))
+    for _ in range(60):  # full brake, then on: the EV stays at 0 and in its own (right) lane
+        obs, _, terminated, truncated, info = env.step(np.array([-1.0, 0.0], np.float32))
+        assert env.unwrapped.vehicle.speed >= 0.0
+        assert env.get_wrapper_attr("behaviour").target_lane_index != ("a", "b", 0)
+        if terminated or truncated:
+            break
+    assert env.unwrapped.vehicle.speed == 0.0
