@@ -248,3 +248,29 @@ def test_config_file_goes_on_top_of_the_shipped_settings(tmp_path):
     assert (mine.problem.horizon, mine.n_particles, mine.max_innovation) == (12, 100, 3.0)
     assert mine.problem.sigma_du == shipped.problem.sigma_du  # configs/problem.yaml still under it, key by key
     assert math.isinf(make_enks(env, config=path).config.problem.nu)  # EnKS's nu over the file
+
+
+@pytest.mark.filterwarnings("ignore")
+@pytest.mark.parametrize("highway_id", ["highway-v0", "highway-fast-v0", "merge-v0", "exit-v0", "roundabout-v0",
+                                        "two-way-v0", "u-turn-v0", "racetrack-v0", "intersection-v0"])
+def test_enkts_drives_every_wrapped_highway_env_id(highway_id):
+    """A short seeded episode on each supported highway-env road (issue 26): the scene changes every step (a new
+    road window), actions stay finite and in the space, no plan falls back; and the same seed and observations give
+    the same actions on a second env of the id."""
+    runs = []
+    for _ in range(2):
+        env = gym.make(f"bimp/{highway_id}")
+        policy = make_policy("enkts", env, n_particles=20, problem={"horizon": 8})
+        obs, _ = env.reset(seed=7)
+        policy.reset(7)
+        actions = []
+        for _ in range(12):
+            action = policy.act(obs)
+            assert action.shape == (2,) and np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
+            assert not policy.step_info["fallback"]
+            actions.append(action)
+            obs, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                break
+        runs.append(np.array(actions))
+    np.testing.assert_array_equal(runs[0], runs[1])
