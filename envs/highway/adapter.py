@@ -249,7 +249,7 @@ class HighwayAdapter(gym.Wrapper):
         # parameters, highway-env's config as options (every key but rendering), the behaviour layer's rule.
         base.PARAMS, base.drawn_params = {}, {}
         base.OPTIONS = {k: (v,) for k, v in base.config.items() if k not in _VIEW_KEYS}
-        base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles)
+        base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]
         self.behaviour = Behaviour(base, self.profile.target_speed)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)
@@ -331,13 +331,13 @@ class HighwayAdapter(gym.Wrapper):
 
     def _goal(self) -> bool:
         """highway-env's goal where its env has one (``info["goal"]``; success needs it or the time limit):
-        exit-v0's ``_is_success`` (the exit taken), intersection-v0's ``has_arrived`` (crossed, on the exit road),
+        exit-v0's exit road reached (the exit taken), intersection-v0's ``has_arrived`` (crossed, on the exit road),
         merge-v0's end of the road (x > 370 m, where highway-env ends it) and, on roundabout-v0, the last road of
         the EV's route reached (the roundabout left); past exit's and roundabout's the EV would run off the end of
         the network, so the adapter ends the episode there."""
         base = self.env.unwrapped
-        if self.highway_id == "exit-v0":
-            return bool(base._is_success())
+        if self.highway_id == "exit-v0":  # on the exit road (highway-env's _is_success also counts the lane beside it)
+            return tuple(base.vehicle.lane_index[:2]) == ("2", "exit")
         if self.highway_id == "intersection-v0":
             return bool(base.has_arrived(base.vehicle))
         if self.highway_id == "merge-v0":

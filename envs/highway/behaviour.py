@@ -23,11 +23,16 @@ road's vehicle list holds the shadow, so the EV is not its own neighbour; the li
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
 
+# Bumped whenever the adapter or the behaviour layer changes what an episode does, so that records made before are
+# another scenario definition, never resumed as this one's. 2: routes that skip non-adjacent lane joins, the EV that
+# never reverses, MOBIL that never travels in an oncoming lane, the traffic's IDM parameters restored per reset.
+VERSION = 2
 _IDM_KEYS = ("ACC_MAX", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "DISTANCE_WANTED", "TIME_WANTED", "DELTA", "POLITENESS",
              "LANE_CHANGE_MIN_ACC_GAIN", "LANE_CHANGE_MAX_BRAKING_IMPOSED", "LANE_CHANGE_DELAY")
 
@@ -36,16 +41,23 @@ _IDM_KEYS = ("ACC_MAX", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "DISTANCE_WANTED",
 class BehaviourRule:
     """The behaviour layer's rule as an evaluation arm records it (``env.unwrapped.BEHAVIOUR``, as the paper's envs
     publish theirs): the free-road ``target_speed`` [m/s], highway-env's IDM and MOBIL parameters as its
-    ``IDMVehicle`` class holds them now (intersection-v0 changes some for every ``IDMVehicle``), and the adapter's
-    ``n_obstacles``. A changed rule is a changed scenario."""
+    ``IDMVehicle`` class holds them now (intersection-v0 changes some for its own traffic), the adapter's
+    ``n_obstacles``, its per-id ``profile`` (planning bounds, actuator range, target speed, duration) and the
+    code's ``version`` (:data:`VERSION`: bumped whenever the adapter or this layer changes what an episode does).
+    A changed rule is a changed scenario."""
 
     target_speed: float
     idm: tuple
     n_obstacles: int
+    profile: str = ""
+    version: int = VERSION
 
     @classmethod
-    def current(cls, target_speed: float, n_obstacles: int) -> "BehaviourRule":
-        return cls(float(target_speed), tuple((k, float(getattr(IDMVehicle, k))) for k in _IDM_KEYS), n_obstacles)
+    def current(cls, target_speed: float, n_obstacles: int, profile=None) -> "BehaviourRule":
+        """The rule now; ``profile``: the adapter's per-id numbers (planning bounds, actuator range), recorded too."""
+        numbers = tuple(sorted(dataclasses.asdict(profile).items())) if profile is not None else ()
+        return cls(float(target_speed), tuple((k, float(getattr(IDMVehicle, k))) for k in _IDM_KEYS), n_obstacles,
+                   repr(numbers), VERSION)
 
 
 class ShadowDriver(IDMVehicle):

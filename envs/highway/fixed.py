@@ -32,6 +32,7 @@ from highway_env.envs.racetrack_env import RacetrackEnv
 from highway_env.envs.roundabout_env import RoundaboutEnv
 from highway_env.envs.two_way_env import TwoWayEnv
 from highway_env.envs.u_turn_env import UTurnEnv
+from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle, MDPVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
@@ -71,6 +72,12 @@ class NoObservation(ObservationType):
         return np.zeros(1, dtype=np.float32)
 
 
+# The traffic classes' driver parameters as highway-env defines them, read when this module loads (before any env
+# of the process is made through it). See AdaptedEnv._reset.
+_TRAFFIC_DEFAULTS = {cls: {k: v for k, v in vars(cls).items() if k.isupper() and isinstance(v, (int, float))}
+                     for cls in (IDMVehicle,)}
+
+
 class AdaptedEnv:
     """The mixin every adapted env puts before highway-env's class (see the module docstring)."""
 
@@ -84,6 +91,13 @@ class AdaptedEnv:
         self.action_space = self.action_type.space()
 
     def _reset(self) -> None:
+        # intersection-v0 writes its traffic's IDM parameters onto the vehicle class itself (DISTANCE_WANTED,
+        # COMFORT_ACC_MAX, COMFORT_ACC_MIN), for every env of the process made after it: the traffic and the
+        # behaviour layer of a highway-v0 episode depended on whether an intersection had run before it in the same
+        # worker. Every adapted env starts from highway-env's own values; intersection-v0 then sets its own again.
+        for cls, values in _TRAFFIC_DEFAULTS.items():
+            for key, value in values.items():
+                setattr(cls, key, value)
         super()._reset()
         ev = self.vehicle
         if self.DESTINATION and isinstance(ev, RoutedVehicle) and not ev.route:

@@ -20,6 +20,7 @@ BEHIND, AHEAD, SPACING = 30.0, 250.0, 1.0  # m
 EDGE_EVERY = 5  # edges are measured at every 5th point (every 5 m) and interpolated: lanes are smooth at that scale
 MAX_LANES = 64  # a lane graph walk longer than this is a cycle walked again (racetrack): stop there
 NEAR = 30.0  # m: a lane whose centre is further to the side than this is not beside the route
+JOIN = 2.0  # m: a next lane that starts further than this from where the lane ends does not continue it
 
 
 def lane_walk(network, index, s_from: float, length: float, route=None, spacing: float = SPACING):
@@ -39,11 +40,40 @@ def lane_walk(network, index, s_from: float, length: float, route=None, spacing:
         remaining -= max(end - s, 0.0)
         if remaining <= 1e-6:
             break
-        following = network.next_lane(index, route=plan, position=lane.position(lane.length, 0.0))
-        if following == index:  # the end of the network
-            break
-        index, s = following, 0.0
+        end_xy, end_heading = lane.position(lane.length, 0.0), lane.heading_at(lane.length)
+        following = network.next_lane(index, route=plan, position=end_xy)
+        if following != index and _gap(network, following, end_xy) > JOIN:
+            # The route's next road goes on from another lane of this one (exit-v0: the exit leaves from the right
+            # lane, 24 m to the side): walk the lane that goes on from here; the lane change is the reference's.
+            following = network.next_lane(index, route=None, position=end_xy)
+        if following == index or following[1] == index[0] or _gap(network, following, end_xy) > JOIN \
+                or abs(_turn(network.get_lane(following).heading_at(0.0), end_heading)) > np.pi / 2:
+            break  # the end of the network, or a way back (past an intersection's exit road): padded straight
+        # Go on from abreast of where this lane ended: lanes may overlap at a join (racetrack-v0: by 0.44 m, and the
+        # polyline ran backwards there).
+        index = following
+        s = max(0.0, float(network.get_lane(index).local_coordinates(end_xy)[0]))
     return np.asarray(xy, float), np.asarray(heading, float), lanes
+
+
+def _spaced(xy: np.ndarray, least: float) -> np.ndarray:
+    """Mask ``(P,)`` keeping the first point and every one at least ``least`` m from the last kept: a stub segment
+    (a lane's last sample a few mm before its end) has a chord direction of no meaning, and projection divides by
+    its length."""
+    keep, last = np.zeros(len(xy), bool), None
+    for i, point in enumerate(xy):
+        if last is None or np.hypot(*(point - last)) >= least:
+            keep[i], last = True, point
+    return keep
+
+
+def _gap(network, index, point: np.ndarray) -> float:
+    """Distance [m] from ``point`` to the start of lane ``index``'s centreline."""
+    return float(np.linalg.norm(network.get_lane(index).position(0.0, 0.0) - point))
+
+
+def _turn(heading: float, reference: float) -> float:
+    return (heading - reference + np.pi) % (2 * np.pi) - np.pi
 
 
 def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, float]:
@@ -83,7 +113,7 @@ def build_route(network, index, position, route=None, behind: float = BEHIND, ah
     s0, _ = lane.local_coordinates(np.asarray(position, float))
     start = float(np.clip(s0 - behind, 0.0, max(lane.length - spacing, 0.0)))
     xy, heading, lanes = lane_walk(network, index, start, ahead + (s0 - start), route_from(route, index), spacing)
-    keep = np.concatenate([[True], np.hypot(*np.diff(xy, axis=0).T) > 1e-3])  # lane joins repeat a point
+    keep = _spaced(xy, spacing / 2)  # a lane's end sample and joins give points closer than that: no stub segments
     xy, heading, lanes = xy[keep], np.unwrap(heading[keep]), [lane_ for lane_, k in zip(lanes, keep) if k]
     if len(xy) < 2:  # a lane shorter than a point's spacing at the network's end: one step along its heading
         xy = np.vstack([xy, xy[-1] + spacing * np.array([np.cos(heading[-1]), np.sin(heading[-1])])])

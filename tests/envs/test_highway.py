@@ -137,3 +137,41 @@ def test_the_behaviour_layer_never_travels_in_the_oncoming_lane_and_the_ev_never
         if terminated or truncated:
             break
     assert env.unwrapped.vehicle.speed == 0.0
+
+
+@pytest.mark.parametrize("highway_id", SUPPORTED)
+def test_the_route_is_continuous_along_its_heading(highway_id):
+    """Every published road is a polyline of about 1 m segments running along its stored heading: no chord across a
+    gap between lanes that do not join (exit-v0's exit road starts 24 m beside the left lanes), no stub at a lane's
+    end, no way back past an intersection's exit, no step backwards where racetrack-v0's lanes overlap at a join."""
+    from bimp import make_policy
+
+    env = gym.make(f"bimp/{highway_id}")
+    policy = make_policy("idm", env)
+    obs, _ = env.reset(seed=1)
+    for _ in range(80):
+        road = env.unwrapped.scene.road
+        chord = np.diff(road.xy, axis=0)
+        length = np.hypot(*chord.T)
+        assert 0.5 - 1e-9 <= length.min() and length.max() <= 1.5, (length.min(), length.max())
+        along = (np.arctan2(chord[:, 1], chord[:, 0]) - (road.heading[1:] + road.heading[:-1]) / 2 + np.pi) \
+            % (2 * np.pi) - np.pi
+        assert np.abs(along).max() < 0.5  # racetrack-v0's lanes meet 0.35 m apart at one join: 0.44 rad there
+        obs, _, terminated, truncated, _ = env.step(policy.act(obs))
+        if terminated or truncated:
+            break
+
+
+def test_intersection_leaves_the_traffic_parameters_of_the_next_env_alone():
+    """highway-env's intersection-v0 writes its IDM parameters onto the class: the next env made in the process
+    (and the arm its records fall in) must not depend on whether an intersection ran before it."""
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    before = gym.make("bimp/highway-fast-v0")
+    before.reset(seed=0)
+    rule = before.unwrapped.BEHAVIOUR
+    gym.make("bimp/intersection-v0").reset(seed=0)
+    assert IDMVehicle.DISTANCE_WANTED == 7  # intersection-v0's own
+    after = gym.make("bimp/highway-fast-v0")
+    after.reset(seed=0)
+    assert after.unwrapped.BEHAVIOUR == rule and IDMVehicle.DISTANCE_WANTED != 7
