@@ -41,6 +41,8 @@ def lane_walk(network, index, s_from: float, length: float, route=None, spacing:
         if remaining <= 1e-6:
             break
         end_xy, end_heading = lane.position(lane.length, 0.0), lane.heading_at(lane.length)
+        if plan and not (tuple(plan[0][:2]) == tuple(index[:2]) or plan[0][0] == index[1]):
+            plan = None  # the walk has left the route: the lane graph's own choice (and no warning from highway-env)
         following = network.next_lane(index, route=plan, position=end_xy)
         if following != index and _gap(network, following, end_xy) > JOIN:
             # The route's next road goes on from another lane of this one (exit-v0: the exit leaves from the right
