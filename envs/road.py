@@ -1,7 +1,10 @@
 """Road geometry shared by the simulator and the planners.
 
-The road is a centreline made of a straight, a circular arc and a straight (the paper's curved highway;
-an arc angle of 0 gives a straight road). Points are described in road (Frenet) coordinates ``(s, l)``:
+Two descriptions of a road. :class:`Route`, the general road every planner reads: the EV's route as a centreline
+polyline with its heading, curvature and the drivable area's edges (:func:`project` puts points on it, numpy or JAX).
+:class:`RoadGeometry`, the paper's closed form (a straight, a circular arc and a straight; an arc angle of 0 gives a
+straight road), from which the paper's envs build their lanes and sample their route, NMPC writes its CasADi program
+and the tests check the polyline. Points are described in road (Frenet) coordinates ``(s, l)``:
 ``s`` is the arc length along the centreline, ``l`` the lateral offset, positive to the *right* of the
 direction of travel (highway-env's convention: +y at heading 0, the bottom of the rendered image).
 Lane ``i`` of ``n`` has its centre at ``l = (i - (n - 1) / 2) * lane_width``, so lane 0 is the left lane and
@@ -284,9 +287,9 @@ def project(route, xy) -> Projection:
                       lerp(route.left, inner), lerp(route.right, inner))
 
 
-# --- the road frame as functions of the geometry's numbers -----------------------------------------------------
-# One definition for the env (numpy, through RoadGeometry) and the planners (jax.numpy, with the geometry as
-# traced parameters, so a redrawn road does not recompile): the array module follows the inputs.
+# --- the closed form's road frame as functions of its numbers ----------------------------------------------------
+# RoadGeometry's queries (numpy or JAX: the array module follows the inputs). The planners no longer call them (they
+# project on a Route); they remain the paper road's exact description and the tests' oracle for the polyline.
 def array_module(*arrays):
     """``jax.numpy`` if any of ``arrays`` is a JAX array (a tracer included), else ``numpy``: what the shared
     numpy-or-JAX functions (here, :mod:`bimp.envs.scene`, :mod:`bimp.planners.problem`) compute with. JAX is

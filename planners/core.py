@@ -316,7 +316,7 @@ _BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None,
 
 @partial(jax.jit, static_argnums=1)
 def plan_batch(problem: Problem, cfg: Settings, carry: Carry, obs: jnp.ndarray, keys: jax.Array):
-    """:func:`plan_step` for ``B`` episodes at once: ``problem.road`` leaves ``(B,)``, ``carry`` and ``obs`` with a
+    """:func:`plan_step` for ``B`` episodes at once: ``problem.road`` leaves ``(B, P)``, ``carry`` and ``obs`` with a
     leading ``B``, ``keys (B,)``. Row ``i`` equals ``plan_step`` on row ``i``'s arguments."""
     return jax.vmap(_plan, in_axes=(_BATCH_AXES, None, 0, 0, 0))(problem, cfg, carry, obs, keys)
 
