@@ -31,20 +31,23 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
     """Scalar metrics of one episode. ``truncated``: the episode reached its time limit (not terminated).
 
     Rates over steps (``input_violation_rate``, ``rate_violation_rate``) are the share of steps whose
-    commanded input breaks a bound; ``success_rate`` of one episode is 1 when it reached the time limit, or the
-    env's goal (``info["goal"]``: a wrapped highway-env env's exit taken, intersection crossed, roundabout left,
-    merge road's end), without collision or leaving the road. ``min_ttc_s`` is ``None`` when no OV was ever closing in.
+    commanded input breaks a bound; ``success_rate`` of one episode is 1 when it reached the env's goal where the
+    env has one (``info["goal"]`` a bool: a wrapped highway-env env's exit taken, intersection crossed, roundabout
+    left, merge road's end; the time limit alone is not enough there), else the time limit (``goal`` None or
+    absent), without collision or leaving the road. ``min_ttc_s`` is ``None`` when no OV was ever closing in.
     """
     c = trace["constraints"]
     inputs = np.array(trace["input"], dtype=float).reshape(-1, 2)
     input_viol = [max(k["accel_min"], k["accel_max"], k["steer"]) > TOLERANCE for k in c]
     rate_viol = [max(k["accel_rate"], k["steer_rate"]) > TOLERANCE for k in c]
     collision, offroad = any(trace["collision"]), any(trace["offroad"])
+    goals = [g for g in trace.get("goal") or () if g is not None]  # an env with a goal reports a bool every step
+    reached = any(goals) if goals else truncated
     ttc = float(np.min(trace["ttc"])) if trace["ttc"] else math.inf
     jerk = np.abs(np.diff(inputs[:, 0])) / dt if len(inputs) > 1 else np.zeros(1)
     plan = np.array(trace["plan_ms"], dtype=float)
     return {
-        "success_rate": float((truncated or any(trace.get("goal") or ())) and not collision and not offroad),
+        "success_rate": float(reached and not collision and not offroad),
         "collision_rate": float(collision),
         "offroad_rate": float(offroad),
         "input_violation_rate": float(np.mean(input_viol)),

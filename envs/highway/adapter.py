@@ -284,7 +284,7 @@ class HighwayAdapter(gym.Wrapper):
         self.behaviour.decide(self.dt)
         self._publish()
         safety = self._safety()
-        terminated = bool(terminated or safety["collision"] or safety["offroad"] or safety["goal"])
+        terminated = bool(terminated or safety["collision"] or safety["offroad"] or bool(safety["goal"]))
         self._ended = terminated
         return self._observe(), float(reward), terminated, bool(truncated), {**info, **safety}
 
@@ -329,8 +329,9 @@ class HighwayAdapter(gym.Wrapper):
                     best, least = (_from, _to, k), abs(lat)
         return best
 
-    def _goal(self) -> bool:
-        """highway-env's goal where its env has one (``info["goal"]``; success needs it or the time limit):
+    def _goal(self) -> bool | None:
+        """highway-env's goal where its env has one (``info["goal"]``, None on the envs without one; success needs
+        it where there is one, else the time limit):
         exit-v0's exit road reached (the exit taken), intersection-v0's ``has_arrived`` (crossed, on the exit road),
         merge-v0's end of the road (x > 370 m, where highway-env ends it) and, on roundabout-v0, the last road of
         the EV's route reached (the roundabout left); past exit's and roundabout's the EV would run off the end of
@@ -342,8 +343,10 @@ class HighwayAdapter(gym.Wrapper):
             return bool(base.has_arrived(base.vehicle))
         if self.highway_id == "merge-v0":
             return bool(base.vehicle.position[0] > 370)
-        route = getattr(base.vehicle, "route", None)
-        return bool(self.highway_id == "roundabout-v0" and route and base.vehicle.lane_index[:2] == route[-1][:2])
+        if self.highway_id == "roundabout-v0":
+            route = getattr(base.vehicle, "route", None)
+            return bool(route and base.vehicle.lane_index[:2] == route[-1][:2])
+        return None
 
     def _corner_off_lanes(self, state: np.ndarray) -> bool:
         """Whether a body corner lies on no lane of the network: the drivable area exactly, as the union of

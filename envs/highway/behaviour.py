@@ -32,7 +32,8 @@ from highway_env.vehicle.behavior import IDMVehicle
 # Bumped whenever the adapter or the behaviour layer changes what an episode does, so that records made before are
 # another scenario definition, never resumed as this one's. 2: routes that skip non-adjacent lane joins, the EV that
 # never reverses, MOBIL that never travels in an oncoming lane, the traffic's IDM parameters restored per reset.
-VERSION = 2
+# 3: short gaps between lanes that go on straight (roundabout-v0's entries) bridged instead of ending the route.
+VERSION = 3
 _IDM_KEYS = ("ACC_MAX", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "DISTANCE_WANTED", "TIME_WANTED", "DELTA", "POLITENESS",
              "LANE_CHANGE_MIN_ACC_GAIN", "LANE_CHANGE_MAX_BRAKING_IMPOSED", "LANE_CHANGE_DELAY")
 

@@ -113,10 +113,13 @@ def test_fallbacks_are_counted_and_shown_only_when_a_planner_fell_back():
 
 def test_a_goal_reached_is_a_success_before_the_time_limit_but_not_with_a_collision():
     """A wrapped highway-env env ends at its goal (exit taken, intersection crossed): that episode succeeded; a goal
-    reached in a collision did not; the paper's envs report no goal (None) and need the time limit."""
+    reached in a collision did not; the paper's envs report no goal (None) and need the time limit; an env with a
+    goal needs it."""
     reached = [False] * 9 + [True]
     assert episode_metrics(trace(goal=reached), dt=0.1, truncated=False)["success_rate"] == 1.0
     assert episode_metrics(trace(goal=reached, collision=[False] * 9 + [True]), dt=0.1,
                            truncated=False)["success_rate"] == 0.0
     assert episode_metrics(trace(goal=[None] * 10), dt=0.1, truncated=False)["success_rate"] == 0.0
     assert episode_metrics(trace(goal=[None] * 10), dt=0.1, truncated=True)["success_rate"] == 1.0
+    # an env with a goal: the time limit without it is no success (exit-v0 driven on past the exit)
+    assert episode_metrics(trace(goal=[False] * 10), dt=0.1, truncated=True)["success_rate"] == 0.0
