@@ -70,7 +70,9 @@ MPPI_SEEDING = "667c57c"  # MPPI's generator seeding changed here; its config ha
 MODEL_DIR = REPO_ROOT / "agents" / "models"
 PROBLEM_KEYS = tuple(f.name for f in dataclasses.fields(ProblemConfig))
 MOVED = ("config", "overrides", "seeding")  # what a record hands to its arm's entry in arms.json
-TRACE_FIELDS = ("trace", "road", "bounds")  # a record's per-step trace: only figures read it
+# A record's per-step trace (--traces): only figures read it. "route": the drawn road where an env has no closed form
+# (issue 26), written in place of "road".
+TRACE_FIELDS = ("trace", "road", "route", "bounds")
 
 
 class NotReproduced(ValueError):
