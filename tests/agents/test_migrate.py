@@ -2,7 +2,17 @@
 
 The fixture is real records from results/ (trimmed: fewer metrics, no scenario draws, a shorter seeding note), made
 in the flat config shape before issue 25 and, for PPO, with the absolute model path of the machine they were made on
-(two machines: one arm)."""
+(two machines: one arm).
+
+Since issue 26 (commit 3cc2d46) every planner plans on a polyline road, ``problem.road_points`` and
+``problem.road_spacing``: plain fields no value of which reproduces the closed-form road the real planner records
+were made on. Those records (EnKTS, EnKS, MPPI, NMPC) are therefore left in place, inline, as history, and the
+current code refuses to count them (``real``); PPO's carry no planning problem and still migrate and resume. The flat
+-> nested shape migration of planner configs is kept under test on *synthetic* variants of the same records
+(``synthetic_records``): each flat config given the two issue-26 fields at the values the current code uses, as the
+flat shape would have written it with today's fields. No such record was ever made; they exist so that the shape
+migration (and the rules riding on it: MPPI's seeding, fields without a neutral value, dropped traces) still has
+planner records it applies to."""
 
 import copy
 import json
@@ -11,9 +21,10 @@ import shutil
 import pytest
 
 from bimp.agents import migrate
-from bimp.agents.cli import main
+from bimp.agents.cli import EvaluationError, main
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import ARMS_FILE, EPISODES_FILE, read_arms, read_records
+from bimp.planners.problem import ProblemConfig
 
 AFTER_MPPI_SEEDING = "667c57cfab7668693560ca8390a734d82705bc03"  # MPPI's records from here are the current code's
 # The checkouts the two PPO records were made in (spelled in pieces: no committed file names a machine's folder).
@@ -283,6 +294,14 @@ OLD = {'enkts': {'scenario': 'emergency-brake',
                          'metrics': {'success_rate': 1.0, 'collision_rate': 0.0, 'offroad_rate': 0.0}}}
 
 
+PLANNERS = ("enkts", "enks", "mppi", "nmpc")
+# Issue 26's fields at the values the current code uses (ProblemConfig's defaults, configs/tuned/*.yaml): what the
+# synthetic records add to the real ones' flat configs.
+ROAD = {"road_points": 160, "road_spacing": 1.0}
+# Why the current code leaves the real planner records in place: rebuilt, their config resolves with the road.
+ROAD_REFUSAL = "config.problem.road_points: None -> 160; config.problem.road_spacing: None -> 1.0"
+
+
 def write(folder, records) -> bytes:
     folder.mkdir(parents=True, exist_ok=True)
     data = "".join(json.dumps(r) + "\n" for r in records).encode()
@@ -291,6 +310,7 @@ def write(folder, records) -> bytes:
 
 
 def old_records() -> list[dict]:
+    """The real records, as they are in results/ (the machines' folders filled in)."""
     records = copy.deepcopy(list(OLD.values()))
     for r in records:
         if r["policy"] == "mppi":
@@ -301,32 +321,95 @@ def old_records() -> list[dict]:
     return records
 
 
+def synthetic_records() -> list[dict]:
+    """SYNTHETIC: the real records with issue 26's road fields (``ROAD``) added to each planner's flat config where
+    that shape held the problem's keys (EnKTS/EnKS: the top of ``config``; MPPI/NMPC: ``tuning``), as the flat shape
+    would have written them with today's fields. No code ever wrote these (the flat shape was gone before the road
+    came): they keep the flat -> nested migration of planner configs under test now that the real planner records,
+    made on the closed-form road, are rightly left in place. PPO's records are the real ones."""
+    records = old_records()
+    for r in records:
+        config = r["config"]
+        if "tuning" in config:
+            config["tuning"].update(ROAD)
+        elif "horizon" in config["config"]:
+            config["config"].update(ROAD)
+    assert sum(r["config"] != o["config"] for r, o in zip(records, old_records())) == len(PLANNERS)
+    return records
+
+
+def index(records, policy) -> int:
+    (number,) = [i for i, r in enumerate(records) if r["policy"] == policy]
+    return number
+
+
 def tree(folder) -> dict:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.name != ".lock"}
 
 
 @pytest.fixture(scope="module")
-def migrated(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("migrate") / "old"
+def real(tmp_path_factory):
+    """The real records, migrated: PPO's (two records, one arm) rewritten, the planners' left in place."""
+    folder = tmp_path_factory.mktemp("migrate") / "real"
     write(folder, old_records())
+    report = migrate.migrate_folder(folder)
+    assert report.problem is None and report.changed == 2 and report.arms == 1, report.line()
+    assert len(report.left) == len(PLANNERS), report.line()
+    for policy, reason in zip(PLANNERS, report.left):
+        assert reason.startswith(f"'{policy}' ({policy}) on ") and "the current code does not reproduce" in reason
+        assert ROAD_REFUSAL in reason, reason  # issue 26's refusal, nothing else
+    return folder
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """The synthetic records (``synthetic_records``), migrated: every one rewritten, nothing left."""
+    defaults = ProblemConfig()
+    assert ROAD == {key: getattr(defaults, key) for key in ROAD}  # the values the current code uses
+    folder = tmp_path_factory.mktemp("migrate") / "synthetic"
+    write(folder, synthetic_records())
     report = migrate.migrate_folder(folder)
     assert report.problem is None and report.changed == len(OLD) and not report.left, report.line()
     return folder
 
 
+def test_real_planner_records_are_left_in_place_and_refused_by_the_current_code(real):
+    lines = (real / EPISODES_FILE).read_text().splitlines()
+    records = old_records()
+    arms = read_arms(real)
+    for policy in PLANNERS:
+        number = index(records, policy)
+        assert json.loads(lines[number]) == records[number]  # as it was, config inline: history
+        assert records[number]["config_hash"] not in arms
+        # Its request does not take it for its own episode (nor silently runs beside it): another config.
+        with pytest.raises(EvaluationError, match=f"made with another config \\(hash {OLD[policy]['config_hash']}"):
+            evaluate(out=real, episodes=1, progress=False, dry_run=True, **REQUESTS[policy])
+
+
+def test_real_ppo_records_are_migrated_and_found_done(real):
+    plan = evaluate(out=real, episodes=1, progress=False, dry_run=True, **REQUESTS["ppo"])
+    assert plan.to_run == [] and plan.done == len(REQUESTS["ppo"]["seeds"])
+    (ppo,) = read_arms(real).values()
+    assert ppo["policy"] == "ppo" and ppo["artifacts"] == {"model": "bimp:agents/models/ppo_emergency-brake_s1.zip"}
+    assert not any({"config", "overrides", "seeding"} & set(r) for r in read_records(real) if r["policy"] == "ppo")
+
+
 @pytest.mark.parametrize("name", REQUESTS)
-def test_migrated_records_are_found_done_by_the_request_that_made_them(migrated, name):
-    plan = evaluate(out=migrated, episodes=1, progress=False, dry_run=True, **REQUESTS[name])
+def test_migrated_records_are_found_done_by_the_request_that_made_them(synthetic, name):
+    plan = evaluate(out=synthetic, episodes=1, progress=False, dry_run=True, **REQUESTS[name])
     assert plan.to_run == [] and plan.done == len(REQUESTS[name]["seeds"])
 
 
-def test_records_are_compact_and_their_configs_in_the_new_shape(migrated):
-    arms, records = read_arms(migrated), read_records(migrated)
+def test_records_are_compact_and_their_configs_in_the_new_shape(synthetic):
+    arms, records = read_arms(synthetic), read_records(synthetic)
     assert len(arms) == 5 and {r["config_hash"] for r in records} == set(arms)  # both PPO records: one arm
     assert not any({"config", "overrides", "seeding"} & set(r) for r in records)
     for key, entry in arms.items():
         assert migrate.config_hash(entry["policy"], entry["config"]) == key
     by_policy = {entry["policy"]: entry for entry in arms.values()}
+    for policy in PLANNERS:  # the road's fields moved with the rest of the problem
+        own = by_policy[policy]["config"]["config"]
+        assert {key: own["problem"][key] for key in ROAD} == ROAD and not set(ROAD) & set(own)
     assert by_policy["enkts"]["config"]["config"]["problem"]["horizon"] == 20
     assert "horizon" not in by_policy["enkts"]["config"]["config"]
     assert by_policy["mppi"]["config"]["config"]["problem"]["nu"] == 4.0 and "tuning" not in by_policy["mppi"]["config"]
@@ -339,10 +422,12 @@ def test_records_are_compact_and_their_configs_in_the_new_shape(migrated):
     assert ppo["overrides"] == {"training_seed": 1}
     # Labels, seeds, metrics and the code version stay as they were.
     assert [(r["label"], r["seed"], r["metrics"], r["git_commit"]) for r in records] == [
-        (r["label"], r["seed"], r["metrics"], r["git_commit"]) for r in old_records()]
+        (r["label"], r["seed"], r["metrics"], r["git_commit"]) for r in synthetic_records()]
 
 
-def test_no_absolute_path_is_left_so_a_copy_elsewhere_resumes_the_same_config(migrated, tmp_path):
+@pytest.mark.parametrize("which", ["real", "synthetic"])
+def test_no_absolute_path_is_left_so_a_copy_elsewhere_resumes_the_same_config(which, request, tmp_path):
+    migrated = request.getfixturevalue(which)
     for name in (EPISODES_FILE, ARMS_FILE):
         text = (migrated / name).read_text()
         assert not any(root in text for root in MACHINES.values()) and '"model_path"' not in text
@@ -352,40 +437,50 @@ def test_no_absolute_path_is_left_so_a_copy_elsewhere_resumes_the_same_config(mi
     assert plan.to_run == []
 
 
-def test_a_second_migration_changes_nothing(migrated, capsys):
+@pytest.mark.parametrize("which, left", [("real", len(PLANNERS)), ("synthetic", 0)])
+def test_a_second_migration_changes_nothing(which, left, request, capsys):
+    migrated = request.getfixturevalue(which)
     before = tree(migrated)
     assert main(["migrate", str(migrated)]) == 0
-    assert "nothing to change" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "nothing to change" in out and out.count("left in place:") == left
     assert tree(migrated) == before
 
 
-def test_a_dry_run_reports_and_writes_nothing(tmp_path, capsys):
-    data = write(tmp_path / "old", old_records())
+@pytest.mark.parametrize("records, changed, left", [(old_records, 2, len(PLANNERS)), (synthetic_records, len(OLD), 0)])
+def test_a_dry_run_reports_and_writes_nothing(tmp_path, capsys, records, changed, left):
+    data = write(tmp_path / "old", records())
     assert main(["migrate", str(tmp_path / "old"), "--dry-run"]) == 0
-    assert f"{len(OLD)} of {len(OLD)} record(s) rewritten" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"{changed} of {len(OLD)} record(s) rewritten" in out
+    assert out.count("left in place:") == left and out.count(ROAD_REFUSAL) == left
     assert tree(tmp_path / "old") == {EPISODES_FILE: data}
 
 
 def test_mppi_records_made_before_its_seeding_changed_are_left_in_place(tmp_path):
-    records = old_records()
-    records[2]["git_commit"] = OLD["mppi"]["git_commit"]  # made before 667c57c
+    records = synthetic_records()  # the real MPPI record would be left anyway, for the road
+    number = index(records, "mppi")
+    records[number]["git_commit"] = OLD["mppi"]["git_commit"]  # made before 667c57c
     write(tmp_path, records)
     report = migrate.migrate_folder(tmp_path)
     assert report.problem is None and len(report.left) == 1 and "mppi" in report.left[0]
+    assert "MPPI's seeding changed there" in report.left[0]
     lines = (tmp_path / EPISODES_FILE).read_text().splitlines()
-    assert json.loads(lines[2]) == records[2]  # as it was, config inline
+    assert json.loads(lines[number]) == records[number]  # as it was, config inline
     assert len(read_arms(tmp_path)) == 4
 
 
 def test_an_arm_made_before_a_field_without_neutral_value_is_left_in_place_not_adopted(tmp_path):
     """The first wave's NMPC had hard constraints; ``slack_penalty`` came with the soft ones and has no neutral
-    value. Filling it with its default would take those records for the current NMPC's: they stay as they were."""
-    records = old_records()
-    number = next(i for i, r in enumerate(records) if r["policy"] == "nmpc")
+    value. Filling it with its default would take those records for the current NMPC's: they stay as they were.
+    (On the synthetic records, which carry today's road: the real ones are left for the road as well.)"""
+    records = synthetic_records()
+    number = index(records, "nmpc")
     del records[number]["config"]["config"]["slack_penalty"]
     write(tmp_path, records)
     report = migrate.migrate_folder(tmp_path)
     assert report.problem is None and len(report.left) == 1 and "slack_penalty" in report.left[0]
+    assert "road_" not in report.left[0]  # slack_penalty alone keeps it out
     lines = (tmp_path / EPISODES_FILE).read_text().splitlines()
     assert json.loads(lines[number]) == records[number]  # as it was, config inline: history, not a current result
     (done,) = [r for r in read_records(tmp_path) if r["policy"] == "nmpc"]
@@ -415,11 +510,31 @@ def test_a_folder_without_records_is_refused(tmp_path, capsys):
     assert "no episodes.jsonl" in capsys.readouterr().err
 
 
+# A record's per-step trace, as the current code writes it with --traces (a route where the env has no closed-form
+# road) and as older code did (the closed form's road).
+TRACES = dict(trace={"s": [0.0, 1.0]}, road={"lanes": 2}, route={"xy": [[0.0, 0.0], [1.0, 0.0]]},
+              bounds={"a": [-1, 1]})
+
+
 def test_drop_traces_leaves_records_that_still_summarize(tmp_path):
-    records = old_records()
-    records[0].update(trace={"s": [0.0, 1.0]}, road={"lanes": 2}, bounds={"a": [-1, 1]})
+    records = synthetic_records()
+    records[0].update(TRACES)
     write(tmp_path, records)
     assert migrate.migrate_folder(tmp_path, drop_traces=True).problem is None
-    assert not any({"trace", "road", "bounds"} & set(r) for r in read_records(tmp_path))
+    assert not any(set(TRACES) & set(r) for r in read_records(tmp_path))
     summary = evaluate(out=tmp_path, episodes=1, progress=False, **REQUESTS["enkts"])  # nothing runs: all done
     assert summary["enkts/emergency-brake"]["episodes"] == 1
+
+
+def test_drop_traces_touches_only_what_is_migrated(tmp_path):
+    """A record left in place is history, kept as it was, trace and all; the migrated PPO records lose theirs."""
+    records = old_records()
+    enkts, ppo = index(records, "enkts"), next(i for i, r in enumerate(records) if r["policy"] == "ppo")
+    records[enkts].update(TRACES)
+    records[ppo].update(TRACES)
+    write(tmp_path, records)
+    report = migrate.migrate_folder(tmp_path, drop_traces=True)
+    assert report.problem is None and report.changed == 2 and len(report.left) == len(PLANNERS)
+    lines = (tmp_path / EPISODES_FILE).read_text().splitlines()
+    assert json.loads(lines[enkts]) == records[enkts]
+    assert not set(TRACES) & set(json.loads(lines[ppo]))
