@@ -140,60 +140,88 @@ def test_tune_on_ray_runs_the_trials_in_parallel_against_one_study(tmp_path, ray
 
 
 class ScriptedPool:
-    """A stand-in for the process pool, with no processes and no timing race: a group ``("die",)`` breaks the
-    pool 10 ms after it is submitted, failing everything in flight in it as a dead worker does; ``("ok",)`` returns
-    ``[group]`` after 100 ms. Records how many groups were in flight beside each one submitted."""
+    """A stand-in for the process pool, with no processes and no clock: its groups finish only when ``run_local``
+    waits (``backends.wait`` is patched to :meth:`wait`), so what it has started by then is what ran together. A
+    group ``("die", ...)`` in flight then breaks the pool, failing everything in flight in it as a dead worker does;
+    else the first ``("ok",)`` in flight returns ``[group]``. With ``at_submit`` a dying group breaks the pool as it
+    is submitted, before anything else can start beside it (a worker that dies at once, or a loaded machine where
+    ``run_local`` is descheduled between two submits: the next submit raises ``BrokenProcessPool``). Records how many
+    groups were in flight beside each one submitted.
+
+    (It once broke the pool on a 10 ms timer after the submit and assumed the next submit came within those 10 ms:
+    under heavy load it did not, and the log, not the code, was wrong.)"""
 
     log: list = []
+    at_submit = False
+    current = None
 
     def __init__(self, workers, **_):
         self.pending, self.broken = [], False
+        ScriptedPool.current = self
 
     def submit(self, run, group):
-        import threading
         from concurrent.futures import Future
         from concurrent.futures.process import BrokenProcessPool
 
         if self.broken:
             raise BrokenProcessPool("broken")
         future = Future()
-        self.log.append((group, sum(not f.done() for f in self.pending)))
-        self.pending.append(future)
-        threading.Timer(0.01 if group[0] == "die" else 0.1, self._finish, (future, group)).start()
+        self.log.append((group, sum(not f.done() for f, _ in self.pending)))
+        self.pending.append((future, group))
+        if self.at_submit and group[0] == "die":
+            self._break()
         return future
 
-    def _finish(self, future, group):
+    def _break(self):
         from concurrent.futures.process import BrokenProcessPool
 
-        if future.done():
-            return
-        if group[0] == "ok":
-            future.set_result([group])
-            return
         self.broken = True
-        for f in self.pending:
+        for f, _ in self.pending:
             if not f.done():
                 f.set_exception(BrokenProcessPool("a worker died"))
+
+    @classmethod
+    def wait(cls, futures, return_when):
+        pool, futures = cls.current, list(futures)
+        running = [(f, group) for f, group in pool.pending if not f.done()]
+        if any(group[0] == "die" for _, group in running):
+            pool._break()
+        elif running:
+            future, group = running[0]
+            future.set_result([group])
+        done = {f for f in futures if f.done()}
+        assert done, "run_local waits on futures that are not this pool's"
+        return done, set(futures) - done
 
     def shutdown(self, wait=True, cancel_futures=False):
         pass
 
 
-def test_a_suspect_rerun_alone_has_no_company_that_could_kill_it(monkeypatch):
+die, innocent, die_later = ("die", 0), ("ok",), ("die", 2)
+
+
+@pytest.mark.parametrize("at_submit, log", [
+    # the first two ran together; after the crash each ran alone, in the order given, then die_later alone
+    (False, [(die, 0), (innocent, 1), (die, 0), (innocent, 0), (die_later, 0), (die_later, 0)]),
+    # die broke the pool before innocent could start (its submit raised: innocent stayed queued); die reran alone;
+    # then innocent ran with die_later, was killed by it, and reran alone before die_later did
+    (True, [(die, 0), (die, 0), (innocent, 0), (die_later, 1), (innocent, 0), (die_later, 0)]),
+], ids=["dies-in-company", "dies-at-once"])
+def test_a_suspect_rerun_alone_has_no_company_that_could_kill_it(monkeypatch, at_submit, log):
     """After a crash each group then in flight reruns alone. The last of them once had the next queued group
     started beside it, and a group that dies then took the innocent one down, recorded as dying twice."""
     from bimp.agents import backends
 
     monkeypatch.setattr(backends, "ProcessPoolExecutor", ScriptedPool)
+    monkeypatch.setattr(backends, "wait", ScriptedPool.wait)
     monkeypatch.setattr(ScriptedPool, "log", [])
-    die, innocent, die_later = ("die", 0), ("ok",), ("die", 2)
+    monkeypatch.setattr(ScriptedPool, "at_submit", at_submit)
     written = []
     with deadline(60):
         backends.run_local([die, innocent, die_later], 2, None, lambda group, why: [("crashed", group)],
                            written.append)
     assert written == [("crashed", die), innocent, ("crashed", die_later)]
-    # the first two ran together; after the crash each ran alone, in the order given, then die_later alone
-    assert ScriptedPool.log == [(die, 0), (innocent, 1), (die, 0), (innocent, 0), (die_later, 0), (die_later, 0)]
+    assert ScriptedPool.log == log
 
 
 # --- workers die with their parent --------------------------------------------------------------------------------
