@@ -74,8 +74,14 @@ class NoObservation(ObservationType):
 
 # The traffic classes' driver parameters as highway-env defines them, read when this module loads (before any env
 # of the process is made through it). See AdaptedEnv._reset.
-_TRAFFIC_DEFAULTS = {cls: {k: v for k, v in vars(cls).items() if k.isupper() and isinstance(v, (int, float))}
-                     for cls in (IDMVehicle,)}
+def _driver_classes(cls: type = IDMVehicle) -> list[type]:
+    """``IDMVehicle`` and its subclasses (AggressiveVehicle, DefensiveVehicle, LinearVehicle ...): intersection-v0
+    writes onto whichever of them its config's ``other_vehicles_type`` names."""
+    return [cls, *(sub for child in cls.__subclasses__() for sub in _driver_classes(child))]
+
+
+_TRAFFIC_DEFAULTS = {cls: {k: v for k, v in vars(cls).items() if k.isupper()}
+                     for cls in _driver_classes()}
 
 
 class AdaptedEnv:
@@ -96,6 +102,8 @@ class AdaptedEnv:
         # behaviour layer of a highway-v0 episode depended on whether an intersection had run before it in the same
         # worker. Every adapted env starts from highway-env's own values; intersection-v0 then sets its own again.
         for cls, values in _TRAFFIC_DEFAULTS.items():
+            for key in [k for k in vars(cls) if k.isupper() and k not in values]:
+                delattr(cls, key)  # written onto a subclass that inherited it: the inherited value shows again
             for key, value in values.items():
                 setattr(cls, key, value)
         super()._reset()

@@ -175,3 +175,11 @@ def test_intersection_leaves_the_traffic_parameters_of_the_next_env_alone():
     after = gym.make("bimp/highway-fast-v0")
     after.reset(seed=0)
     assert after.unwrapped.BEHAVIOUR == rule and IDMVehicle.DISTANCE_WANTED != 7
+    # ... also when the intersection's traffic is another driver class, which inherits the parameters
+    from highway_env.vehicle.behavior import AggressiveVehicle
+
+    aggressive = {"other_vehicles_type": "highway_env.vehicle.behavior.AggressiveVehicle"}
+    gym.make("bimp/intersection-v0", config=aggressive).reset(seed=0)
+    assert AggressiveVehicle.DISTANCE_WANTED == 7
+    gym.make("bimp/highway-fast-v0", config=aggressive).reset(seed=0)
+    assert AggressiveVehicle.DISTANCE_WANTED == IDMVehicle.DISTANCE_WANTED != 7
