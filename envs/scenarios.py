@@ -70,21 +70,20 @@ from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import (
     ACTUATOR_ACCEL,
     ACTUATOR_STEER,
-    BOUND_CONSTRAINTS,
     MAX_SPEED,
+    OBS_BOUND,
     OV_FIELDS,
     POLICY_FREQUENCY,
     VEHICLE_LENGTH,
     VEHICLE_WIDTH,
     Bounds,
     Scene,
-    bound_constraints,
+    constraint_values,
     join_obs,
 )
 
 N_OBSTACLES = 2
 CRASH_PENALTY = 20.0
-OBS_BOUND = 1e4
 LANE_WIDTH, LANES = RoadGeometry.lane_width, RoadGeometry.lanes
 ROAD_HALF_WIDTH = LANES * LANE_WIDTH / 2.0
 # Least centre gap [m] between two vehicles that start in the same lane: a vehicle length, so the footprints do
@@ -590,10 +589,7 @@ class BimpEnv(AbstractEnv):
         ttc = np.where(ahead_same_lane & (closing > 1e-6), np.maximum(gaps, 0.0) / np.maximum(closing, 1e-6), np.inf)
         ref = self.reference()
         b, u = scene.bounds, self.last_input
-        constraints = {
-            **dict(zip(BOUND_CONSTRAINTS, bound_constraints(b, u, u - self.prev_input).tolist())),
-            "ov_distance": (b.d_min - gaps).tolist(), "road_edge": b.edge_margin - edge,
-        }
+        constraints = constraint_values(b, u, self.prev_input, gaps, edge)
         heading_err = ev.heading - float(scene.road.heading_at(s_e))
         return {
             "collision": bool(np.any(gaps <= 0.0)), "offroad": edge < 0.0, "ov_distance": gaps.tolist(),

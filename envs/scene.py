@@ -36,6 +36,8 @@ EGO_FIELDS = ("x", "y", "heading", "speed")
 INPUT_FIELDS = ("acceleration", "steering")  # the physical input applied last
 OV_FIELDS = ("present", "x", "y", "heading", "speed", "acceleration")
 REF_FIELDS = ("speed", "acceleration", "lane_offset")
+# Bound of the observation Box: finite (SB3 and check_env dislike infinite boxes), beyond any road here (< 1 km).
+OBS_BOUND = 1e4
 
 
 def split_obs(obs, n_obstacles: int):
@@ -79,6 +81,14 @@ def bound_constraints(bounds, u, du, keep=1.0):
     return xp.stack([-offset - half, offset - half, xp.abs(u[..., 1]) - keep * bounds.steer,
                      xp.abs(du[..., 0]) - keep * bounds.accel_rate, xp.abs(du[..., 1]) - keep * bounds.steer_rate],
                     axis=-1)
+
+
+def constraint_values(bounds, u, u_prev, gaps, edge: float) -> dict:
+    """What an env's ``info["constraints"]`` reports, every value <= 0 when satisfied: the input and rate bounds
+    (:func:`bound_constraints` of the input ``u (2,)`` applied after ``u_prev (2,)``), ``ov_distance`` (``d_min``
+    less each footprint gap ``gaps (K,)``) and ``road_edge`` (the edge margin less the edge distance ``edge`` [m])."""
+    return {**dict(zip(BOUND_CONSTRAINTS, bound_constraints(bounds, u, u - u_prev).tolist())),
+            "ov_distance": (bounds.d_min - np.asarray(gaps, float)).tolist(), "road_edge": bounds.edge_margin - edge}
 
 
 def real_array(values, what: str = "array") -> np.ndarray:

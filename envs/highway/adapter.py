@@ -56,14 +56,14 @@ from bimp.envs.road import Route, body_corners
 from bimp.envs.scene import (
     ACTUATOR_ACCEL,
     ACTUATOR_STEER,
-    BOUND_CONSTRAINTS,
+    OBS_BOUND,
     OV_FIELDS,
     POLICY_FREQUENCY,
     VEHICLE_LENGTH,
     VEHICLE_WIDTH,
     Bounds,
     Scene,
-    bound_constraints,
+    constraint_values,
     join_obs,
 )
 
@@ -71,7 +71,6 @@ N_OBSTACLES = 8
 _VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "scaling", "show_trajectories",
                         "render_agent", "offscreen_rendering", "manual_control", "real_time_rendering"})
 JUNCTION_MARGIN = 1.0  # m: see HighwayAdapter._corner_off_lanes
-OBS_BOUND = 1e4  # as the paper's envs: finite (SB3 and check_env dislike infinite boxes), beyond any road here
 
 
 @dataclass(frozen=True)
@@ -420,10 +419,7 @@ class HighwayAdapter(gym.Wrapper):
             ttc = np.array([np.inf])
         ref = self.reference()
         b, u = scene.bounds, self.last_input
-        constraints = {
-            **dict(zip(BOUND_CONSTRAINTS, bound_constraints(b, u, u - self.prev_input).tolist())),
-            "ov_distance": (b.d_min - gaps).tolist(), "road_edge": b.edge_margin - edge,
-        }
+        constraints = constraint_values(b, u, self.prev_input, gaps, edge)
         return {
             "collision": bool(ev.crashed or (len(gaps_all) and gaps_all.min() <= 0.0)),
             "offroad": bool(not ev.on_road or (edge < 0.0 and self._corner_off_lanes(state))),

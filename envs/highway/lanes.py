@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bimp.envs.road import Route
+from bimp.envs.road import Route, wrap_angle
 
 BEHIND, AHEAD, SPACING = 30.0, 250.0, 1.0  # m
 EDGE_EVERY = 5  # edges are measured at every 5th point (every 5 m) and interpolated: lanes are smooth at that scale
@@ -83,15 +83,11 @@ def _joins(network, index, end: np.ndarray, heading: float) -> bool:
     lane = network.get_lane(index)
     gap = lane.position(0.0, 0.0) - end
     distance = float(np.hypot(*gap))
-    if abs(_turn(lane.heading_at(0.0), heading)) > np.pi / 2:
+    if abs(wrap_angle(lane.heading_at(0.0) - heading)) > np.pi / 2:
         return False
     if distance <= JOIN:
         return True
-    return distance <= BRIDGE and abs(_turn(float(np.arctan2(gap[1], gap[0])), heading)) < np.pi / 4
-
-
-def _turn(heading: float, reference: float) -> float:
-    return (heading - reference + np.pi) % (2 * np.pi) - np.pi
+    return distance <= BRIDGE and abs(wrap_angle(float(np.arctan2(gap[1], gap[0])) - heading)) < np.pi / 4
 
 
 def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, float]:
@@ -114,7 +110,7 @@ def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, 
         if not -1.0 <= s <= lane.length + 1.0:
             continue
         lat = float(np.dot(lane.position(s, 0.0) - xy, normal))
-        turn = abs((lane.heading_at(s) - heading + np.pi) % (2 * np.pi) - np.pi)
+        turn = abs(wrap_angle(lane.heading_at(s) - heading))
         if abs(lat) > NEAR or np.pi / 3 < turn < 2 * np.pi / 3:  # beside the route: along it, or against it
             continue
         half = lane.width_at(s) / 2.0
