@@ -240,7 +240,8 @@ class HighwayAdapter(gym.Wrapper):
             options["config"] = adapter_config(self.highway_id, {**options["config"]})
         _, info = self.env.reset(seed=seed, options=options or None)
         self._start()
-        return self._observe(), {**info, **self._safety()}
+        obs, safety = self._measure()
+        return obs, {**info, **safety}
 
     def _start(self) -> None:
         base = self.env.unwrapped
@@ -282,10 +283,10 @@ class HighwayAdapter(gym.Wrapper):
                         for v in self._others() if id(v) in self._speeds}
         self.behaviour.decide(self.dt)
         self._publish()
-        safety = self._safety()
+        obs, safety = self._measure()
         terminated = bool(terminated or safety["collision"] or safety["offroad"] or bool(safety["goal"]))
         self._ended = terminated
-        return self._observe(), float(reward), terminated, bool(truncated), {**info, **safety}
+        return obs, float(reward), terminated, bool(truncated), {**info, **safety}
 
     def render(self):
         """highway-env's own frame, in ``rgb_array`` mode with the lines a caller set in ``env.unwrapped.overlay``
@@ -391,18 +392,23 @@ class HighwayAdapter(gym.Wrapper):
         ev = self.env.unwrapped.vehicle
         return np.array([*ev.position, ev.heading, ev.speed], float)
 
-    def _observe(self) -> np.ndarray:
+    def _measure(self) -> tuple[np.ndarray, dict]:
+        """The observation and bimp's safety ``info`` of the current state, from one reading of the traffic and the
+        reference."""
         rows, _ = self._rows()
+        ref = self.reference()
+        return self._observe(rows, ref), self._safety(rows, ref)
+
+    def _observe(self, rows: np.ndarray, ref: np.ndarray) -> np.ndarray:
         ovs = np.zeros((self.n_obstacles, len(OV_FIELDS)))
         ovs[:min(len(rows), self.n_obstacles)] = rows[:self.n_obstacles]
-        obs = join_obs(self._ev_state(), self.last_input, ovs, self.reference())
+        obs = join_obs(self._ev_state(), self.last_input, ovs, ref)
         return np.clip(obs, -OBS_BOUND, OBS_BOUND).astype(np.float32)
 
-    def _safety(self) -> dict:
+    def _safety(self, rows: np.ndarray, ref: np.ndarray) -> dict:
         base, scene = self.env.unwrapped, self.scene
         ev = base.vehicle
         state = self._ev_state()
-        rows, _ = self._rows()
         gaps_all = scene.ov_gaps(state, rows) if len(rows) else np.zeros(0)
         gaps = np.full(self.n_obstacles, np.inf)
         gaps[:min(len(rows), self.n_obstacles)] = gaps_all[:self.n_obstacles]
@@ -417,7 +423,6 @@ class HighwayAdapter(gym.Wrapper):
                            np.inf)
         else:
             ttc = np.array([np.inf])
-        ref = self.reference()
         b, u = scene.bounds, self.last_input
         constraints = constraint_values(b, u, self.prev_input, gaps, edge)
         return {
