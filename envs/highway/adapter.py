@@ -48,6 +48,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
+from bimp.configs import added_field
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import build_route, route_from
@@ -78,12 +79,15 @@ class Profile:
     """What the adapter needs per id: the planning ``bounds``, the ``actuator_steer`` range [rad] that the
     normalized steering maps onto (the acceleration maps onto bimp's ±10 m/s^2 everywhere), the free-road
     ``target_speed`` [m/s] of the behaviour layer (from the env's config: the top of its reward speed range or of
-    its discrete action's target speeds), and ``duration`` [s] (highway-env's, for the registration's step limit)."""
+    its discrete action's target speeds), ``duration`` [s] (highway-env's, for the registration's step limit), and
+    ``drive_on``: whether the behaviour layer drives on where the route's next road leaves from another lane (exit-v0,
+    the exit missed: :class:`bimp.envs.highway.behaviour.DriveOnDriver`)."""
 
     bounds: Bounds
     actuator_steer: tuple[float, float]
     target_speed: float
     duration: float
+    drive_on: bool = added_field(False, neutral=False)
 
 
 def _curve_bounds(steer: float) -> Bounds:
@@ -101,7 +105,7 @@ PROFILES: dict[str, Profile] = {
     "highway-fast-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 30.0),
     "merge-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),  # no duration of its own: highway-env's goal x > 370
     # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
-    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0),
+    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True),
     # ring of radius 20 m (inner lane): 0.247 rad needed
     "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 11.0),
     # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
@@ -251,7 +255,7 @@ class HighwayAdapter(gym.Wrapper):
         base.OPTIONS = {k: (v,) for k, v in base.config.items() if k not in _VIEW_KEYS}
         base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]
-        self.behaviour = Behaviour(base, self.profile.target_speed)
+        self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)
         self.progress = 0.0
         self._speeds: dict[int, float] = {}

@@ -21,7 +21,7 @@ EDGE_EVERY = 5  # edges are measured at every 5th point (every 5 m) and interpol
 MAX_LANES = 64  # a lane graph walk longer than this is a cycle walked again (racetrack): stop there
 NEAR = 30.0  # m: a lane whose centre is further to the side than this is not beside the route
 JOIN = 2.0  # m: a next lane that starts within this of where the lane ends continues it
-BRIDGE = 8.0  # m: ... or within this, straight on (see _joins)
+BRIDGE = 8.0  # m: ... or within this, straight on (see joins)
 
 
 def lane_walk(network, index, s_from: float, length: float, route=None, spacing: float = SPACING):
@@ -45,18 +45,18 @@ def lane_walk(network, index, s_from: float, length: float, route=None, spacing:
         if plan and not (tuple(plan[0][:2]) == tuple(index[:2]) or plan[0][0] == index[1]):
             plan = None  # the walk has left the route: the lane graph's own choice (and no warning from highway-env)
         following = network.next_lane(index, route=plan, position=end_xy)
-        if following != index and not _joins(network, following, end_xy, end_heading):
+        if following != index and not joins(network, following, end_xy, end_heading):
             # The route's next road goes on from another lane of this one (exit-v0: the exit leaves from the right
             # lane, 24 m to the side): walk the lane that goes on from here; the lane change is the reference's.
             following = network.next_lane(index, route=None, position=end_xy)
-        if following == index or following[1] == index[0] or not _joins(network, following, end_xy, end_heading):
+        if following == index or following[1] == index[0] or not joins(network, following, end_xy, end_heading):
             break  # the end of the network, or a way back (past an intersection's exit road): padded straight
         # Go on from abreast of where this lane ended: lanes may overlap at a join (racetrack-v0: by 0.44 m, and the
         # polyline ran backwards there).
         s = max(0.0, float(network.get_lane(following).local_coordinates(end_xy)[0]))
         start = network.get_lane(following).position(s, 0.0)
         gap = float(np.hypot(*(start - end_xy)))
-        for f in np.arange(spacing, gap, spacing) / gap:  # a bridged gap (see _joins), sampled like a lane
+        for f in np.arange(spacing, gap, spacing) / gap:  # a bridged gap (see joins), sampled like a lane
             xy.append(end_xy + f * (start - end_xy))
             heading.append(float(np.arctan2(*(start - end_xy)[::-1])))
             lanes.append(index)
@@ -75,7 +75,7 @@ def _spaced(xy: np.ndarray, least: float) -> np.ndarray:
     return keep
 
 
-def _joins(network, index, end: np.ndarray, heading: float) -> bool:
+def joins(network, index, end: np.ndarray, heading: float) -> bool:
     """Whether lane ``index`` goes on from a lane that ends at ``end (2,)`` with ``heading``: it starts there (within
     ``JOIN`` m), or a little ahead (within ``BRIDGE`` m, roundabout-v0's entries meet the ring 5.6 m on) with the gap
     and its own start heading within 45 degrees of the way on; not a lane beside (exit-v0's exit road, 24 m to the

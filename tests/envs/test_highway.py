@@ -183,3 +183,33 @@ def test_intersection_leaves_the_traffic_parameters_of_the_next_env_alone():
     assert AggressiveVehicle.DISTANCE_WANTED == 7
     gym.make("bimp/highway-fast-v0", config=aggressive).reset(seed=0)
     assert AggressiveVehicle.DISTANCE_WANTED == IDMVehicle.DISTANCE_WANTED != 7
+
+
+@pytest.mark.parametrize("drive_on", [True, False])
+def test_a_missed_exit_is_driven_past_not_chorded_across_the_lanes(drive_on):
+    """exit-v0's exit leaves from lane 6 of road ("1", "2"); from lane 0 at the road's end highway-env's
+    ``next_lane`` jumps to the exit road anyway (a 24 m chord across the traffic: its driver collided on 14 of 50
+    results seeds). The adapter's driver (``drive_on``, exit-v0's profile) drives on in its lane; highway-env's
+    (the plain shadow) is pinned chording, so that the test tells them apart."""
+    from bimp.envs.highway.behaviour import Behaviour
+
+    env = gym.make("bimp/exit-v0")
+    env.reset(seed=0)
+    base = env.unwrapped
+    ev = base.vehicle
+    lane = base.road.network.get_lane(("1", "2", 0))
+    ev.position = lane.position(lane.length - 0.5, 0.0)
+    ev.lane_index, ev.lane = ("1", "2", 0), lane
+    behaviour = Behaviour(base, 30.0, drive_on=drive_on)
+    behaviour.shadow.target_lane_index = ("1", "2", 0)
+    behaviour.shadow.route = [("1", "2", None), ("2", "exit", None)]  # its route by then: road ("0", "1") done
+    ev.position = lane.position(lane.length + 0.5, 0.0)  # just past the road's end
+    behaviour.decide(0.1)
+    expected = ("2", "3", 0) if drive_on else ("2", "exit", 0)
+    assert behaviour.target_lane_index == expected
+
+
+def test_the_profile_records_drive_on_only_where_it_is_set():
+    """Added after records were made: at its neutral value (off) the rule, and so every arm's hash, is as before."""
+    assert "drive_on" not in gym.make("bimp/highway-fast-v0").unwrapped.BEHAVIOUR.profile
+    assert "('drive_on', True)" in gym.make("bimp/exit-v0").unwrapped.BEHAVIOUR.profile
