@@ -24,9 +24,10 @@ import numpy as np
 
 SEEDING = "np.random.SeedSequence(seed).spawn(2) -> (env, policy); each: generate_state(1, uint64)[0] >> 1"
 
-# Per-step trace keys read from ``info`` (the env measures; the loop never re-derives).
+# Per-step trace keys read from ``info`` (the env measures; the loop never re-derives). ``contact`` and
+# ``speed_limit``: what the closed-loop score reads (bimp.envs.scene.attribution_info; None from an env without them).
 INFO_KEYS = ("input", "ov_distance", "edge_distance", "ttc", "lateral_error", "speed_error", "collision",
-             "offroad", "constraints", "s", "reference", "ahead_of_ov1", "goal")
+             "offroad", "constraints", "s", "reference", "ahead_of_ov1", "goal", "contact", "speed_limit")
 
 
 def episode_seeds(seed: int) -> tuple[int, int]:

@@ -37,8 +37,11 @@ physical input ``[a, delta]``, per OV ``[present, x, y, heading, speed, accelera
 ``info`` per step: ``collision``, ``offroad`` (any body corner past a road edge), ``ov_distance`` (signed
 footprint gap to each OV, see above), ``edge_distance`` (least corner distance to the edge), ``ttc`` (time to
 collision with the nearest closing OV in the EV's lane), ``reference``, ``lateral_error``, ``speed_error``,
-``input`` (the physical input applied) and ``constraints`` (paper eq. 2-5 as values that are <= 0 when satisfied; the
-input and rate ones are :func:`bimp.envs.scene.bound_constraints`, the very function the planners' barriers measure).
+``input`` (the physical input applied), ``constraints`` (paper eq. 2-5 as values that are <= 0 when satisfied; the
+input and rate ones are :func:`bimp.envs.scene.bound_constraints`, the very function the planners' barriers measure),
+and for the closed-loop score (:func:`bimp.envs.scene.attribution_info`, ``docs/suite.md``) ``contact`` (None, or
+the OV in contact in the EV's body frame with both speeds and the EV's lateral speed across the road) and
+``speed_limit`` (the cruise speed, the EV's initial speed: the road has no limit of its own).
 
 Reward (for RL): tracking of the reference speed measured *along the road* and of the reference lane,
 in [0, 1] per step, minus small penalties for inputs and rate beyond the planning bounds; -20 and
@@ -78,6 +81,7 @@ from bimp.envs.scene import (
     VEHICLE_WIDTH,
     Bounds,
     Scene,
+    attribution_info,
     constraint_values,
     join_obs,
 )
@@ -591,13 +595,19 @@ class BimpEnv(AbstractEnv):
         b, u = scene.bounds, self.last_input
         constraints = constraint_values(b, u, self.prev_input, gaps, edge)
         heading_err = ev.heading - float(scene.road.heading_at(s_e))
+        # The closed-loop score's per-step facts: the OV touched, if any, and the limit. The road has no speed limit
+        # of its own (its lanes carry highway-env's 40 m/s, the top speed): the limit is the free-road cruise speed,
+        # the EV's initial speed that the reference holds on a free road. The lateral speed is across the road at
+        # the EV's arc length (the bicycle's slip angle, at most 0.025 rad within the planning bounds, left out).
+        attribution = attribution_info(state, ovs, gaps, ev_lateral_speed=float(ev.speed * np.sin(heading_err)),
+                                       speed_limit=self.cruise_speed)
         return {
             "collision": bool(np.any(gaps <= 0.0)), "offroad": edge < 0.0, "ov_distance": gaps.tolist(),
             "edge_distance": edge, "ttc": float(ttc.min()), "reference": ref.tolist(),
             "lateral_error": float(l_e - ref[2]), "speed_error": float(ev.speed - ref[0]),
             "longitudinal_speed": float(ev.speed * np.cos(heading_err)), "s": float(s_e),
             "input": u.tolist(), "constraints": constraints,
-            "ahead_of_ov1": bool(s_e > s_o[0]) if self.OVERTAKE_METRIC else None,
+            "ahead_of_ov1": bool(s_e > s_o[0]) if self.OVERTAKE_METRIC else None, **attribution,
         }
 
     def _info(self, obs, action=None) -> dict:

@@ -7,6 +7,8 @@ is also the one definition of what the env and the planners must read alike:
   (numpy or JAX: the jitted planner core slices by the same static indices);
 - the input and rate constraint values (paper eq. 4-5, :func:`bound_constraints`), which the env's
   ``info["constraints"]`` reports and the planning problem's barriers measure;
+- what the closed-loop score reads per step (:func:`attribution_info`: ``info["contact"]`` and
+  ``info["speed_limit"]``), which both kinds of env report alike;
 - the scenarios' vehicle and actuators (:data:`VEHICLE_LENGTH` ...), which the env simulates and the vehicle models
   of :mod:`bimp.planners.dynamics` mirror without loading highway-env.
 
@@ -19,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bimp.envs.road import RoadGeometry, Route, array_module, rect_gap
+from bimp.envs.road import RoadGeometry, Route, array_module, rect_gap, wrap_angle
 
 # --- the scenarios' vehicle and actuators -----------------------------------------------------------------------
 # highway-env's Vehicle.LENGTH, WIDTH and MAX_SPEED (tests/envs/test_scenarios.py pins them): here so that the vehicle
@@ -89,6 +91,48 @@ def constraint_values(bounds, u, u_prev, gaps, edge: float) -> dict:
     less each footprint gap ``gaps (K,)``) and ``road_edge`` (the edge margin less the edge distance ``edge`` [m])."""
     return {**dict(zip(BOUND_CONSTRAINTS, bound_constraints(bounds, u, u - u_prev).tolist())),
             "ov_distance": (bounds.d_min - np.asarray(gaps, float)).tolist(), "road_edge": bounds.edge_margin - edge}
+
+
+# --- what the closed-loop score reads (docs/suite.md) -----------------------------------------------------------
+# info["contact"]'s keys: the collided OV's centre in the EV's body frame [m] and its heading relative to the EV's
+# [rad], both vehicles' speeds [m/s] and the EV's lateral speed relative to its road [m/s].
+CONTACT_FIELDS = ("rel_x", "rel_y", "rel_heading", "ev_speed", "ov_speed", "ev_lateral_speed")
+
+
+def attribution_info(ego, ovs, gaps, ev_lateral_speed: float, speed_limit: float, crashed=None) -> dict:
+    """The per-step ``info`` the closed-loop score's at-fault rule and speed terms read
+    (:func:`bimp.agents.metrics.episode_metrics`), one definition for the paper's envs and the highway-env adapter:
+    ``{"contact": dict | None, "speed_limit": float}``.
+
+    ``ego``: the EV's ``[x, y, heading, speed]`` (m, rad, m/s); ``ovs (K, >=5)``: OV rows ``[present, x, y, heading,
+    speed, ..]`` (:data:`OV_FIELDS`); ``gaps (K,)``: their footprint gaps [m] (:meth:`Scene.ov_gaps`);
+    ``ev_lateral_speed`` [m/s]: the EV's speed across its road, positive to the right as the road's ``l``;
+    ``speed_limit`` [m/s]: the limit the EV drives under now (each env says which); ``crashed (K,)`` bools, or None:
+    the OVs the simulator itself reports crashed (highway-env's flags), asked only when no gap is <= 0 (highway-env
+    may have pushed a crashed pair apart).
+
+    ``contact`` is None when no OV touches the EV; otherwise the OV with the least gap among those with a gap <= 0
+    (else among ``crashed``), as :data:`CONTACT_FIELDS`: ``rel_x``, ``rel_y`` its centre in the EV's body frame (x
+    forward, y to the right, as the road's ``l``), ``rel_heading`` its heading less the EV's in [-pi, pi),
+    ``ev_speed``, ``ov_speed``, ``ev_lateral_speed``. Plain floats: a trace keeps it as JSON.
+    """
+    ego, ovs = np.asarray(ego, float), np.atleast_2d(np.asarray(ovs, float))
+    gaps = np.asarray(gaps, float).reshape(-1)
+    limit = float(speed_limit)
+    if not (np.isfinite(limit) and limit > 0.0):
+        raise ValueError(f"speed_limit must be a finite speed > 0 m/s, got {speed_limit!r}")
+    touching = gaps <= 0.0
+    if not touching.any() and crashed is not None:
+        touching = np.asarray(crashed, bool).reshape(-1)[:len(gaps)]
+    if not touching.any():
+        return {"contact": None, "speed_limit": limit}
+    k = int(np.argmin(np.where(touching, gaps, np.inf)))
+    dx, dy = ovs[k, 1:3] - ego[:2]
+    c, s = np.cos(ego[2]), np.sin(ego[2])
+    contact = {"rel_x": float(c * dx + s * dy), "rel_y": float(-s * dx + c * dy),
+               "rel_heading": float(wrap_angle(ovs[k, 3] - ego[2])), "ev_speed": float(ego[3]),
+               "ov_speed": float(ovs[k, 4]), "ev_lateral_speed": float(ev_lateral_speed)}
+    return {"contact": contact, "speed_limit": limit}
 
 
 def real_array(values, what: str = "array") -> np.ndarray:

@@ -21,8 +21,10 @@
   ``on_road`` false), ``ov_distance`` (footprint gaps to the K
   slots, inf where absent), ``edge_distance``, ``ttc``, ``s`` (the EV's progress along its route [m], cumulative
   across the republished scenes), ``reference``, ``lateral_error``, ``speed_error`` (speed minus the free-road
-  target speed), ``longitudinal_speed``, ``input``, ``constraints`` (as the paper's envs report them) and
-  ``ahead_of_ov1`` (None);
+  target speed), ``longitudinal_speed``, ``input``, ``constraints`` (as the paper's envs report them),
+  ``ahead_of_ov1`` (None), and for the closed-loop score (:func:`bimp.envs.scene.attribution_info`,
+  ``docs/suite.md``) ``contact`` (None, or the vehicle in contact: the least footprint gap <= 0, else the nearest
+  one highway-env flags crashed) and ``speed_limit`` (the EV's lane's ``speed_limit``, else the free-road target);
 - **reward and termination**: highway-env's (crash, its off-road where it has one, its goals, its duration), and
   the episode also terminates on bimp's ``collision`` or ``offroad``, and at ``info["goal"]``: exit-v0's exit taken,
   roundabout-v0's last road reached (highway-env rewards them but drives on, off the end of its network); a step
@@ -64,6 +66,7 @@ from bimp.envs.scene import (
     VEHICLE_WIDTH,
     Bounds,
     Scene,
+    attribution_info,
     constraint_values,
     join_obs,
 )
@@ -370,14 +373,17 @@ class HighwayAdapter(gym.Wrapper):
         return [v for v in base.road.vehicles if v is not base.vehicle] + list(base.road.objects)
 
     def _rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every other vehicle and road object as an OV row ``(N, 6)``, nearest first, and their centre
-        distances ``(N,)``."""
+        """Every other vehicle and road object as an OV row ``(N, 6)``, nearest first (by centre distance), and
+        highway-env's crash flag of each ``(N,)`` (``crashed``, or ``hit`` for an object it lets vehicles pass
+        through), in the same order."""
         ev = self.env.unwrapped.vehicle
+        others = self._others()
         rows = np.array([[1.0, *v.position, v.heading, v.speed, self._accels.get(id(v), 0.0)]
-                         for v in self._others()]).reshape(-1, len(OV_FIELDS))
+                         for v in others]).reshape(-1, len(OV_FIELDS))
+        crashed = np.array([bool(v.crashed or getattr(v, "hit", False)) for v in others], bool)
         distance = np.hypot(*(rows[:, 1:3] - ev.position).T) if len(rows) else np.zeros(0)
         order = np.argsort(distance, kind="stable")
-        return rows[order], distance[order]
+        return rows[order], crashed[order]
 
     def reference(self) -> np.ndarray:
         """``[v_ref m/s, a_ref m/s^2, l_ref m]`` (module docstring)."""
@@ -399,9 +405,9 @@ class HighwayAdapter(gym.Wrapper):
     def _measure(self) -> tuple[np.ndarray, dict]:
         """The observation and bimp's safety ``info`` of the current state, from one reading of the traffic and the
         reference."""
-        rows, _ = self._rows()
+        rows, crashed = self._rows()
         ref = self.reference()
-        return self._observe(rows, ref), self._safety(rows, ref)
+        return self._observe(rows, ref), self._safety(rows, ref, crashed)
 
     def _observe(self, rows: np.ndarray, ref: np.ndarray) -> np.ndarray:
         ovs = np.zeros((self.n_obstacles, len(OV_FIELDS)))
@@ -409,7 +415,7 @@ class HighwayAdapter(gym.Wrapper):
         obs = join_obs(self._ev_state(), self.last_input, ovs, ref)
         return np.clip(obs, -OBS_BOUND, OBS_BOUND).astype(np.float32)
 
-    def _safety(self, rows: np.ndarray, ref: np.ndarray) -> dict:
+    def _safety(self, rows: np.ndarray, ref: np.ndarray, crashed: np.ndarray) -> dict:
         base, scene = self.env.unwrapped, self.scene
         ev = base.vehicle
         state = self._ev_state()
@@ -429,6 +435,17 @@ class HighwayAdapter(gym.Wrapper):
             ttc = np.array([np.inf])
         b, u = scene.bounds, self.last_input
         constraints = constraint_values(b, u, self.prev_input, gaps, edge)
+        # The closed-loop score's per-step facts. The OV touched: the least footprint gap <= 0, else, where
+        # highway-env crashed the EV (its impact may have pushed the pair apart), the nearest vehicle it flags
+        # crashed (any vehicle, should it flag none). The limit: the EV's lane's (highway-env's IDM caps its target
+        # speed at it), the profile's free-road target where a lane has none. The lateral speed: across the route
+        # at the EV's projection (the slip angle left out).
+        limit = getattr(getattr(ev, "lane", None), "speed_limit", None)
+        flagged = (crashed if crashed.any() else np.ones_like(crashed)) if ev.crashed else None
+        attribution = attribution_info(state, rows, gaps_all,
+                                       ev_lateral_speed=float(ev.speed * np.sin(ev.heading - e.heading)),
+                                       speed_limit=self.profile.target_speed if limit is None else limit,
+                                       crashed=flagged)
         return {
             "collision": bool(ev.crashed or (len(gaps_all) and gaps_all.min() <= 0.0)),
             "offroad": bool(not ev.on_road or (edge < 0.0 and self._corner_off_lanes(state))),
@@ -437,5 +454,5 @@ class HighwayAdapter(gym.Wrapper):
             "lateral_error": float(e.l - ref[2]), "speed_error": float(ev.speed - self.profile.target_speed),
             "longitudinal_speed": float(ev.speed * np.cos(ev.heading - e.heading)), "input": u.tolist(),
             "constraints": constraints, "ahead_of_ov1": None, "target_lane": list(self.behaviour.target_lane_index),
-            "goal": self._goal(),
+            "goal": self._goal(), **attribution,
         }
