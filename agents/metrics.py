@@ -5,7 +5,10 @@ the env's ``info`` (evaluation never re-derives what the env already measured):
 ``collision``, ``offroad`` (bool); ``ov_distance`` (K floats, m); ``edge_distance`` (m); ``ttc`` (s, inf if no
 closing OV); ``lateral_error`` (m); ``speed_error`` (m/s); ``input`` ([a, delta]); ``constraints`` (dicts of
 values <= 0 when satisfied, see :mod:`bimp.envs.scenarios`); ``plan_ms`` (ms spent in ``act``); ``s`` (arc length
-along the road, m; gives ``progress_m``, e.g. higher when the EV overtakes instead of following).
+along the road, m; gives ``progress_m``, e.g. higher when the EV overtakes instead of following); ``x``, ``y``,
+``heading``, ``speed`` (the EV's state, m, rad, m/s); ``contact`` (None, or the OV in contact: see
+:func:`bimp.envs.scene.attribution_info`) and ``speed_limit`` (m/s), which the closed-loop score reads
+(:func:`closed_loop_score`, ``docs/suite.md``).
 """
 
 from __future__ import annotations
@@ -13,16 +16,19 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.signal import savgol_filter
 
 from bimp.agents.stats import mean_summary, rate_summary
+from bimp.envs.scene import VEHICLE_WIDTH
 
+SCORE_METRICS = ("at_fault_collision_rate", "score", "score_progress", "score_ttc", "score_speed", "score_comfort")
 METRICS = (
     "success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate",
     "min_distance_m", "min_ttc_s", "rms_lateral_error_m", "rms_speed_error_mps", "max_abs_jerk",
-    "plan_time_ms_p50", "plan_time_ms_p95", "progress_m", "overtake_rate",
+    "plan_time_ms_p50", "plan_time_ms_p95", "progress_m", "overtake_rate", *SCORE_METRICS,
 )
 # One 0/1 outcome per episode: summarized as a proportion with a Wilson interval.
-BINARY = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate")
+BINARY = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "at_fault_collision_rate")
 # Constraint values this small count as satisfied: float32 round-off of an action sitting on its bound.
 TOLERANCE = 1e-6
 
@@ -63,7 +69,133 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
         # the EV ends ahead of OV1, the vehicle it started behind in its lane (overtaking only: else None)
         "overtake_rate": (float(trace["ahead_of_ov1"][-1]) if trace.get("ahead_of_ov1")
                           and trace["ahead_of_ov1"][-1] is not None else None),
+        **closed_loop_score(trace, dt),
     }
+
+
+# --- the closed-loop score (docs/suite.md) ------------------------------------------------------------------------
+# nuPlan's thresholds and weights, cited where they are nuPlan's; docs/suite.md says where this score differs.
+STOPPED_SPEED = 0.05  # m/s: a vehicle this slow is stopped (nuPlan's stopped_speed_threshold, 5e-2)
+REAR_CONE = np.deg2rad(30.0)  # rad: "behind" is within 30 deg of straight behind (nuPlan's is_agent_behind: > 150 deg)
+# m/s: the EV moves across its road this fast or faster toward the OV: it is changing lanes. Above the sway of a
+# planner keeping its lane (EnKTS on development seed 3 of the keep-lane overtaking and the emergency brake: at most
+# 0.37 m/s, 95% of steps under 0.23), below a lane change's (4 m crossed in 2-3 s: 1.3-2 m/s on average).
+LANE_CHANGE_SPEED = 0.5
+TTC_BOUND = 0.95  # s: least time to collision (nuPlan's least_min_ttc)
+OVERSPEED_BOUND = 2.23  # m/s: overspeed at which the speed term reaches 0 when held throughout (nuPlan's 5 mph)
+MAX_LON_JERK = 4.13  # m/s^3: nuPlan's max_abs_lon_jerk
+MAX_LAT_ACCEL = 4.89  # m/s^2: nuPlan's max_abs_lat_accel
+# Savitzky-Golay windows [steps, odd so each fit is centred on its step], polynomial order 2, as nuPlan's comfort
+# filters: acceleration smoothed over 9 steps (nuPlan: 8), jerk as the derivative of that over 15 (nuPlan's),
+# yaw rate as the derivative of the heading over 5 (nuPlan's approximate_derivatives default).
+ACCEL_WINDOW, JERK_WINDOW, YAW_RATE_WINDOW = 9, 15, 5
+WEIGHTS = {"progress": 5.0, "ttc": 5.0, "speed": 4.0, "comfort": 2.0}  # nuPlan's weighted average
+
+
+def contact_at_fault(contact: dict) -> bool:
+    """Whether the EV is at fault for a contact (``info["contact"]``, :func:`bimp.envs.scene.attribution_info`):
+    nuPlan's collision types, read in the EV's body frame, the first that matches deciding:
+
+    1. the EV stopped (``ev_speed`` < :data:`STOPPED_SPEED`): not at fault;
+    2. the OV stopped (``ov_speed`` < :data:`STOPPED_SPEED`): at fault (the EV drove into it);
+    3. hit from behind: the OV's centre behind the EV's (``rel_x < 0``) within :data:`REAR_CONE` of its axis and the
+       OV closing (its speed along the EV's heading above the EV's): not at fault;
+    4. hit in front: the OV's centre ahead (``rel_x > 0``) and less than a vehicle width to the side (the
+       footprints overlap side-on: the EV's front met it): at fault;
+    5. otherwise a lateral contact: at fault when the EV moves across its road toward the OV's side at
+       :data:`LANE_CHANGE_SPEED` or more (it was changing lanes into it), else not (the OV came across).
+    """
+    rel_x, rel_y = contact["rel_x"], contact["rel_y"]
+    ev_speed, ov_speed = contact["ev_speed"], contact["ov_speed"]
+    if ev_speed < STOPPED_SPEED:
+        return False
+    if ov_speed < STOPPED_SPEED:
+        return True
+    closing = ov_speed * math.cos(contact["rel_heading"]) > ev_speed
+    if rel_x < 0.0 and abs(rel_y) <= math.tan(REAR_CONE) * -rel_x and closing:
+        return False
+    if rel_x > 0.0 and abs(rel_y) < VEHICLE_WIDTH:
+        return True
+    return math.copysign(1.0, rel_y) * contact["ev_lateral_speed"] >= LANE_CHANGE_SPEED
+
+
+def at_fault_collision(trace: dict) -> float | None:
+    """1.0 when some contact of the episode is the EV's fault (:func:`contact_at_fault`), 0.0 when none is (or none
+    happened); None for a trace without ``contact`` (recorded before it existed) or with a collision the env
+    described no contact for (an env that does not report it)."""
+    contacts = trace.get("contact")
+    if contacts is None or len(contacts) != len(trace["collision"]):
+        return None
+    if any(hit and contact is None for hit, contact in zip(trace["collision"], contacts)):
+        return None
+    return float(any(contact_at_fault(c) for c in contacts if c is not None))
+
+
+def _savgol(y: np.ndarray, window: int, dt: float, deriv: int) -> np.ndarray:
+    """Savitzky-Golay filter of order 2 over ``window`` steps (fewer on a shorter series, kept odd; zeros, i.e. no
+    change measured, on a series of fewer than 3 steps), ``deriv`` its derivative order, ``dt`` [s]."""
+    n = len(y)
+    window = min(window, n if n % 2 else n - 1)
+    if window < 3:
+        return np.zeros(n)
+    return savgol_filter(y, window_length=window, polyorder=2, deriv=deriv, delta=dt, mode="interp")
+
+
+def comfort_signals(speed, heading, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(longitudinal jerk [m/s^3], lateral acceleration [m/s^2])`` along an episode from the EV's ``speed (n,)``
+    [m/s] and ``heading (n,)`` [rad] at each step, ``dt`` [s] apart; ``(n - 1,)`` and ``(n,)``.
+
+    Longitudinal acceleration: the speed's step differences (the EV's speed changes by acceleration x dt per step,
+    so this is its acceleration, also where the speed is held at 0: a commanded brake at a standstill is none),
+    smoothed over :data:`ACCEL_WINDOW` steps; jerk: its derivative over :data:`JERK_WINDOW`. Lateral acceleration:
+    speed x yaw rate, the yaw rate the derivative of the unwrapped heading over :data:`YAW_RATE_WINDOW`, smoothed over
+    :data:`ACCEL_WINDOW` (the centripetal acceleration of the driven path; the bicycle's slip angle left out)."""
+    v = np.asarray(speed, float)
+    accel = _savgol(np.diff(v) / dt, ACCEL_WINDOW, dt, 0) if len(v) > 1 else np.zeros(0)
+    jerk = _savgol(accel, JERK_WINDOW, dt, 1) if len(accel) else accel
+    yaw_rate = _savgol(np.unwrap(np.asarray(heading, float)), YAW_RATE_WINDOW, dt, 1)
+    return jerk, _savgol(v * yaw_rate, ACCEL_WINDOW, dt, 0)
+
+
+def closed_loop_score(trace: dict, dt: float) -> dict[str, float | None]:
+    """The closed-loop score of one episode in nuPlan's style (``docs/suite.md``), from its trace (``dt`` [s] per
+    step): ``at_fault_collision_rate`` (:func:`at_fault_collision`), ``score`` and its parts, each in [0, 1]::
+
+        score          = (no at-fault collision) x (never off-road)
+                         x (5 progress + 5 ttc + 4 speed + 2 comfort) / 16
+        score_progress = min(1, max(0, progress_m) / reachable_m),  reachable_m = dt x sum of speed_limit over the
+                         steps progress_m covers (the second to the last): driving at the limit throughout
+                         (1 where nothing was reachable)
+        score_ttc      = 1 if ttc >= 0.95 s at every step where it is finite (an OV ahead closing), else 0
+        score_speed    = max(0, 1 - mean over steps of max(0, speed - speed_limit) / 2.23 m/s)
+        score_comfort  = 1 if |longitudinal jerk| <= 4.13 m/s^3 and |lateral acceleration| <= 4.89 m/s^2 at every
+                         step (:func:`comfort_signals`), else 0
+
+    Every value None for a trace without what it reads (``contact``, ``speed_limit``, ``speed``, ``heading``, ``s``:
+    recorded before the score existed, or by an env that does not report them); ``at_fault_collision_rate`` needs
+    only ``contact``. A ``ttc`` of None (a stored trace: JSON has no inf) is no closing OV.
+    """
+    at_fault = at_fault_collision(trace)
+    limits = trace.get("speed_limit")
+    needed = ("speed", "heading", "s", "ttc", "offroad")
+    if at_fault is None or not limits or any(v is None for v in limits) or any(not trace.get(k) for k in needed):
+        return {"at_fault_collision_rate": at_fault, **{name: None for name in SCORE_METRICS[1:]}}
+    limit = np.asarray(limits, float)
+    speed = np.asarray(trace["speed"], float)
+    progress = float(trace["s"][-1] - trace["s"][0])
+    reachable = dt * float(np.sum(limit[1:]))
+    ttc = np.array([math.inf if t is None else t for t in trace["ttc"]], float)
+    jerk, lateral = comfort_signals(speed, trace["heading"], dt)
+    parts = {
+        "progress": min(1.0, max(0.0, progress) / reachable) if reachable > 0.0 else 1.0,
+        "ttc": float(bool(np.all(ttc[np.isfinite(ttc)] >= TTC_BOUND))),
+        "speed": max(0.0, 1.0 - float(np.mean(np.maximum(speed - limit, 0.0))) / OVERSPEED_BOUND),
+        "comfort": float(bool(np.all(np.abs(jerk) <= MAX_LON_JERK) and np.all(np.abs(lateral) <= MAX_LAT_ACCEL))),
+    }
+    gate = (1.0 - at_fault) * (0.0 if any(trace["offroad"]) else 1.0)
+    weighted = sum(WEIGHTS[k] * parts[k] for k in WEIGHTS) / sum(WEIGHTS.values())
+    return {"at_fault_collision_rate": at_fault, "score": gate * weighted,
+            **{f"score_{k}": float(v) for k, v in parts.items()}}
 
 
 def summarize(records: list[dict]) -> dict[str, dict]:
