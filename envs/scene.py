@@ -107,7 +107,8 @@ def attribution_info(ego, ovs, gaps, ev_lateral_speed: float, speed_limit: float
     ``ego``: the EV's ``[x, y, heading, speed]`` (m, rad, m/s); ``ovs (K, >=5)``: OV rows ``[present, x, y, heading,
     speed, ..]`` (:data:`OV_FIELDS`); ``gaps (K,)``: their footprint gaps [m] (:meth:`Scene.ov_gaps`);
     ``ev_lateral_speed`` [m/s]: the EV's speed across its road, positive to the right as the road's ``l``;
-    ``speed_limit`` [m/s]: the limit the EV drives under now (each env says which); ``crashed (K,)`` bools, or None:
+    ``speed_limit`` [m/s, finite, >= 0]: the limit the EV drives under now (each env says which; ValueError
+    otherwise); ``crashed (K,)`` bools, or None:
     the OVs the simulator itself reports crashed (highway-env's flags), asked only when no gap is <= 0 (highway-env
     may have pushed a crashed pair apart).
 
@@ -119,8 +120,8 @@ def attribution_info(ego, ovs, gaps, ev_lateral_speed: float, speed_limit: float
     ego, ovs = np.asarray(ego, float), np.atleast_2d(np.asarray(ovs, float))
     gaps = np.asarray(gaps, float).reshape(-1)
     limit = float(speed_limit)
-    if not (np.isfinite(limit) and limit > 0.0):
-        raise ValueError(f"speed_limit must be a finite speed > 0 m/s, got {speed_limit!r}")
+    if not (np.isfinite(limit) and limit >= 0.0):  # 0: a scenario whose free-road speed is a standstill
+        raise ValueError(f"speed_limit must be a finite speed >= 0 m/s, got {speed_limit!r}")
     touching = gaps <= 0.0
     if not touching.any() and crashed is not None:
         touching = np.asarray(crashed, bool).reshape(-1)[:len(gaps)]

@@ -47,7 +47,8 @@ def test_no_contact_unless_a_gap_closes_or_the_simulator_says_so():
     # a gap <= 0 decides over the flags
     c = attribution_info(ego, ovs, [0.0, 2.0], 0.0, 30.0, crashed=[False, True])["contact"]
     assert c["rel_x"] == pytest.approx(6.0)
-    for bad in (0.0, -1.0, math.inf, math.nan):
+    assert attribution_info(ego, ovs, [0.5, 2.0], 0.0, 0.0)["speed_limit"] == 0.0  # a scenario told to stand
+    for bad in (-1.0, math.inf, math.nan):
         with pytest.raises(ValueError, match="speed_limit"):
             attribution_info(ego, ovs, [0.5, 2.0], 0.0, bad)
 
