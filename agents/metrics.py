@@ -14,6 +14,7 @@ along the road, m; gives ``progress_m``, e.g. higher when the EV overtakes inste
 from __future__ import annotations
 
 import math
+from types import MappingProxyType
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -89,7 +90,8 @@ MAX_LAT_ACCEL = 4.89  # m/s^2: nuPlan's max_abs_lat_accel
 # filters: acceleration smoothed over 9 steps (nuPlan: 8), jerk as the derivative of that over 15 (nuPlan's),
 # yaw rate as the derivative of the heading over 5 (nuPlan's approximate_derivatives default).
 ACCEL_WINDOW, JERK_WINDOW, YAW_RATE_WINDOW = 9, 15, 5
-WEIGHTS = {"progress": 5.0, "ttc": 5.0, "speed": 4.0, "comfort": 2.0}  # nuPlan's weighted average
+# nuPlan's weighted average; read-only: every record's score depends on them
+WEIGHTS = MappingProxyType({"progress": 5.0, "ttc": 5.0, "speed": 4.0, "comfort": 2.0})
 
 
 def contact_at_fault(contact: dict) -> bool:
