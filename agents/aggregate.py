@@ -24,10 +24,12 @@ import numpy as np
 from bimp.agents.compare import label_results
 from bimp.agents.stats import stratified_bootstrap
 
-METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "progress_m")
-# Rates are on one scale in every scenario; progress is not (a 110 m brake against a 300 m pass), so it is not
-# averaged over scenarios.
-RATES = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate")
+METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "at_fault_collision_rate", "score",
+           "progress_m")
+# Rates, and the closed-loop score (in [0, 1], as nuPlan averages it over scenarios), are on one scale in every
+# scenario; progress is not (a 110 m brake against a 300 m pass), so it is not averaged over scenarios. Runs recorded
+# before the score have none: a scenario where no record has it is left out, as overtake_rate is outside overtaking.
+RATES = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "at_fault_collision_rate", "score")
 
 
 def aggregate(per_run: dict[str, dict[tuple[str, int], dict]], metrics=METRICS) -> dict[str, dict]:

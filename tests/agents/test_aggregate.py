@@ -76,3 +76,19 @@ def test_progress_is_not_averaged_over_scenarios_and_a_partly_missing_metric_is_
     per_run["s1"][("overtaking", 1000)]["progress_m"] = None
     with pytest.raises(ValueError, match="progress_m is missing in 1 episode record"):
         aggregate(per_run)
+
+
+def test_the_closed_loop_score_is_aggregated_and_averaged_over_scenarios_where_the_records_have_it():
+    per_run = _runs({"s1": [1, 1], "s2": [1, 0]})
+    brake = _runs({"s1": [1, 1], "s2": [0, 1]}, scenario="emergency-brake")
+    for label in per_run:
+        per_run[label].update(brake[label])
+        for key, metrics in per_run[label].items():
+            metrics.update(score=0.5 * metrics["success_rate"], at_fault_collision_rate=metrics["collision_rate"])
+    out = aggregate(per_run)
+    # per run: s1 scores 0.5 on both scenarios, s2 0.25 on each: the mean over runs is 0.375 on each and over both
+    assert out["overtaking"]["score"]["per_run"] == {"s1": 0.5, "s2": 0.25}
+    assert out["all"]["score"]["mean"] == pytest.approx(0.375)
+    assert out["all"]["at_fault_collision_rate"]["mean"] == pytest.approx(0.25)
+    # records from before the score: no row for it, no error
+    assert "score" not in aggregate(_runs({"s1": [1, 1], "s2": [1, 0]}))["overtaking"]
