@@ -1,7 +1,8 @@
 """Feasible instances by construction: for every instance of a scenario's documented parameter ranges a plan inside
 the planning bounds exists. An oracle simulates the longitudinal motion in the EV's lane exactly as highway-env steps
 it (position with the step's starting speed, then speed, clamped at 0) and checks the plan that brakes at the bounds
-(a_min, and at most ``accel_rate`` more per step); the oracle is first checked against the env itself."""
+(a_min, and at most ``accel_rate`` more per step: :func:`bimp.envs.oracle.brake_at_the_bounds`, shared with the
+suite's families); the oracle is first checked against the env itself."""
 
 from __future__ import annotations
 
@@ -12,35 +13,12 @@ import numpy as np
 import pytest
 
 from bimp import envs  # noqa: F401  (registers the envs)
+from bimp.envs.oracle import brake_at_the_bounds
 from bimp.envs.scenarios import OvertakingEnv
 from bimp.envs.scene import Bounds
 
 DRAWS = 1000
 B = Bounds()
-
-
-def brake_at_the_bounds(ev, gap, v_ov, onset, decel, dt=0.1, length=5.0, steps=200, react=True):
-    """Least footprint gap [m] ``(...)`` to the OV ahead in the EV's lane when the EV brakes at the planning bounds.
-
-    The OV (centre ``gap`` ahead, speed ``v_ov``) brakes at ``decel`` from ``onset`` s until it stands; the EV (speed
-    ``ev``, input 0) sees the OV's deceleration in the observation after the first braking step (``react``) or from
-    the start, and from its next step ramps to ``a_min`` by the rate bound. Arrays broadcast."""
-    ev, gap, v_ov, onset, decel = np.broadcast_arrays(*(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel)))
-    s_e, v_e, a_e = np.zeros(ev.shape), ev.copy(), np.zeros(ev.shape)
-    s_o, v_o = gap.copy(), v_ov.copy()
-    seen = np.zeros(ev.shape, bool) if react else np.ones(ev.shape, bool)
-    least = np.full(ev.shape, np.inf)
-    clock = 0.0
-    for _ in range(steps):
-        braking = (clock >= onset) & (v_o > 0)
-        a_o = np.where(braking, -decel, 0.0)
-        a_e = np.where(seen, np.maximum(a_e - B.accel_rate, B.accel[0]), a_e)
-        s_e, v_e = s_e + v_e * dt, np.maximum(v_e + a_e * dt, 0.0)
-        s_o, v_o = s_o + v_o * dt, np.maximum(v_o + a_o * dt, 0.0)
-        clock += dt
-        seen |= braking
-        least = np.minimum(least, s_o - s_e - length)
-    return least
 
 
 def pass_margin(ev, gap1, v1, gap2, v2, held=3.0, headway=0.6, dt=0.1, duration=15.0, length=5.0):
