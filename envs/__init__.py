@@ -16,9 +16,10 @@ from types import MappingProxyType
 from gymnasium.envs.registration import register, registry
 
 from bimp.envs.highway.adapter import PROFILES as _HIGHWAY_PROFILES
-from bimp.envs.highway.adapter import wrap
+from bimp.envs.highway.adapter import entry_name, wrap
 from bimp.envs.road import RoadGeometry
-from bimp.envs.scene import Bounds, Scene
+from bimp.envs.scene import POLICY_FREQUENCY, Bounds, Scene
+from bimp.envs.suite import FAMILIES
 from bimp.envs.wrappers import PlanningWrapper
 
 
@@ -89,10 +90,13 @@ for _spec in (
 
 # highway-env's envs through the adapter (issue 26): bimp/ID = bimp.envs.wrap(gym.make(ID)) with the adapter's defaults;
 # gym.make("bimp/ID", config={...}, n_obstacles=K) passes highway-env's config through. Not in the default set.
+# The suite's families (issue 27) run through the same adapter and its table, under their IDs: bimp/stalled-vehicle-v0,
+# named by the family (bimp evaluate --scenario stalled-vehicle).
+_FAMILY_NAMES = {cls.ID: name for name, cls in FAMILIES.items()}
 for _id, _profile in _HIGHWAY_PROFILES.items():
-    register_scenario(ScenarioSpec(name=_id, id=f"bimp/{_id}",
-                                   entry_point=f"bimp.envs.highway.adapter:make_{_id.replace('-', '_')}",
-                                   max_episode_steps=int(round(_profile.duration * 10))))
+    register_scenario(ScenarioSpec(name=_FAMILY_NAMES.get(_id, _id), id=f"bimp/{_id}",
+                                   entry_point=f"bimp.envs.highway.adapter:{entry_name(_id)}",
+                                   max_episode_steps=int(round(_profile.duration * POLICY_FREQUENCY))))
 
 # The shipped scenarios as fixed name -> id views of the table (the default set, and the variants).
 ENV_IDS = {s.name: s.id for s in _SCENARIOS.values() if s.default}

@@ -37,6 +37,11 @@ replaced by the adapter's. A config the adapter cannot honour raises ``ValueErro
 other than ``ContinuousAction`` (discrete actions), a one-axis or dynamical ``ContinuousAction``, a
 ``policy_frequency`` other than 10 Hz (the planners plan at dt = 0.1 s), a ``simulation_frequency`` that is not a
 multiple of 10 Hz; and so does an id outside :data:`SUPPORTED`.
+
+The suite's families (:mod:`bimp.envs.suite`, issue 27) are highway-env envs of bimp's own and run through this very
+adapter: each under its ``ID`` (``"stalled-vehicle-v0"``) in :data:`PROFILES` (its numbers read from its class) and
+in :data:`ENV_CLASSES`, with an entry point ``make_<ID>`` made from the table. :data:`SUPPORTED` stays highway-env's
+own ids.
 """
 
 from __future__ import annotations
@@ -70,6 +75,7 @@ from bimp.envs.scene import (
     constraint_values,
     join_obs,
 )
+from bimp.envs.suite import FAMILIES
 
 N_OBSTACLES = 8
 _VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "scaling", "show_trajectories",
@@ -120,8 +126,15 @@ PROFILES: dict[str, Profile] = {
     # right turn of radius 9 m: 0.524 rad; target: the top of its target_speeds (9 m/s)
     "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 13.0),
 }
-SUPPORTED = tuple(PROFILES)
+SUPPORTED = tuple(PROFILES)  # highway-env's ids, what wrap(gym.make(ID)) takes
 # racetrack-v0's duration (300 s) is shortened to 30 s for bimp: its step limit is the registration's.
+
+# The suite's families in the same table, keyed by their ID (registered as bimp/ID): each family class carries its
+# numbers, so a new family adds no line here (bimp.envs.suite.family.Family).
+PROFILES.update({cls.ID: Profile(cls.BOUNDS, cls.ACTUATOR_STEER, cls.TARGET_SPEED, cls.DURATION)
+                 for cls in FAMILIES.values()})
+# The env class behind every key of PROFILES: highway-env's (fixed.HIGHWAY_CLASSES) and the families'.
+ENV_CLASSES: dict[str, type] = {**HIGHWAY_CLASSES, **{cls.ID: cls for cls in FAMILIES.values()}}
 
 
 def _is_int(value) -> bool:
@@ -132,7 +145,7 @@ def adapter_config(highway_id: str, config: Mapping | None) -> dict:
     """``config`` (highway-env keys, as for ``gym.make(highway_id, config=...)``) with the adapter's action and
     frequencies, checked: ``ValueError`` naming a key whose value the adapter cannot honour."""
     if highway_id not in PROFILES:
-        raise ValueError(f"bimp.envs.wrap does not support {highway_id!r}; supported ids: {list(SUPPORTED)}")
+        raise ValueError(f"bimp.envs.wrap does not support {highway_id!r}; supported ids: {list(PROFILES)}")
     if config is not None and not isinstance(config, Mapping):
         raise ValueError(f"config must be a mapping of highway-env config keys (a dict), got {config!r}")
     config = dict(config or {})
@@ -175,17 +188,18 @@ def make(highway_id: str, config: Mapping | None = None, render_mode: str | None
     config = adapter_config(highway_id, config)
     if not _is_int(n_obstacles) or n_obstacles < 1:
         raise ValueError(f"n_obstacles must be an int >= 1, got {n_obstacles!r}")
-    env = adapted_class(HIGHWAY_CLASSES[highway_id])(config=config, render_mode=render_mode)
+    env = adapted_class(ENV_CLASSES[highway_id])(config=config, render_mode=render_mode)
     return HighwayAdapter(env, highway_id, n_obstacles)
 
 
 def highway_id_of(env: gym.Env) -> str:
-    """The supported highway-env id of ``env`` (its spec's id, else its class's); ``ValueError`` otherwise."""
+    """The adapter's key of ``env``: its spec's id, else its class's (a supported highway-env id, or a suite
+    family's ``ID``); ``ValueError`` otherwise."""
     spec_id = getattr(getattr(env, "spec", None), "id", None)
     if spec_id in PROFILES:
         return spec_id
     base = getattr(env, "unwrapped", env)
-    for highway_id, cls in HIGHWAY_CLASSES.items():
+    for highway_id, cls in ENV_CLASSES.items():
         if type(base) is cls or type(base) is adapted_class(cls):
             return highway_id
     raise ValueError(f"bimp.envs.wrap does not support {spec_id or type(base).__name__!r}; supported highway-env "
@@ -200,16 +214,22 @@ def wrap(env: gym.Env, n_obstacles: int = N_OBSTACLES) -> "HighwayAdapter":
         return env
     highway_id = highway_id_of(env)
     base = env.unwrapped
-    defaults = HIGHWAY_CLASSES[highway_id].default_config()
+    defaults = ENV_CLASSES[highway_id].default_config()
     given = {k: v for k, v in base.config.items() if k != "offscreen_rendering" and defaults.get(k, object()) != v}
     return make(highway_id, given, render_mode=base.render_mode, n_obstacles=n_obstacles)
+
+
+def entry_name(highway_id: str) -> str:
+    """The name of ``highway_id``'s entry point in this module (``make_highway_v0``): what the scenario table
+    registers as ``bimp.envs.highway.adapter:<name>``."""
+    return "make_" + highway_id.replace("-", "_")
 
 
 def _entry(highway_id: str):
     def make_env(config: Mapping | None = None, render_mode: str | None = None, n_obstacles: int = N_OBSTACLES):
         return make(highway_id, config, render_mode, n_obstacles)
 
-    make_env.__name__ = make_env.__qualname__ = "make_" + highway_id.replace("-", "_")
+    make_env.__name__ = make_env.__qualname__ = entry_name(highway_id)
     make_env.__doc__ = f"``bimp/{highway_id}``: :func:`make` of {highway_id!r}."
     return make_env
 
@@ -224,6 +244,9 @@ make_two_way_v0 = _entry("two-way-v0")
 make_u_turn_v0 = _entry("u-turn-v0")
 make_racetrack_v0 = _entry("racetrack-v0")
 make_intersection_v0 = _entry("intersection-v0")
+# The families' entry points, made from the table (a new family writes none): make_stalled_vehicle_v0 ...
+for _family in FAMILIES.values():
+    globals()[entry_name(_family.ID)] = _entry(_family.ID)
 
 
 class HighwayAdapter(gym.Wrapper):
@@ -252,9 +275,10 @@ class HighwayAdapter(gym.Wrapper):
 
     def _start(self) -> None:
         base = self.env.unwrapped
-        # What bimp's evaluation records as the scenario's definition (as the paper's envs publish it): no drawn
-        # parameters, highway-env's config as options (every key but rendering), the behaviour layer's rule.
-        base.PARAMS, base.drawn_params = {}, {}
+        # What bimp's evaluation records as the scenario's definition (as the paper's envs publish it): the env's
+        # own draws where it makes some (a suite family's, drawn at this reset), else none; highway-env's config as
+        # options (every key but rendering: a family's difficulty and ranges too); the behaviour layer's rule.
+        base.PARAMS, base.drawn_params = {}, dict(getattr(base, "drawn_params", None) or {})
         base.OPTIONS = {k: (v,) for k, v in base.config.items() if k not in _VIEW_KEYS}
         base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]

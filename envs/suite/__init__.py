@@ -1,0 +1,29 @@
+"""The benchmark suite's scenario families (issue 27): highway-env envs with reactive traffic, documented randomized
+ranges and a difficulty, driven by every bimp policy through the highway-env adapter.
+
+One module per family (its env class, a :class:`bimp.envs.suite.family.Family`), and one entry per family in
+:data:`FAMILIES` below. From that entry the adapter takes the family's class and its per-env numbers
+(:data:`bimp.envs.highway.adapter.PROFILES` under the family's ``ID``), and the scenario table registers it as
+``bimp/ID`` under the family's name (``bimp evaluate --scenario stalled-vehicle``,
+``gym.make("bimp/stalled-vehicle-v0")``).
+
+- :mod:`.stalled_vehicle`: ``stalled-vehicle``, a stopped vehicle in the EV's lane, traffic beside it;
+- :mod:`.family`: what every family shares (difficulty, ranges, draws);
+- the oracle that shows every instance leaves a safe plan: :mod:`bimp.envs.oracle`.
+"""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+from bimp.envs.suite.family import Family
+from bimp.envs.suite.stalled_vehicle import StalledVehicleEnv
+
+# The suite's table: family name -> env class. A new family is its module and one entry here.
+FAMILIES: MappingProxyType[str, type[Family]] = MappingProxyType({
+    cls.NAME: cls for cls in (
+        StalledVehicleEnv,
+    )
+})
+
+__all__ = ["FAMILIES", "Family", "StalledVehicleEnv"]

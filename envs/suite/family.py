@@ -1,0 +1,138 @@
+"""What every scenario family of the suite shares: its difficulty, its ranges, its draws, and what the adapter reads.
+
+A family is a highway-env env class (a subclass of one of highway-env's, as exit-v0 and the others are) with
+:class:`Family` before highway-env's class in its bases. The mixin gives it:
+
+- a ``difficulty`` config key (``"easy"``, ``"medium"``, ``"hard"``, or whatever names the family's
+  :attr:`Family.DIFFICULTIES` holds) that sets every randomized range at once, and one config key per range
+  (``(lo, hi)``, drawn uniformly at every reset; a number fixes it) that overrides that range. A key given with
+  ``difficulty`` in the same ``configure`` (``gym.make(..., config=...)``, ``reset(options={"config": ...})``)
+  overrides the preset; a ``difficulty`` given alone resets every range to its preset;
+- the ranges checked as a frozen dataclass (:attr:`Family.RANGES`, each family's own): each range inside the
+  family's documented envelope (:func:`check_ranges`) and whatever else the family's oracle needs (its
+  ``__post_init__``). A difficulty, a range or a config key outside what the oracle covers raises ``ValueError``
+  (:class:`bimp.configs.ConfigError` for a value) naming it, before anything is simulated;
+- highway-env's config keys the family replaces by its own draws (:attr:`Family.REMOVED_KEYS`: highway-v0's
+  ``vehicles_count``, ``vehicles_density`` ...) refused as unknown, so that no key is silently ignored;
+- the draws from the env's own ``np_random`` (seeded by ``reset(seed=...)``), recorded in ``drawn_params`` as the
+  paper's envs record theirs (the evaluation's records carry them);
+- what the adapter needs per family (:mod:`bimp.envs.highway.adapter`'s ``Profile``): ``BOUNDS``,
+  ``ACTUATOR_STEER``, ``TARGET_SPEED``, ``DURATION``, so that a family is one module plus one entry in the suite's
+  table (:data:`bimp.envs.suite.FAMILIES`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+from bimp.configs import ConfigError
+from bimp.envs.scene import ACTUATOR_STEER, Bounds
+
+
+@dataclasses.dataclass(frozen=True)
+class Envelope:
+    """Where one range of a family may lie: ``low <= lo <= hi <= high`` in ``unit``; ``why``: what bounds it."""
+
+    low: float
+    high: float
+    unit: str
+    why: str
+
+
+def check_ranges(ranges: Any, envelope: Mapping[str, Envelope]) -> None:
+    """Every ``(lo, hi)`` field of the frozen dataclass ``ranges`` ordered and inside its :class:`Envelope`;
+    :class:`bimp.configs.ConfigError` naming the first field that is not. Call after ``check_fields``."""
+    for field in dataclasses.fields(ranges):
+        lo, hi = getattr(ranges, field.name)
+        e = envelope[field.name]
+        if not e.low <= lo <= hi <= e.high:
+            within = f"a range (lo, hi) with {e.low:g} <= lo <= hi <= {e.high:g} {e.unit}".rstrip()
+            raise ConfigError(field.name, within, (lo, hi), e.why)
+
+
+def _as_range(value: Any) -> Any:
+    # A number fixes a range (as the paper's envs take one); anything else is left to check_fields to judge.
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        return (value, value)
+    return value
+
+
+class Family:
+    """The mixin of every suite family (module docstring). A family class sets the class attributes below; the
+    concrete ones (with a ``NAME``) are checked when the class is made."""
+
+    NAME: ClassVar[str] = ""  # the scenario's name in every command (--scenario stalled-vehicle)
+    ID: ClassVar[str] = ""  # its key in the adapter's tables, registered as bimp/ID
+    DURATION: ClassVar[float] = 0.0  # s: the episode's time limit (highway-env's duration, the registration's steps)
+    TARGET_SPEED: ClassVar[float] = 0.0  # m/s: the behaviour layer's free-road target speed
+    BOUNDS: ClassVar[Bounds] = Bounds()  # the planning bounds (the paper's: straight roads)
+    ACTUATOR_STEER: ClassVar[tuple[float, float]] = ACTUATOR_STEER  # rad: what the normalized steering maps onto
+    RANGES: ClassVar[type]  # the family's frozen dataclass of (lo, hi) ranges
+    DIFFICULTIES: ClassVar[Mapping[str, Any]] = {}  # difficulty -> RANGES instance
+    DEFAULT_DIFFICULTY: ClassVar[str] = "medium"
+    REMOVED_KEYS: ClassVar[frozenset[str]] = frozenset()  # highway-env keys the family's own draws replace
+
+    drawn_params: dict[str, Any]
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        if not cls.NAME:
+            return
+        problems = [f"{key} is not set" for key in ("ID", "DURATION", "TARGET_SPEED") if not getattr(cls, key)]
+        if cls.DEFAULT_DIFFICULTY not in cls.DIFFICULTIES:
+            problems.append(f"DEFAULT_DIFFICULTY {cls.DEFAULT_DIFFICULTY!r} is not among {list(cls.DIFFICULTIES)}")
+        problems += [f"difficulty {name!r} is not a {cls.RANGES.__name__}"
+                     for name, preset in cls.DIFFICULTIES.items() if not isinstance(preset, cls.RANGES)]
+        if problems:
+            raise TypeError(f"family {cls.NAME!r} ({cls.__name__}): {'; '.join(problems)}")
+
+    @classmethod
+    def range_keys(cls) -> tuple[str, ...]:
+        """The config keys of the family's ranges (the fields of :attr:`RANGES`)."""
+        return tuple(f.name for f in dataclasses.fields(cls.RANGES))
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        for key in cls.REMOVED_KEYS:
+            config.pop(key, None)
+        config.update(duration=cls.DURATION, difficulty=cls.DEFAULT_DIFFICULTY,
+                      **dataclasses.asdict(cls.DIFFICULTIES[cls.DEFAULT_DIFFICULTY]))
+        return config
+
+    def configure(self, config: Mapping | None) -> None:
+        """highway-env's ``configure`` (the config every later reset starts from), after checking ``config``: unknown
+        keys, the difficulty and the resulting ranges (module docstring); ``ValueError`` naming the key."""
+        if config is not None and not isinstance(config, Mapping):
+            raise ValueError(f"{self.NAME}: config must be a mapping of config keys (a dict), got {config!r}")
+        config = dict(config or {})
+        unknown = sorted(set(config) - set(self.default_config()))
+        if unknown:
+            replaced = sorted(set(unknown) & self.REMOVED_KEYS)
+            why = f" ({replaced} are highway-env's, replaced by the family's own draws)" if replaced else ""
+            raise ValueError(f"{self.NAME}: unknown config key(s) {unknown}{why}; the family's keys are "
+                             f"{['difficulty', *self.range_keys()]}, besides highway-env's own")
+        difficulty = config.get("difficulty", self.config["difficulty"])
+        if not isinstance(difficulty, str) or difficulty not in self.DIFFICULTIES:
+            raise ConfigError("difficulty", f"one of {', '.join(map(repr, self.DIFFICULTIES))}", difficulty,
+                              f"the difficulties {self.NAME}'s oracle covers")
+        base = (dataclasses.asdict(self.DIFFICULTIES[difficulty]) if "difficulty" in config
+                else {k: self.config[k] for k in self.range_keys()})
+        given = {k: _as_range(config[k]) for k in self.range_keys() if k in config}
+        ranges = self.RANGES(**{**base, **given})  # checks every range: ConfigError naming it
+        super().configure({**config, **dataclasses.asdict(ranges)})
+
+    def _reset(self) -> None:
+        self.drawn_params = {}
+        super()._reset()
+
+    def _draw(self, key: str) -> float:
+        """This episode's value of the range ``key`` [its unit], uniform on the config's ``(lo, hi)`` from the env's
+        ``np_random``; recorded in ``drawn_params``."""
+        lo, hi = self.config[key]
+        value = float(self.np_random.uniform(lo, hi))
+        self.drawn_params[key] = value
+        return value
