@@ -64,7 +64,8 @@ EV_X = 200.0  # m: the EV's start along the road, room for the traffic behind it
 TRAFFIC_BEHIND, TRAFFIC_PAST = 150.0, 150.0  # m: traffic from this far behind the EV to this far past the stall
 MIN_TRAFFIC_GAP = 15.0  # m, centre to centre: a car (5 m) and IDM's jam distance (DISTANCE_WANTED 10 m less a car)
 GAP_JITTER = (0.7, 1.3)  # each centre gap is 1000 / density m times a factor uniform in this range
-STALLED_COLOUR = (60, 60, 60)  # dark grey: highway-env draws no vehicle in it (traffic blue/yellow, crashed red)
+STALLED_COLOUR = (20, 20, 20)  # near black: no highway-env vehicle is drawn so (IDM blue, Linear yellow, crashed red)
+EV_COLOUR = (50, 200, 0)  # green, as the paper's EV: highway-env draws a plain Vehicle yellow, as Linear traffic
 BOUNDS = Bounds()
 
 # Where each range may lie, whatever the difficulty: what the oracle and the road cover.
@@ -169,6 +170,7 @@ class StalledVehicleEnv(Family, HighwayEnv):
 
         lane = lanes[ev_lane]
         ev = self.action_type.vehicle_class(road, lane.position(EV_X, 0.0), lane.heading_at(EV_X), ev_speed)
+        ev.color = EV_COLOUR
         self.controlled_vehicles = [ev]
         stalled = Vehicle(road, lane.position(EV_X + stall, 0.0), lane.heading_at(EV_X + stall), 0.0)
         stalled.color = STALLED_COLOUR  # an accident site; also keeps highway-env from drawing it as traffic
