@@ -119,7 +119,7 @@ PROFILES: dict[str, Profile] = {
     "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 11.0),
     # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
     "two-way-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
-    # a half turn of radius 20 m (inner lane): 0.247 rad; the lanes' speed limit (16 m/s) caps IDM
+    # a half turn of radius 20 m (inner lane): 0.247 rad; the lanes' 20 m/s limit (highway-env's default) caps IDM
     "u-turn-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 24.0, 10.0),
     # tightest turn radius 15 m: 0.326 rad; speed limit 10 m/s
     "racetrack-v0": Profile(_curve_bounds(0.4), (-0.6, 0.6), 10.0, 30.0),
