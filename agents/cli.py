@@ -19,6 +19,7 @@ COMMANDS = {
     "evaluate": ("bimp.agents.evaluate", "run policies x scenarios x seeds and write safety metrics"),
     "compare": ("bimp.agents.compare", "paired per-seed comparison of two policies: McNemar, paired bootstrap"),
     "aggregate": ("bimp.agents.aggregate", "a learning algorithm over its training seeds, intervals over the seeds"),
+    "leaderboard": ("bimp.agents.leaderboard", "policies ranked per scenario and overall, paired tests of neighbours"),
     "render": ("bimp.agents.video", "one episode as an MP4 video"),
     "plot": ("bimp.agents.plots", "draw the paper's figures from an evaluation folder"),
     "sweep": ("bimp.agents.sweep", "policies along one config key (any --param, or N with --n)"),
