@@ -8,6 +8,7 @@ One module per family (its env class, a :class:`bimp.envs.suite.family.Family`),
 ``gym.make("bimp/stalled-vehicle-v0")``).
 
 - :mod:`.stalled_vehicle`: ``stalled-vehicle``, a stopped vehicle in the EV's lane, traffic beside it;
+- :mod:`.cut_in`: ``cut-in``, a vehicle in the next lane cuts in ahead of the EV at a short time gap and brakes;
 - :mod:`.family`: what every family shares (difficulty, ranges, draws);
 - the oracle that shows every instance leaves a safe plan: :mod:`bimp.envs.oracle`.
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 from types import MappingProxyType
 
+from bimp.envs.suite.cut_in import CutInEnv
 from bimp.envs.suite.family import Family
 from bimp.envs.suite.stalled_vehicle import StalledVehicleEnv
 
@@ -23,7 +25,8 @@ from bimp.envs.suite.stalled_vehicle import StalledVehicleEnv
 FAMILIES: MappingProxyType[str, type[Family]] = MappingProxyType({
     cls.NAME: cls for cls in (
         StalledVehicleEnv,
+        CutInEnv,
     )
 })
 
-__all__ = ["FAMILIES", "Family", "StalledVehicleEnv"]
+__all__ = ["FAMILIES", "CutInEnv", "Family", "StalledVehicleEnv"]
