@@ -30,6 +30,9 @@ METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "a
 # scenario; progress is not (a 110 m brake against a 300 m pass), so it is not averaged over scenarios. Runs recorded
 # before the score have none: a scenario where no record has it is left out, as overtake_rate is outside overtaking.
 RATES = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "at_fault_collision_rate", "score")
+# Added after records were made without them: a scenario whose records have them only in part is left without them
+# (a run resumed across the score's commit), never refused as a whole.
+SCORED = ("at_fault_collision_rate", "score")
 
 
 def aggregate(per_run: dict[str, dict[tuple[str, int], dict]], metrics=METRICS) -> dict[str, dict]:
@@ -54,6 +57,8 @@ def aggregate(per_run: dict[str, dict[tuple[str, int], dict]], metrics=METRICS) 
             missing = sum(v is None for row in values for v in row)
             if missing == sum(len(row) for row in values):
                 continue  # a metric the scenario does not have (overtake in the emergency brake)
+            if missing and metric in SCORED:
+                continue  # some runs recorded before the score (resumed after it): no score, as summarize says
             if missing:
                 raise ValueError(f"{metric} is missing in {missing} episode record(s) of {scenario}")
             scores[metric][scenario] = [float(np.mean(row)) for row in values]

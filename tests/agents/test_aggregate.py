@@ -92,3 +92,14 @@ def test_the_closed_loop_score_is_aggregated_and_averaged_over_scenarios_where_t
     assert out["all"]["at_fault_collision_rate"]["mean"] == pytest.approx(0.25)
     # records from before the score: no row for it, no error
     assert "score" not in aggregate(_runs({"s1": [1, 1], "s2": [1, 0]}))["overtaking"]
+
+
+def test_a_run_resumed_across_the_score_has_no_score_and_keeps_every_other_metric():
+    """Records with the score in part (a run resumed after the score's commit): the score is left out for that
+    scenario, as summarize leaves it n/a; the other metrics aggregate, and a partly missing old metric still raises."""
+    per_run = _runs({"s1": [1, 1], "s2": [1, 0]})
+    first = sorted(per_run["s1"])[0]
+    per_run["s1"][first].update(score=1.0, at_fault_collision_rate=0.0)
+    out = aggregate(per_run)
+    assert "score" not in out["overtaking"] and "at_fault_collision_rate" not in out["overtaking"]
+    assert out["overtaking"]["success_rate"]["mean"] == pytest.approx(0.75)
