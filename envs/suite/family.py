@@ -115,6 +115,10 @@ class Family:
             why = f" ({replaced} are highway-env's, replaced by the family's own draws)" if replaced else ""
             raise ValueError(f"{self.NAME}: unknown config key(s) {unknown}{why}; the family's keys are "
                              f"{['difficulty', *self.range_keys()]}, besides highway-env's own")
+        if "duration" in config and config["duration"] != self.DURATION:
+            # The registration's step limit is DURATION: a longer one would be cut there without a word.
+            raise ConfigError("duration", f"{self.DURATION:g} (s)", config["duration"],
+                              f"{self.NAME}'s episodes are registered with a {self.DURATION:g} s step limit")
         difficulty = config.get("difficulty", self.config["difficulty"])
         if not isinstance(difficulty, str) or difficulty not in self.DIFFICULTIES:
             raise ConfigError("difficulty", f"one of {', '.join(map(repr, self.DIFFICULTIES))}", difficulty,

@@ -168,6 +168,7 @@ def test_difficulty_sets_the_ranges_and_a_range_overrides_one():
     ({"vehicles_density": 2.0}, "vehicles_density"),
     ({"no_such_key": 1}, "no_such_key"),
     ({"lanes_count": 1}, "lanes_count"),
+    ({"duration": 500}, "duration"),
 ])
 def test_what_the_oracle_does_not_cover_is_refused(config, match):
     with pytest.raises(ValueError, match=match):
