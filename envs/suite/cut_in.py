@@ -66,22 +66,18 @@ from types import MappingProxyType
 
 import numpy as np
 from highway_env.envs.highway_env import HighwayEnv
-from highway_env.vehicle.behavior import AggressiveVehicle, DefensiveVehicle, IDMVehicle, LinearVehicle
+from highway_env.vehicle.behavior import IDMVehicle
 
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.oracle import brake_at_the_bounds
 from bimp.envs.scene import DT, VEHICLE_LENGTH, Bounds
-from bimp.envs.suite.family import Envelope, Family, check_ranges
+from bimp.envs.suite.family import EV_COLOUR, EV_X, MIN_TRAFFIC_GAP, Envelope, Family, check_ranges
 
-EV_X = 200.0  # m: the EV's start along the road, room for the traffic behind it
 TRAFFIC_BEHIND, TRAFFIC_AHEAD = 150.0, 400.0  # m: traffic from this far behind the EV to this far ahead of it
-MIN_TRAFFIC_GAP = 15.0  # m, centre to centre: a car (5 m) and IDM's jam distance (DISTANCE_WANTED 10 m less a car)
-GAP_JITTER = (0.7, 1.3)  # each centre gap is 1000 / density m times a factor uniform in this range
 CLEARANCE_MARGIN = 40.0  # m: what the clear stretches ahead keep beyond the cutter's reach at the slowest traffic
 LANE_CHANGE = 2.0  # s: the cutter's lane change, start to the EV's lane centre (a peak lateral speed of 3.1 m/s)
 CUTTER_SPEED = (5.0, 40.0)  # m/s: the derived cutter speed's range (40: highway-env's Vehicle.MAX_SPEED)
 CUTTER_COLOUR = (20, 20, 20)  # near black, as the suite's other scripted vehicle (the stalled one)
-EV_COLOUR = (50, 200, 0)  # green, as the paper's EV
 GUARD_GAP = 2.0  # m: the footprint gap the scripted cutter keeps to traffic that comes into its way
 GUARD_ONSET = 4.0  # m/s^2: it brakes for them only once holding 2 m would need this much, as a late driver
 GUARD_MAX = 8.0  # m/s^2: and then at most this hard (the envelope's hardest cutter_decel)
@@ -362,28 +358,7 @@ class CutInEnv(Family, HighwayEnv):
             cutter_lane: [(EV_X + start - MIN_TRAFFIC_GAP,
                            EV_X + start + cutter_lane_clearance(speed, cut_time, slowest))],
         }
-        counts = {"idm": 0, "aggressive": 0, "defensive": 0}
-        for k, other in enumerate(lanes):
-            if density <= 0.0:
-                break
-            spacing = 1000.0 / density
-            x = EV_X - TRAFFIC_BEHIND + float(self.np_random.uniform(0.0, spacing))
-            while x <= EV_X + TRAFFIC_AHEAD:
-                u = float(self.np_random.uniform())
-                kind = AggressiveVehicle if u < aggressive else DefensiveVehicle if u < aggressive + defensive \
-                    else IDMVehicle
-                v = float(self.np_random.uniform(*self.config["traffic_speed"]))
-                if not any(lo <= x < hi for lo, hi in keep_out.get(k, ())):
-                    vehicle = kind(road, other.position(x, 0.0), other.heading_at(x), v)
-                    if isinstance(vehicle, LinearVehicle):
-                        # As in stalled-vehicle: randomize_behavior would undo the kind; the data log only costs.
-                        vehicle.collecting_data = False
-                    else:
-                        vehicle.randomize_behavior()
-                    counts["aggressive" if kind is AggressiveVehicle else "defensive" if kind is DefensiveVehicle
-                           else "idm"] += 1
-                    road.vehicles.append(vehicle)
-                x += max(MIN_TRAFFIC_GAP, spacing * float(self.np_random.uniform(*GAP_JITTER)))
-        self.drawn_params.update({f"traffic_{kind}": n for kind, n in counts.items()})
+        self._place_traffic(lanes, EV_X - TRAFFIC_BEHIND, EV_X + TRAFFIC_AHEAD, density, aggressive, defensive,
+                            keep_out=keep_out)
 
 

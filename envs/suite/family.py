@@ -28,8 +28,15 @@ import numbers
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
+from highway_env.vehicle.behavior import AggressiveVehicle, DefensiveVehicle, IDMVehicle, LinearVehicle
+
 from bimp.configs import ConfigError
 from bimp.envs.scene import ACTUATOR_STEER, Bounds
+
+EV_X = 200.0  # m: the EV's start along a family's road, room for the traffic behind it
+EV_COLOUR = (50, 200, 0)  # green, as the paper's EV: highway-env draws a plain Vehicle yellow, as Linear traffic
+MIN_TRAFFIC_GAP = 15.0  # m, centre to centre: a car (5 m) and IDM's jam distance (DISTANCE_WANTED 10 m less a car)
+GAP_JITTER = (0.7, 1.3)  # each centre gap is 1000 / density m times a factor uniform in this range
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +139,42 @@ class Family:
     def _reset(self) -> None:
         self.drawn_params = {}
         super()._reset()
+
+    def _place_traffic(self, lanes: list, start: float, end: float, density: float, aggressive: float,
+                       defensive: float, skip: tuple[int, ...] = (), keep_out: Mapping | None = None) -> None:
+        """Traffic on ``lanes`` (a road's lanes, by index) from ``start`` to ``end`` [m along them]: one vehicle every
+        ``1000 / density`` m (``density`` per km per lane) times a factor in :data:`GAP_JITTER`, at least
+        :data:`MIN_TRAFFIC_GAP` apart, from a uniform offset; each an ``AggressiveVehicle``, ``DefensiveVehicle``
+        or ``IDMVehicle`` with probabilities ``aggressive``, ``defensive`` and the rest, at a speed drawn from the
+        config's ``traffic_speed``. No traffic, and no draws, on the lanes in ``skip``; on lane ``k`` none starts in
+        ``keep_out[k]``'s stretches ``[(from, to), ...)`` (drawn all the same, so the draws do not depend on them).
+        The kinds' counts go to ``drawn_params`` (``traffic_idm`` ...). Every draw from the env's ``np_random``."""
+        counts = {"idm": 0, "aggressive": 0, "defensive": 0}
+        for k, lane in enumerate(lanes):
+            if density <= 0.0:
+                break
+            if k in skip:
+                continue
+            spacing = 1000.0 / density
+            x = start + float(self.np_random.uniform(0.0, spacing))
+            while x <= end:
+                u = float(self.np_random.uniform())
+                kind = AggressiveVehicle if u < aggressive else DefensiveVehicle if u < aggressive + defensive \
+                    else IDMVehicle
+                speed = float(self.np_random.uniform(*self.config["traffic_speed"]))
+                if not any(lo <= x < hi for lo, hi in (keep_out or {}).get(k, ())):
+                    vehicle = kind(self.road, lane.position(x, 0.0), lane.heading_at(x), speed)
+                    if isinstance(vehicle, LinearVehicle):
+                        # highway-env's randomize_behavior would redraw the very parameters that make a vehicle
+                        # aggressive or defensive; and their data log (for fitting) only costs time here.
+                        vehicle.collecting_data = False
+                    else:
+                        vehicle.randomize_behavior()
+                    counts["aggressive" if kind is AggressiveVehicle else "defensive" if kind is DefensiveVehicle
+                           else "idm"] += 1
+                    self.road.vehicles.append(vehicle)
+                x += max(MIN_TRAFFIC_GAP, spacing * float(self.np_random.uniform(*GAP_JITTER)))
+        self.drawn_params.update({f"traffic_{kind}": n for kind, n in counts.items()})
 
     def _draw(self, key: str) -> float:
         """This episode's value of the range ``key`` [its unit], uniform on the config's ``(lo, hi)`` from the env's

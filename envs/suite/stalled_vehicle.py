@@ -55,20 +55,15 @@ from collections.abc import Mapping
 from types import MappingProxyType
 
 from highway_env.envs.highway_env import HighwayEnv
-from highway_env.vehicle.behavior import AggressiveVehicle, DefensiveVehicle, IDMVehicle, LinearVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.oracle import stop_behind
 from bimp.envs.scene import Bounds
-from bimp.envs.suite.family import Envelope, Family, check_ranges
+from bimp.envs.suite.family import EV_COLOUR, EV_X, Envelope, Family, check_ranges
 
-EV_X = 200.0  # m: the EV's start along the road, room for the traffic behind it
 TRAFFIC_BEHIND, TRAFFIC_PAST = 150.0, 150.0  # m: traffic from this far behind the EV to this far past the stall
-MIN_TRAFFIC_GAP = 15.0  # m, centre to centre: a car (5 m) and IDM's jam distance (DISTANCE_WANTED 10 m less a car)
-GAP_JITTER = (0.7, 1.3)  # each centre gap is 1000 / density m times a factor uniform in this range
 STALLED_COLOUR = (20, 20, 20)  # near black: no highway-env vehicle is drawn so (IDM blue, Linear yellow, crashed red)
-EV_COLOUR = (50, 200, 0)  # green, as the paper's EV: highway-env draws a plain Vehicle yellow, as Linear traffic
 BOUNDS = Bounds()
 
 # Where each range may lie, whatever the difficulty: what the oracle and the road cover.
@@ -180,27 +175,5 @@ class StalledVehicleEnv(Family, HighwayEnv):
         self.stalled_vehicle = stalled
         road.vehicles.extend([ev, stalled])
 
-        counts = {"idm": 0, "aggressive": 0, "defensive": 0}
-        start, end = EV_X - TRAFFIC_BEHIND, EV_X + stall + TRAFFIC_PAST
-        for k, other in enumerate(lanes):
-            if k == ev_lane or density <= 0.0:
-                continue
-            spacing = 1000.0 / density
-            x = start + float(self.np_random.uniform(0.0, spacing))
-            while x <= end:
-                u = float(self.np_random.uniform())
-                kind = AggressiveVehicle if u < aggressive else DefensiveVehicle if u < aggressive + defensive \
-                    else IDMVehicle
-                speed = float(self.np_random.uniform(*self.config["traffic_speed"]))
-                vehicle = kind(road, other.position(x, 0.0), other.heading_at(x), speed)
-                if isinstance(vehicle, LinearVehicle):
-                    # highway-env's randomize_behavior would redraw the very parameters that make a vehicle
-                    # aggressive or defensive; and their data log (for fitting) only costs time here.
-                    vehicle.collecting_data = False
-                else:
-                    vehicle.randomize_behavior()
-                counts["aggressive" if kind is AggressiveVehicle else "defensive" if kind is DefensiveVehicle
-                       else "idm"] += 1
-                road.vehicles.append(vehicle)
-                x += max(MIN_TRAFFIC_GAP, spacing * float(self.np_random.uniform(*GAP_JITTER)))
-        self.drawn_params.update({f"traffic_{kind}": n for kind, n in counts.items()})
+        self._place_traffic(lanes, EV_X - TRAFFIC_BEHIND, EV_X + stall + TRAFFIC_PAST, density, aggressive,
+                            defensive, skip=(ev_lane,))
