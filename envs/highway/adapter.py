@@ -145,7 +145,10 @@ def adapter_config(highway_id: str, config: Mapping | None) -> dict:
     """``config`` (highway-env keys, as for ``gym.make(highway_id, config=...)``) with the adapter's action and
     frequencies, checked: ``ValueError`` naming a key whose value the adapter cannot honour."""
     if highway_id not in PROFILES:
-        raise ValueError(f"bimp.envs.wrap does not support {highway_id!r}; supported ids: {list(PROFILES)}")
+        families = [i for i in PROFILES if i not in SUPPORTED]
+        raise ValueError(f"the adapter has no profile for {highway_id!r}: it takes highway-env's ids "
+                         f"{list(SUPPORTED)} (bimp.envs.wrap(gym.make(ID))) and the suite's families {families} "
+                         f"(gym.make('bimp/ID'))")
     if config is not None and not isinstance(config, Mapping):
         raise ValueError(f"config must be a mapping of highway-env config keys (a dict), got {config!r}")
     config = dict(config or {})

@@ -95,6 +95,10 @@ def test_discrete_meta_action_forced():
 def test_unsupported_id():
     with pytest.raises(ValueError, match="parking-v0"):
         wrap(gym.make("parking-v0"))
+    from bimp.envs.highway.adapter import adapter_config
+
+    with pytest.raises(ValueError, match=r"parking-v0.*wrap\(gym.make\(ID\)\).*'stalled-vehicle-v0'.*bimp/ID"):
+        adapter_config("parking-v0", None)  # highway-env's ids for wrap, the families for bimp/ID: said apart
 
 
 def test_bad_action():
