@@ -17,6 +17,7 @@ import math
 from types import MappingProxyType
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.signal import savgol_filter
 
 from bimp.agents.stats import mean_summary, rate_summary
@@ -143,7 +144,7 @@ def _savgol(y: np.ndarray, window: int, dt: float, deriv: int) -> np.ndarray:
     return savgol_filter(y, window_length=window, polyorder=2, deriv=deriv, delta=dt, mode="interp")
 
 
-def comfort_signals(speed, heading, dt: float) -> tuple[np.ndarray, np.ndarray]:
+def comfort_signals(speed: ArrayLike, heading: ArrayLike, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """``(longitudinal jerk [m/s^3], lateral acceleration [m/s^2])`` along an episode from the EV's ``speed (n,)``
     [m/s] and ``heading (n,)`` [rad] at each step, ``dt`` [s] apart; ``(n - 1,)`` and ``(n,)``.
 

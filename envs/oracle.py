@@ -15,6 +15,7 @@ reverse). Pure numpy: no highway-env, no env.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from bimp.envs.scene import DT, VEHICLE_LENGTH, Bounds
 
@@ -55,7 +56,7 @@ def brake_at_the_bounds(ev, gap, v_ov, onset, decel, dt: float = DT, length: flo
     return least
 
 
-def stop_behind(ev, gap, bounds: Bounds | None = None) -> np.ndarray:
+def stop_behind(ev: ArrayLike, gap: ArrayLike, bounds: Bounds | None = None) -> np.ndarray:
     """Least footprint gap [m] ``(...)`` to a vehicle standing ``gap`` [m] (centre to centre) ahead in the EV's lane
     when the EV (speed ``ev`` [m/s], last input 0) brakes at the bounds from its first step: the stop that a
     stalled vehicle always leaves. :func:`brake_at_the_bounds` with an OV at 0 that it sees from the start."""

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from bimp.envs.road import RoadGeometry, Route, array_module, rect_gap, wrap_angle
 
@@ -99,7 +100,8 @@ def constraint_values(bounds, u, u_prev, gaps, edge: float) -> dict:
 CONTACT_FIELDS = ("rel_x", "rel_y", "rel_heading", "ev_speed", "ov_speed", "ev_lateral_speed")
 
 
-def attribution_info(ego, ovs, gaps, ev_lateral_speed: float, speed_limit: float, crashed=None) -> dict:
+def attribution_info(ego: ArrayLike, ovs: ArrayLike, gaps: ArrayLike, ev_lateral_speed: float, speed_limit: float,
+                     crashed: ArrayLike | None = None) -> dict:
     """The per-step ``info`` the closed-loop score's at-fault rule and speed terms read
     (:func:`bimp.agents.metrics.episode_metrics`), one definition for the paper's envs and the highway-env adapter:
     ``{"contact": dict | None, "speed_limit": float}``.

@@ -13,6 +13,7 @@ in the route's frame (``l`` > 0 to the right of travel, highway-env's +y at head
 from __future__ import annotations
 
 import numpy as np
+from highway_env.road.road import RoadNetwork
 
 from bimp.envs.road import Route, wrap_angle
 
@@ -75,7 +76,7 @@ def _spaced(xy: np.ndarray, least: float) -> np.ndarray:
     return keep
 
 
-def joins(network, index, end: np.ndarray, heading: float) -> bool:
+def joins(network: RoadNetwork, index: tuple, end: np.ndarray, heading: float) -> bool:
     """Whether lane ``index`` goes on from a lane that ends at ``end (2,)`` with ``heading``: it starts there (within
     ``JOIN`` m), or a little ahead (within ``BRIDGE`` m, roundabout-v0's entries meet the ring 5.6 m on) with the gap
     and its own start heading within 45 degrees of the way on; not a lane beside (exit-v0's exit road, 24 m to the
