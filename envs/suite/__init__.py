@@ -9,6 +9,8 @@ One module per family (its env class, a :class:`bimp.envs.suite.family.Family`),
 
 - :mod:`.stalled_vehicle`: ``stalled-vehicle``, a stopped vehicle in the EV's lane, traffic beside it;
 - :mod:`.cut_in`: ``cut-in``, a vehicle in the next lane cuts in ahead of the EV at a short time gap and brakes;
+- :mod:`.lane_drop`: ``lane-drop``, the EV's lane closed ahead (a construction zone), traffic in the lane to merge
+  into;
 - :mod:`.family`: what every family shares (difficulty, ranges, draws);
 - the oracle that shows every instance leaves a safe plan: :mod:`bimp.envs.oracle`.
 """
@@ -19,6 +21,7 @@ from types import MappingProxyType
 
 from bimp.envs.suite.cut_in import CutInEnv
 from bimp.envs.suite.family import Family
+from bimp.envs.suite.lane_drop import LaneDropEnv
 from bimp.envs.suite.stalled_vehicle import StalledVehicleEnv
 
 # The suite's table: family name -> env class. A new family is its module and one entry here.
@@ -26,7 +29,8 @@ FAMILIES: MappingProxyType[str, type[Family]] = MappingProxyType({
     cls.NAME: cls for cls in (
         StalledVehicleEnv,
         CutInEnv,
+        LaneDropEnv,
     )
 })
 
-__all__ = ["FAMILIES", "CutInEnv", "Family", "StalledVehicleEnv"]
+__all__ = ["FAMILIES", "CutInEnv", "Family", "LaneDropEnv", "StalledVehicleEnv"]
