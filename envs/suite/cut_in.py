@@ -61,7 +61,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from collections.abc import Mapping
 from types import MappingProxyType
 
 import numpy as np
@@ -71,7 +70,14 @@ from highway_env.vehicle.behavior import IDMVehicle
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.oracle import brake_at_the_bounds
 from bimp.envs.scene import DT, VEHICLE_LENGTH, Bounds
-from bimp.envs.suite.family import EV_COLOUR, EV_X, MIN_TRAFFIC_GAP, Envelope, Family, check_ranges
+from bimp.envs.suite.family import (
+    EV_X,
+    MIN_TRAFFIC_GAP,
+    Envelope,
+    HighwayFamily,
+    check_ranges,
+    check_shares,
+)
 
 TRAFFIC_BEHIND, TRAFFIC_AHEAD = 150.0, 400.0  # m: traffic from this far behind the EV to this far ahead of it
 CLEARANCE_MARGIN = 40.0  # m: what the clear stretches ahead keep beyond the cutter's reach at the slowest traffic
@@ -166,10 +172,7 @@ class CutInRanges:
     def __post_init__(self) -> None:
         check_fields(self)
         check_ranges(self, ENVELOPE)
-        if self.aggressive_share[1] + self.defensive_share[1] > 1.0:
-            raise ConfigError("defensive_share", f"a range whose high is at most 1 - aggressive_share's high "
-                              f"({1.0 - self.aggressive_share[1]:g})", self.defensive_share, "the shares are "
-                              "probabilities of one vehicle's kind")
+        check_shares(self)
         corners = self.corners()
         speeds = cutter_speed(*(corners[k] for k in ("ev_speed", "cutter_start", "cut_time", "time_gap")))
         if not CUTTER_SPEED[0] <= speeds.min() <= speeds.max() <= CUTTER_SPEED[1]:
@@ -296,7 +299,7 @@ class CutInVehicle(IDMVehicle):
         self.on_state_update()
 
 
-class CutInEnv(Family, HighwayEnv):
+class CutInEnv(HighwayFamily, HighwayEnv):
     """The ``cut-in`` family (module docstring): highway-env's ``HighwayEnv`` road with the family's own population.
     ``self.cutter``: this episode's scripted :class:`CutInVehicle`. Config: highway-env's keys but those its
     population replaces (:attr:`REMOVED_KEYS`), ``lanes_count`` an int in [2, 5], ``difficulty`` and the ranges of
@@ -308,22 +311,9 @@ class CutInEnv(Family, HighwayEnv):
     TARGET_SPEED = 30.0  # m/s: the lanes' speed limit, as highway-v0's profile
     RANGES = CutInRanges
     DIFFICULTIES = DIFFICULTIES
-    REMOVED_KEYS = frozenset({"vehicles_count", "vehicles_density", "initial_lane_id", "ego_spacing",
-                              "other_vehicles_type", "controlled_vehicles"})
+    LANES_WHY = "a lane beside the EV's to cut in from"
 
     cutter: CutInVehicle
-
-    @classmethod
-    def default_config(cls) -> dict:
-        config = super().default_config()
-        config.update(lanes_count=3)
-        return config
-
-    def configure(self, config: Mapping | None) -> None:
-        lanes = config.get("lanes_count") if isinstance(config, Mapping) else None
-        if lanes is not None and (isinstance(lanes, bool) or not isinstance(lanes, int) or not 2 <= lanes <= 5):
-            raise ConfigError("lanes_count", "an int in [2, 5]", lanes, "a lane beside the EV's to cut in from")
-        super().configure(config)
 
     def _create_vehicles(self) -> None:
         """The EV, the cutter and the traffic (module docstring), in that order of draws."""
@@ -342,14 +332,12 @@ class CutInEnv(Family, HighwayEnv):
         self.drawn_params["cutter_speed"] = speed
 
         lane, side = lanes[ev_lane], lanes[cutter_lane]
-        ev = self.action_type.vehicle_class(road, lane.position(EV_X, 0.0), lane.heading_at(EV_X), ev_speed)
-        ev.color = EV_COLOUR
-        self.controlled_vehicles = [ev]
+        self._add_ev(lane, ev_speed)
         self.cutter = CutInVehicle(road, side.position(EV_X + start, 0.0), side.heading_at(EV_X + start), speed,
                                    target_lane_index=("0", "1", ev_lane), cut_time=float(on_the_step(cut_time)),
                                    decel=decel, brake_duration=float(on_the_step(brake_duration)),
                                    frequency=float(self.config["simulation_frequency"]))
-        road.vehicles.extend([ev, self.cutter])
+        road.vehicles.append(self.cutter)
 
         slowest = self.config["traffic_speed"][0]
         keep_out = {  # per lane: the stretches [from, to) of x where no traffic starts (module docstring)

@@ -1,7 +1,8 @@
 """What every scenario family of the suite shares: its difficulty, its ranges, its draws, and what the adapter reads.
 
 A family is a highway-env env class (a subclass of one of highway-env's, as exit-v0 and the others are) with
-:class:`Family` before highway-env's class in its bases. The mixin gives it:
+:class:`Family` before highway-env's class in its bases (:class:`HighwayFamily` for a family on highway-env's
+``HighwayEnv`` road: its population keys, ``lanes_count`` and the EV's placement besides). The mixin gives it:
 
 - a ``difficulty`` config key (``"easy"``, ``"medium"``, ``"hard"``, or whatever names the family's
   :attr:`Family.DIFFICULTIES` holds) that sets every randomized range at once, and one config key per range
@@ -58,6 +59,15 @@ def check_ranges(ranges: Any, envelope: Mapping[str, Envelope]) -> None:
         if not e.low <= lo <= hi <= e.high:
             within = f"a range (lo, hi) with {e.low:g} <= lo <= hi <= {e.high:g} {e.unit}".rstrip()
             raise ConfigError(field.name, within, (lo, hi), e.why)
+
+
+def check_shares(ranges: Any) -> None:
+    """The ``aggressive_share`` and ``defensive_share`` ranges of ``ranges`` (probabilities of one traffic vehicle's
+    kind) with highs summing to at most 1; :class:`bimp.configs.ConfigError` naming ``defensive_share`` otherwise."""
+    if ranges.aggressive_share[1] + ranges.defensive_share[1] > 1.0:
+        raise ConfigError("defensive_share", f"a range whose high is at most 1 - aggressive_share's high "
+                          f"({1.0 - ranges.aggressive_share[1]:g})", ranges.defensive_share, "the shares are "
+                          "probabilities of one vehicle's kind")
 
 
 def _as_range(value: Any) -> Any:
@@ -183,3 +193,35 @@ class Family:
         value = float(self.np_random.uniform(lo, hi))
         self.drawn_params[key] = value
         return value
+
+
+class HighwayFamily(Family):
+    """A family on highway-env's ``HighwayEnv`` road (bases ``(HighwayFamily, HighwayEnv)``) with its own
+    population: highway-env's population keys refused (:attr:`REMOVED_KEYS`), ``lanes_count`` 3 by default and an
+    int in [2, 5] (``LANES_WHY``: what the family needs the lane beside the EV's for), and the EV placed by
+    :meth:`_add_ev`."""
+
+    REMOVED_KEYS = frozenset({"vehicles_count", "vehicles_density", "initial_lane_id", "ego_spacing",
+                              "other_vehicles_type", "controlled_vehicles"})
+    LANES_WHY: ClassVar[str] = "a lane beside the EV's"
+
+    @classmethod
+    def default_config(cls) -> dict:
+        config = super().default_config()
+        config.update(lanes_count=3)
+        return config
+
+    def configure(self, config: Mapping | None) -> None:
+        lanes = config.get("lanes_count") if isinstance(config, Mapping) else None
+        if lanes is not None and (isinstance(lanes, bool) or not isinstance(lanes, int) or not 2 <= lanes <= 5):
+            raise ConfigError("lanes_count", "an int in [2, 5]", lanes, self.LANES_WHY)
+        super().configure(config)
+
+    def _add_ev(self, lane, speed: float):
+        """The EV (the action type's vehicle, drawn :data:`EV_COLOUR`) at :data:`EV_X` on ``lane`` at ``speed``
+        [m/s], as the controlled vehicle and on the road; returned."""
+        ev = self.action_type.vehicle_class(self.road, lane.position(EV_X, 0.0), lane.heading_at(EV_X), speed)
+        ev.color = EV_COLOUR
+        self.controlled_vehicles = [ev]
+        self.road.vehicles.append(ev)
+        return ev

@@ -49,7 +49,6 @@ where no gap opens is a safe end); the score's progress part tells merging from 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from types import MappingProxyType
 
 from highway_env.envs.highway_env import HighwayEnv
@@ -58,7 +57,7 @@ from highway_env.vehicle.objects import Obstacle
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.oracle import stop_behind
 from bimp.envs.scene import VEHICLE_LENGTH, VEHICLE_WIDTH, Bounds
-from bimp.envs.suite.family import EV_COLOUR, EV_X, Envelope, Family, check_ranges
+from bimp.envs.suite.family import EV_X, Envelope, HighwayFamily, check_ranges, check_shares
 
 TRAFFIC_BEHIND, TRAFFIC_PAST = 150.0, 150.0  # m: traffic from this far behind the EV to this far past the closure
 CLOSURE_BLOCKS = 21  # blocks in the closure's row
@@ -104,10 +103,7 @@ class LaneDropRanges:
     def __post_init__(self) -> None:
         check_fields(self)
         check_ranges(self, ENVELOPE)
-        if self.aggressive_share[1] + self.defensive_share[1] > 1.0:
-            raise ConfigError("defensive_share", f"a range whose high is at most 1 - aggressive_share's high "
-                              f"({1.0 - self.aggressive_share[1]:g})", self.defensive_share, "the shares are "
-                              "probabilities of one vehicle's kind")
+        check_shares(self)
         gap = self.least_gap()
         if gap < BOUNDS.d_min:
             need = self.drop_distance[0] + BOUNDS.d_min - gap  # the least gap grows 1:1 with the distance
@@ -131,7 +127,7 @@ DIFFICULTIES = MappingProxyType({
 })
 
 
-class LaneDropEnv(Family, HighwayEnv):
+class LaneDropEnv(HighwayFamily, HighwayEnv):
     """The ``lane-drop`` family (module docstring): highway-env's ``HighwayEnv`` road, the EV's outer lane closed
     ahead. ``self.closure``: this episode's blocks, nearest first. Config: highway-env's keys but those the
     population replaces (:attr:`REMOVED_KEYS`), ``lanes_count`` an int in [2, 5], ``difficulty`` and the ranges of
@@ -143,22 +139,9 @@ class LaneDropEnv(Family, HighwayEnv):
     TARGET_SPEED = 30.0  # m/s: the lanes' speed limit
     RANGES = LaneDropRanges
     DIFFICULTIES = DIFFICULTIES
-    REMOVED_KEYS = frozenset({"vehicles_count", "vehicles_density", "initial_lane_id", "ego_spacing",
-                              "other_vehicles_type", "controlled_vehicles"})
+    LANES_WHY = "a lane beside the closed one to merge into"
 
     closure: list[ClosureBlock]
-
-    @classmethod
-    def default_config(cls) -> dict:
-        config = super().default_config()
-        config.update(lanes_count=3)
-        return config
-
-    def configure(self, config: Mapping | None) -> None:
-        lanes = config.get("lanes_count") if isinstance(config, Mapping) else None
-        if lanes is not None and (isinstance(lanes, bool) or not isinstance(lanes, int) or not 2 <= lanes <= 5):
-            raise ConfigError("lanes_count", "an int in [2, 5]", lanes, "a lane beside the closed one to merge into")
-        super().configure(config)
 
     def _create_vehicles(self) -> None:
         """The EV, the closure and the traffic (module docstring), in that order of draws."""
@@ -172,10 +155,7 @@ class LaneDropEnv(Family, HighwayEnv):
         aggressive, defensive = self._draw("aggressive_share"), self._draw("defensive_share")
 
         lane = lanes[ev_lane]
-        ev = self.action_type.vehicle_class(road, lane.position(EV_X, 0.0), lane.heading_at(EV_X), ev_speed)
-        ev.color = EV_COLOUR
-        self.controlled_vehicles = [ev]
-        road.vehicles.append(ev)
+        self._add_ev(lane, ev_speed)
         self.closure = []
         for k in range(CLOSURE_BLOCKS):
             x = EV_X + drop + k * BLOCK_SPACING

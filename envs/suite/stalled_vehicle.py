@@ -51,7 +51,6 @@ vehicle where no gap opens is a safe end); the score's progress part tells passi
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from types import MappingProxyType
 
 from highway_env.envs.highway_env import HighwayEnv
@@ -60,7 +59,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.oracle import stop_behind
 from bimp.envs.scene import Bounds
-from bimp.envs.suite.family import EV_COLOUR, EV_X, Envelope, Family, check_ranges
+from bimp.envs.suite.family import EV_X, Envelope, HighwayFamily, check_ranges, check_shares
 
 TRAFFIC_BEHIND, TRAFFIC_PAST = 150.0, 150.0  # m: traffic from this far behind the EV to this far past the stall
 STALLED_COLOUR = (20, 20, 20)  # near black: no highway-env vehicle is drawn so (IDM blue, Linear yellow, crashed red)
@@ -96,10 +95,7 @@ class StalledVehicleRanges:
     def __post_init__(self) -> None:
         check_fields(self)
         check_ranges(self, ENVELOPE)
-        if self.aggressive_share[1] + self.defensive_share[1] > 1.0:
-            raise ConfigError("defensive_share", f"a range whose high is at most 1 - aggressive_share's high "
-                              f"({1.0 - self.aggressive_share[1]:g})", self.defensive_share, "the shares are "
-                              "probabilities of one vehicle's kind")
+        check_shares(self)
         gap = self.least_gap()
         if gap < BOUNDS.d_min:
             need = self.stall_distance[0] + BOUNDS.d_min - gap  # the least gap grows 1:1 with the stall distance
@@ -126,7 +122,7 @@ DIFFICULTIES = MappingProxyType({
 })
 
 
-class StalledVehicleEnv(Family, HighwayEnv):
+class StalledVehicleEnv(HighwayFamily, HighwayEnv):
     """The ``stalled-vehicle`` family (module docstring): highway-env's ``HighwayEnv`` road with the family's own
     population. ``self.stalled_vehicle``: the standing vehicle of this episode. Config: highway-env's keys but those
     its population replaces (:attr:`REMOVED_KEYS`), ``lanes_count`` an int in [2, 5], ``difficulty`` and the
@@ -138,22 +134,9 @@ class StalledVehicleEnv(Family, HighwayEnv):
     TARGET_SPEED = 30.0  # m/s: the lanes' speed limit, as highway-v0's profile
     RANGES = StalledVehicleRanges
     DIFFICULTIES = DIFFICULTIES
-    REMOVED_KEYS = frozenset({"vehicles_count", "vehicles_density", "initial_lane_id", "ego_spacing",
-                              "other_vehicles_type", "controlled_vehicles"})
+    LANES_WHY = "a lane beside the stall to pass in"
 
     stalled_vehicle: Vehicle
-
-    @classmethod
-    def default_config(cls) -> dict:
-        config = super().default_config()
-        config.update(lanes_count=3)
-        return config
-
-    def configure(self, config: Mapping | None) -> None:
-        lanes = config.get("lanes_count") if isinstance(config, Mapping) else None
-        if lanes is not None and (isinstance(lanes, bool) or not isinstance(lanes, int) or not 2 <= lanes <= 5):
-            raise ConfigError("lanes_count", "an int in [2, 5]", lanes, "a lane beside the stall to pass in")
-        super().configure(config)
 
     def _create_vehicles(self) -> None:
         """The EV, the stalled vehicle and the traffic (module docstring), in that order of draws."""
@@ -167,13 +150,11 @@ class StalledVehicleEnv(Family, HighwayEnv):
         aggressive, defensive = self._draw("aggressive_share"), self._draw("defensive_share")
 
         lane = lanes[ev_lane]
-        ev = self.action_type.vehicle_class(road, lane.position(EV_X, 0.0), lane.heading_at(EV_X), ev_speed)
-        ev.color = EV_COLOUR
-        self.controlled_vehicles = [ev]
+        self._add_ev(lane, ev_speed)
         stalled = Vehicle(road, lane.position(EV_X + stall, 0.0), lane.heading_at(EV_X + stall), 0.0)
         stalled.color = STALLED_COLOUR  # an accident site; also keeps highway-env from drawing it as traffic
         self.stalled_vehicle = stalled
-        road.vehicles.extend([ev, stalled])
+        road.vehicles.append(stalled)
 
         self._place_traffic(lanes, EV_X - TRAFFIC_BEHIND, EV_X + stall + TRAFFIC_PAST, density, aggressive,
                             defensive, skip=(ev_lane,))
