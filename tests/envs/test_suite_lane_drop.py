@@ -19,6 +19,7 @@ from bimp.envs.oracle import stop_behind
 from bimp.envs.scene import VEHICLE_LENGTH, Bounds
 from bimp.envs.suite import FAMILIES
 from bimp.envs.suite.lane_drop import BLOCK_SPACING, CLOSURE_BLOCKS, DIFFICULTIES, LaneDropEnv, LaneDropRanges
+from tests.envs.test_suite_families import BrakeAtTheBounds
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -59,17 +60,6 @@ def test_hard_starts_where_the_oracle_still_stops_clear():
     """hard's worst corner (30 m/s, 90 m) stops 10 m clear; 10 m nearer it would not stop d_min clear."""
     assert DIFFICULTIES["hard"].least_gap() > 10.0
     assert stop_behind(30.0, 80.0) < B.d_min
-
-
-class BrakeAtTheBounds:
-    """The oracle's plan as a policy: straight on, the acceleration ramped to a_min by the rate bound from step 1."""
-
-    def __init__(self, env):
-        self.env, self.a = env, 0.0
-
-    def act(self, obs):
-        self.a = max(self.a - B.accel_rate, B.accel[0])
-        return self.env.unwrapped.scene.to_normalized(np.array([self.a, 0.0])).astype(np.float32)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -131,21 +121,6 @@ def test_the_closure_stands_in_the_evs_lane_ahead():
         assert len(near) <= 1 and (not len(near) or near[0, 4] == 0.0)
 
 
-def test_same_seed_same_observations_and_other_seeds_differ():
-    runs = []
-    for seed in (3, 3, 4):
-        env = gym.make(ID)
-        obs, _ = env.reset(seed=seed)
-        seq = [obs]
-        for k in range(10):
-            obs, *_ = env.step(np.array([0.1, 0.01 * np.sin(k)], np.float32))
-            seq.append(obs)
-        runs.append((np.array(seq), dict(env.unwrapped.drawn_params)))
-    np.testing.assert_array_equal(runs[0][0], runs[1][0])
-    assert runs[0][1] == runs[1][1]
-    assert runs[0][1] != runs[2][1] and not np.array_equal(runs[0][0], runs[2][0])
-
-
 def test_difficulty_sets_the_ranges_and_a_range_overrides_one():
     base = gym.make(ID, config={"difficulty": "easy"}).unwrapped
     assert {k: base.config[k] for k in LaneDropEnv.range_keys()} == dataclasses.asdict(DIFFICULTIES["easy"])
@@ -197,21 +172,6 @@ def test_wrap_takes_the_family_env_and_keeps_its_config():
     env.reset(seed=0)
     assert env.unwrapped.drawn_params["drop_distance"] >= DIFFICULTIES["easy"].drop_distance[0]
     assert env.unwrapped.drawn_params["ev_lane"] in (0, 3)
-
-
-@pytest.mark.parametrize("policy", ["idm", "enkts"])
-def test_short_seeded_episode(policy):
-    env = gym.make(ID, config={"difficulty": "hard"})
-    agent = make_policy(policy, env)
-    obs, info = env.reset(seed=1)
-    agent.reset(1)
-    for _ in range(10):
-        action = agent.act(obs)
-        assert action.shape == (2,) and np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
-        obs, _, terminated, truncated, info = env.step(action)
-        assert np.all(np.isfinite(obs)) and not info["collision"] and not info["offroad"]
-        if terminated or truncated:
-            break
 
 
 def test_mobil_merges_out_of_the_closed_lane_where_the_road_is_free():

@@ -1,0 +1,61 @@
+"""What every scenario family of the suite must do alike, tested on each entry of the suite's table: the same seed
+gives the same episode and another seed another; idm and enkts drive a short seeded hard episode. Also the oracle's
+plan as a policy, which each family's own tests drive through its env."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import bimp  # noqa: F401  (registers bimp/<family>-v0)
+from bimp import make_policy
+from bimp.envs.scene import Bounds
+from bimp.envs.suite import FAMILIES
+
+pytestmark = pytest.mark.filterwarnings("ignore")
+IDS = [f"bimp/{cls.ID}" for cls in FAMILIES.values()]
+B = Bounds()
+
+
+class BrakeAtTheBounds:
+    """The oracle's plan as a policy: straight on, the acceleration ramped to a_min by the rate bound from step 1."""
+
+    def __init__(self, env):
+        self.env, self.a = env, 0.0
+
+    def act(self, obs):
+        self.a = max(self.a - B.accel_rate, B.accel[0])
+        return self.env.unwrapped.scene.to_normalized(np.array([self.a, 0.0])).astype(np.float32)
+
+
+@pytest.mark.parametrize("env_id", IDS)
+def test_same_seed_same_observations_and_other_seeds_differ(env_id):
+    runs = []
+    for seed in (3, 3, 4):
+        env = gym.make(env_id)
+        obs, _ = env.reset(seed=seed)
+        seq = [obs]
+        for k in range(10):
+            obs, *_ = env.step(np.array([0.1, 0.01 * np.sin(k)], np.float32))
+            seq.append(obs)
+        runs.append((np.array(seq), dict(env.unwrapped.drawn_params)))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    assert runs[0][1] == runs[1][1]
+    assert runs[0][1] != runs[2][1] and not np.array_equal(runs[0][0], runs[2][0])
+
+
+@pytest.mark.parametrize("env_id", IDS)
+@pytest.mark.parametrize("policy", ["idm", "enkts"])
+def test_short_seeded_episode(env_id, policy):
+    env = gym.make(env_id, config={"difficulty": "hard"})
+    agent = make_policy(policy, env)
+    obs, info = env.reset(seed=1)
+    agent.reset(1)
+    for _ in range(10):
+        action = agent.act(obs)
+        assert action.shape == (2,) and np.all(np.isfinite(action)) and np.all(np.abs(action) <= 1.0)
+        obs, _, terminated, truncated, info = env.step(action)
+        assert np.all(np.isfinite(obs)) and not info["collision"] and not info["offroad"]
+        if terminated or truncated:
+            break
