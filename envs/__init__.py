@@ -10,7 +10,8 @@ new scenario is one env class plus one ``register_scenario(ScenarioSpec(...))``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from types import MappingProxyType
 
 from gymnasium.envs.registration import register, registry
@@ -35,9 +36,11 @@ class ScenarioSpec:
     entry_point: str = ""
     max_episode_steps: int = 0
     default: bool = False
+    kwargs: Mapping = field(default_factory=dict)  # the entry point's keyword arguments (a family's difficulty)
 
     def __post_init__(self) -> None:
-        missing = [f.name for f in fields(self) if f.name != "default" and getattr(self, f.name) in ("", 0, None)]
+        missing = [f.name for f in fields(self)
+                   if f.name not in ("default", "kwargs") and getattr(self, f.name) in ("", 0, None)]
         if missing:
             raise ValueError(f"scenario spec {self.name or '(no name)'!r} is missing {', '.join(missing)}")
         problems = [f"{key} must be a non-empty string, got {value!r}"
@@ -50,6 +53,8 @@ class ScenarioSpec:
         if isinstance(self.max_episode_steps, bool) or not isinstance(self.max_episode_steps, int) \
                 or self.max_episode_steps < 1:
             problems.append(f"max_episode_steps must be an int >= 1, got {self.max_episode_steps!r}")
+        if not isinstance(self.kwargs, Mapping):
+            problems.append(f"kwargs must be a mapping, got {self.kwargs!r}")
         if not isinstance(self.default, bool):
             problems.append(f"default must be true or false, got {self.default!r}")
         if problems:
@@ -71,7 +76,8 @@ def register_scenario(spec: ScenarioSpec) -> ScenarioSpec:
     if taken:
         raise ValueError(f"scenario {spec.name!r}: id {spec.id!r} is already registered as scenario {taken[0]!r}")
     if spec.id not in registry:  # a second copy of this package (a reload) finds its ids already in Gymnasium's
-        register(id=spec.id, entry_point=spec.entry_point, max_episode_steps=spec.max_episode_steps)
+        register(id=spec.id, entry_point=spec.entry_point, max_episode_steps=spec.max_episode_steps,
+                 kwargs=dict(spec.kwargs))
     _SCENARIOS[spec.name] = spec
     return spec
 
@@ -97,6 +103,16 @@ for _id, _profile in _HIGHWAY_PROFILES.items():
     register_scenario(ScenarioSpec(name=_FAMILY_NAMES.get(_id, _id), id=f"bimp/{_id}",
                                    entry_point=f"bimp.envs.highway.adapter:{entry_name(_id)}",
                                    max_episode_steps=int(round(_profile.duration * POLICY_FREQUENCY))))
+
+# Each family's other difficulties as scenarios of their own, so that every command names them (--scenario cut-in-hard,
+# bimp/cut-in-hard-v0: the family's env with config difficulty "hard"); the plain name is the default difficulty.
+for _name, _cls in FAMILIES.items():
+    for _difficulty in _cls.DIFFICULTIES:
+        if _difficulty != _cls.DEFAULT_DIFFICULTY:
+            register_scenario(ScenarioSpec(
+                name=f"{_name}-{_difficulty}", id=f"bimp/{_name}-{_difficulty}-v0",
+                entry_point=f"bimp.envs.highway.adapter:{entry_name(_cls.ID)}",
+                max_episode_steps=int(round(_cls.DURATION * POLICY_FREQUENCY)), kwargs={"difficulty": _difficulty}))
 
 # The shipped scenarios as fixed name -> id views of the table (the default set, and the variants).
 ENV_IDS = {s.name: s.id for s in _SCENARIOS.values() if s.default}

@@ -229,7 +229,16 @@ def entry_name(highway_id: str) -> str:
 
 
 def _entry(highway_id: str):
-    def make_env(config: Mapping | None = None, render_mode: str | None = None, n_obstacles: int = N_OBSTACLES):
+    def make_env(config: Mapping | None = None, render_mode: str | None = None, n_obstacles: int = N_OBSTACLES,
+                 difficulty: str | None = None):
+        # A suite family registered at one of its difficulties (bimp/cut-in-hard-v0); a non-mapping config is left
+        # for make to refuse.
+        if difficulty is not None and (config is None or isinstance(config, Mapping)):
+            config = {"difficulty": difficulty, **(config or {})}
+            if config["difficulty"] != difficulty:
+                raise ValueError(f"this id is {highway_id}'s {difficulty!r} difficulty: config difficulty "
+                                 f"{config['difficulty']!r} contradicts it (gym.make('bimp/{highway_id}', "
+                                 f"config={{'difficulty': ...}}) takes any)")
         return make(highway_id, config, render_mode, n_obstacles)
 
     make_env.__name__ = make_env.__qualname__ = entry_name(highway_id)

@@ -4,11 +4,13 @@ plan as a policy, which each family's own tests drive through its env."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium as gym
 import numpy as np
 import pytest
 
-import bimp  # noqa: F401  (registers bimp/<family>-v0)
+import bimp  # registers bimp/<family>-v0
 from bimp import make_policy
 from bimp.envs.scene import Bounds
 from bimp.envs.suite import FAMILIES
@@ -59,3 +61,26 @@ def test_short_seeded_episode(env_id, policy):
         assert np.all(np.isfinite(obs)) and not info["collision"] and not info["offroad"]
         if terminated or truncated:
             break
+
+
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_every_difficulty_is_a_scenario_of_its_own(name):
+    """``--scenario cut-in-hard`` (``bimp/cut-in-hard-v0``): the family at that difficulty, its ranges the preset's
+    unless a range key overrides one; the plain name is the default difficulty; a contradicting difficulty is
+    refused."""
+    cls = FAMILIES[name]
+    assert bimp.envs.env_id(name) == f"bimp/{cls.ID}"
+    for difficulty, preset in cls.DIFFICULTIES.items():
+        scenario = name if difficulty == cls.DEFAULT_DIFFICULTY else f"{name}-{difficulty}"
+        spec = bimp.envs.scenario_spec(scenario)
+        assert spec.max_episode_steps == round(cls.DURATION * 10)
+        config = gym.make(spec.id).unwrapped.config
+        assert config["difficulty"] == difficulty
+        assert {k: tuple(config[k]) for k in cls.range_keys()} == dataclasses.asdict(preset)
+    hard = bimp.envs.env_id(f"{name}-hard")
+    key = cls.range_keys()[0]
+    lo, hi = cls.DIFFICULTIES["hard"].__dict__[key]
+    config = gym.make(hard, config={key: hi}).unwrapped.config
+    assert config["difficulty"] == "hard" and tuple(config[key]) == (hi, hi)
+    with pytest.raises(ValueError, match="contradicts"):
+        gym.make(hard, config={"difficulty": "easy"})
