@@ -31,7 +31,7 @@ import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
 
 from bimp.configs import neutral_values
-from bimp.envs.highway.lanes import joins
+from bimp.envs.highway.lanes import goes_on_beside
 
 # Bumped whenever the adapter or the behaviour layer changes what an episode does, so that records made before are
 # another scenario definition, never resumed as this one's. 2: routes that skip non-adjacent lane joins, the EV that
@@ -84,7 +84,7 @@ class DriveOnDriver(ShadowDriver):
     """:class:`ShadowDriver` that drives on where its route's next road leaves from another lane than its own (the
     exit missed) instead of following highway-env's ``next_lane``, which then jumps to that road's nearest lane: on
     exit-v0 a 24 m chord across five lanes of traffic (highway-env's driver collided on 14 of 50 results seeds
-    there). The route is dropped and the lane graph's own way on taken (:func:`bimp.envs.highway.lanes.joins`).
+    there). The route is dropped and the lane graph's own way on taken (:func:`bimp.envs.highway.lanes.goes_on_beside`).
 
     exit-v0's EV starts in the leftmost lane and highway-env's drivers never head for the exit: ``plan_route_to``
     names the start lane as the route's first (MOBIL's route branch then refuses every change). Mandatory lane
@@ -99,8 +99,7 @@ class DriveOnDriver(ShadowDriver):
         lane = network.get_lane(self.target_lane_index)
         if self.route and lane.after_end(self.position):
             following = network.next_lane(self.target_lane_index, route=list(self.route), position=self.position)
-            if following != self.target_lane_index and not joins(network, following, lane.position(lane.length, 0.0),
-                                                                 lane.heading_at(lane.length)):
+            if goes_on_beside(network, self.target_lane_index, following):
                 self.route = None  # missed: the lane graph's own way on
         super().follow_road()
 

@@ -46,7 +46,7 @@ def lane_walk(network, index, s_from: float, length: float, route=None, spacing:
         if plan and not (tuple(plan[0][:2]) == tuple(index[:2]) or plan[0][0] == index[1]):
             plan = None  # the walk has left the route: the lane graph's own choice (and no warning from highway-env)
         following = network.next_lane(index, route=plan, position=end_xy)
-        if following != index and not joins(network, following, end_xy, end_heading):
+        if goes_on_beside(network, index, following):
             # The route's next road goes on from another lane of this one (exit-v0: the exit leaves from the right
             # lane, 24 m to the side): walk the lane that goes on from here; the lane change is the reference's.
             following = network.next_lane(index, route=None, position=end_xy)
@@ -89,6 +89,15 @@ def joins(network: RoadNetwork, index: tuple, end: np.ndarray, heading: float) -
     if distance <= JOIN:
         return True
     return distance <= BRIDGE and abs(wrap_angle(float(np.arctan2(gap[1], gap[0])) - heading)) < np.pi / 4
+
+
+def goes_on_beside(network: RoadNetwork, index: tuple, following: tuple) -> bool:
+    """Whether ``following`` (``network.next_lane`` after lane ``index``, along a route) is another lane than
+    ``index`` that does not go on from ``index``'s end (:func:`joins`): the route's next road leaves from a lane
+    beside (exit-v0's exit, 24 m to the side), which highway-env's next_lane reaches by a chord."""
+    lane = network.get_lane(index)
+    return following != index and not joins(network, following, lane.position(lane.length, 0.0),
+                                             lane.heading_at(lane.length))
 
 
 def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, float]:
