@@ -1,0 +1,369 @@
+"""``paper-noisy`` (issue 27): the paper's two scenarios (:mod:`bimp.envs.scenarios`) with observation noise and a
+model mismatch: the world the planners see is noisy, and the EV's dynamics are not the ones their learned model (an
+MLP fitted to highway-env's kinematic bicycle, :mod:`bimp.planners.dynamics`) predicts.
+
+Two scenarios, each the paper env with :class:`PaperNoisy` before it in its bases:
+
+- ``overtaking-noisy`` (``bimp/overtaking-noisy-v0``, :class:`NoisyOvertakingEnv`): the paper's overtaking scenario
+  (``bimp/Overtaking-v0``), its ranges unchanged;
+- ``emergency-brake-noisy`` (``bimp/emergency-brake-noisy-v0``, :class:`NoisyEmergencyBrakeEnv`): the paper's
+  emergency brake (``bimp/EmergencyBrake-v0``) with OV1 10 m further ahead (``ov1_gap`` 60 - 70 m instead of
+  50 - 60 m), so that the lagged EV of the hard difficulty can still stop clear of it (the oracle, below).
+
+What changes, every draw from the env's ``np_random`` (the ranges per episode at ``reset``, the noise at every
+observation):
+
+- **observation noise**: the policy's observation of each present OV has independent Gaussian noise of standard
+  deviation ``ov_position_noise`` [m] added to its x and y, and ``ov_speed_noise`` [m/s] to its speed; the EV's own
+  speed has ``ev_speed_noise`` [m/s]. Gaussian: a sensor's error is the sum of many small ones, and its tails are
+  what a planner's margins must absorb. The OVs' heading and acceleration, the EV's pose and the reference are
+  observed as they are (see "Left as they are" in the docs). The env's own safety info (``collision``,
+  ``ov_distance``, ``ttc``, ``edge_distance``, the score's ``contact``) and the overtaking behaviour layer's reference
+  stay on the true state;
+- **model mismatch** of the EV (:class:`MismatchedEgoVehicle`): a **longer wheelbase**, ``length_ratio`` times the
+  5 m that highway-env's bicycle (and so the planners' MLP) uses in the slip angle's yaw rate
+  ``v sin(beta) / (L / 2)``: the same steering turns the EV ``1 / length_ratio`` as fast (the drawn footprint stays
+  5 m); and a **first-order lag** of time constant ``accel_lag`` [s] between the commanded and the achieved
+  acceleration (a powertrain and brake lag): ``a <- a + (1 - exp(-dt / accel_lag)) (a_cmd - a)`` every simulation
+  step, the exact response of ``da/dt = (a_cmd - a) / accel_lag`` to a command held over the step; 0 is no lag.
+
+Ranges per ``difficulty`` (:data:`DIFFICULTIES`; a ``(lo, hi)`` pair is drawn uniformly per episode, a number fixes
+it; noise keys are standard deviations):
+
+============  =================  ==============  ==============  ============  ==========
+difficulty    ov_position_noise  ov_speed_noise  ev_speed_noise  length_ratio  accel_lag
+============  =================  ==============  ==============  ============  ==========
+easy          0 - 0.1 m          0 - 0.1 m/s     0 - 0.05 m/s    1 - 1.1       0 - 0.1 s
+medium        0.1 - 0.3 m        0.1 - 0.3 m/s   0.05 - 0.15     1.1 - 1.25    0.1 - 0.25 s
+hard          0.3 - 0.6 m        0.3 - 0.8 m/s   0.15 - 0.3      1.25 - 1.5    0.25 - 0.4 s
+============  =================  ==============  ==============  ============  ==========
+
+The envelope (:data:`NOISE_PARAMS`): noise standard deviations in [0, 2] (2 m is half a lane); ``length_ratio`` in
+[0.7, 1.5] (at 1.5 holding the inner lane of the tightest curve of the overtaking ranges, radius 178 m, takes
+0.042 rad of steering, inside the 0.05 rad bound; the overtaking env refuses a ratio and radius whose hold leaves
+less than :data:`STEER_HEADROOM`); ``accel_lag`` in [0, 1] s, and further limited by the oracle.
+
+The oracle: every instance leaves a safe plan inside the planning bounds under the mismatch. The plan is the paper
+scenarios' (``tests/envs/test_feasibility.py``): braking at the planning bounds (the command ramps to ``a_min`` by the
+rate bound) in the EV's lane, on the emergency brake from the step after the OVs' deceleration shows, on overtaking
+from the first step behind OV1 (which never brakes). With the lag the achieved deceleration follows the command late:
+:func:`brake_with_lag` simulates it exactly as :class:`MismatchedEgoVehicle` steps (the shared
+:func:`bimp.envs.oracle.brake_at_the_bounds` at ``lag`` 0). The worst case of the ranges is their corner (fastest EV,
+nearest and slowest OV1, braking hardest and latest, longest lag): a config whose worst corner leaves less than
+``d_min`` is refused naming ``accel_lag`` (or the scenario's key, where even no lag fails), and on overtaking one whose
+stop does not end on the straight before the curve (:data:`STRAIGHT_IN`), so that the longer wheelbase never has to
+steer it. The plan drives straight on a straight road, so the wheelbase does not enter it. Observation noise cannot
+break the oracle: the plan is a fact of the world (when to brake is set by the true onset), not of what a policy
+sees; a noisy policy may fail where the plan does not, which is the family's point.
+
+Success: the time limit reached without collision or leaving the road, as on the paper's scenarios.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from bimp.configs import ConfigError
+from bimp.envs.oracle import NEVER
+from bimp.envs.scenarios import (
+    LANE_WIDTH,
+    MAX_GAP,
+    MIN_CENTRE_GAP,
+    BimpObservation,
+    EgoVehicle,
+    EmergencyBrakeEnv,
+    OvertakingEnv,
+    Param,
+)
+from bimp.envs.scene import DT, OV_FIELDS, VEHICLE_LENGTH, Bounds, join_obs
+
+BOUNDS = Bounds()
+STRAIGHT_IN = 100.0  # m: the overtaking road's straight before the curve (OvertakingEnv._scene_road)
+# rad: the steering the curve's hold may leave below the bound, for the rate-limited feedback that corrects a
+# lateral error (0.0075 rad: 1.5 steps of the 0.005 rad/step rate bound)
+STEER_HEADROOM = 0.0075
+_X, _Y, _SPEED = (OV_FIELDS.index(k) for k in ("x", "y", "speed"))
+
+# The family's keys: each a (lo, hi) range drawn per episode (a number fixes it), inside these envelopes.
+NOISE_PARAMS: Mapping[str, Param] = MappingProxyType({
+    "ov_position_noise": Param((0.1, 0.3), "std of the Gaussian noise on each observed OV's x and y, m; at most half "
+                               "a lane", 0.0, 2.0),
+    "ov_speed_noise": Param((0.1, 0.3), "std of the Gaussian noise on each observed OV's speed, m/s", 0.0, 2.0),
+    "ev_speed_noise": Param((0.05, 0.15), "std of the Gaussian noise on the EV's observed speed, m/s", 0.0, 2.0),
+    "length_ratio": Param((1.1, 1.25), "the EV's kinematic length over the 5 m its model assumes: the yaw rate per "
+                          "steering input scales by its inverse; up to 1.5, where the tightest curve's hold is "
+                          "0.042 rad of the 0.05 rad bound", 0.7, 1.5),
+    "accel_lag": Param((0.1, 0.25), "time constant of the first-order lag from commanded to achieved "
+                       "acceleration, s; 0: none; the oracle limits it further", 0.0, 1.0),
+})
+
+DIFFICULTIES: Mapping[str, Mapping[str, tuple[float, float]]] = MappingProxyType({
+    "easy": MappingProxyType({"ov_position_noise": (0.0, 0.1), "ov_speed_noise": (0.0, 0.1),
+                              "ev_speed_noise": (0.0, 0.05), "length_ratio": (1.0, 1.1), "accel_lag": (0.0, 0.1)}),
+    "medium": MappingProxyType({k: p.default for k, p in NOISE_PARAMS.items()}),
+    "hard": MappingProxyType({"ov_position_noise": (0.3, 0.6), "ov_speed_noise": (0.3, 0.8),
+                              "ev_speed_noise": (0.15, 0.3), "length_ratio": (1.25, 1.5), "accel_lag": (0.25, 0.4)}),
+})
+
+
+def lag_gain(lag: ArrayLike, dt: float = DT) -> np.ndarray:
+    """The share ``1 - exp(-dt / lag)`` of the gap between command and achieved acceleration closed in one step of
+    ``dt`` [s] by a first-order lag of time constant ``lag`` [s] (1 for ``lag`` 0: no lag). Arrays broadcast."""
+    lag = np.asarray(lag, float)
+    with np.errstate(divide="ignore"):
+        return 1.0 - np.exp(-dt / lag)
+
+
+def brake_with_lag(ev, gap, v_ov, onset, decel, lag, dt: float = DT, length: float = VEHICLE_LENGTH,
+                   steps: int = 200, react: bool = True, bounds: Bounds | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`bimp.envs.oracle.brake_at_the_bounds` for an EV whose achieved acceleration follows the command through
+    a first-order lag of ``lag`` [s] (:class:`MismatchedEgoVehicle`): the least footprint gap [m] to the OV ahead,
+    and the distance [m] the EV travels (to its stop, where ``steps`` cover it). The command ramps to
+    ``bounds.accel[0]`` by ``bounds.accel_rate`` per step from the step after the OV's deceleration shows
+    (``react``) or from the first (``react=False``); the achieved acceleration starts at 0. The same arguments and
+    units as ``brake_at_the_bounds`` otherwise, to which it is equal at ``lag`` 0. Arrays broadcast."""
+    b = Bounds() if bounds is None else bounds
+    ev, gap, v_ov, onset, decel, lag = np.broadcast_arrays(
+        *(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel, lag)))
+    alpha = lag_gain(lag, dt)
+    s_e, v_e, a_cmd, a_e = np.zeros(ev.shape), ev.copy(), np.zeros(ev.shape), np.zeros(ev.shape)
+    s_o, v_o = gap.copy(), v_ov.copy()
+    seen = np.zeros(ev.shape, bool) if react else np.ones(ev.shape, bool)
+    least = np.full(ev.shape, np.inf)
+    clock = 0.0
+    for _ in range(steps):
+        braking = (clock >= onset) & (v_o > 0)
+        a_o = np.where(braking, -decel, 0.0)
+        a_cmd = np.where(seen, np.maximum(a_cmd - b.accel_rate, b.accel[0]), a_cmd)
+        a_e = a_e + alpha * (a_cmd - a_e)
+        s_e, v_e = s_e + v_e * dt, np.maximum(v_e + a_e * dt, 0.0)
+        s_o, v_o = s_o + v_o * dt, np.maximum(v_o + a_o * dt, 0.0)
+        clock += dt
+        seen |= braking
+        least = np.minimum(least, s_o - s_e - length)
+    return least, s_e
+
+
+def steer_to_hold(radius: ArrayLike, length: ArrayLike) -> np.ndarray:
+    """The steering [rad] that holds highway-env's bicycle of kinematic length ``length`` [m] on a circle of
+    ``radius`` [m]: yaw rate ``v sin(beta) / (length / 2)`` equal to ``v / radius``, ``beta = atan(tan(delta) / 2)``."""
+    beta = np.arcsin(np.asarray(length, float) / (2.0 * np.asarray(radius, float)))
+    return np.arctan(2.0 * np.tan(beta))
+
+
+class MismatchedEgoVehicle(EgoVehicle):
+    """The EV whose dynamics are off its model's: highway-env's kinematic bicycle (``Vehicle.step``) with the yaw
+    rate of a ``length_ratio`` x 5 m vehicle and the achieved acceleration ``applied_acceleration`` [m/s^2] lagging
+    the command through a first-order lag of ``accel_lag`` [s] (module docstring). The speed stays >= 0 as the EV's;
+    at ratio 1 and lag 0 it steps exactly as :class:`bimp.envs.scenarios.EgoVehicle`."""
+
+    def __init__(self, *args, length_ratio: float = 1.0, accel_lag: float = 0.0, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.length_ratio, self.accel_lag = float(length_ratio), float(accel_lag)
+        self.applied_acceleration = 0.0
+
+    def step(self, dt: float) -> None:
+        # Vehicle.step with the two changes; highway-env's impact translation never happens here (no collisions).
+        self.clip_actions()
+        self.applied_acceleration += float(lag_gain(self.accel_lag, dt)) * \
+            (self.action["acceleration"] - self.applied_acceleration)
+        beta = np.arctan(0.5 * np.tan(self.action["steering"]))
+        self.position += self.speed * np.array([np.cos(self.heading + beta), np.sin(self.heading + beta)]) * dt
+        self.heading += self.speed * np.sin(beta) / (self.length_ratio * self.LENGTH / 2.0) * dt
+        self.speed = max(self.speed + self.applied_acceleration * dt, 0.0)
+        self.on_state_update()
+
+
+class NoisyObservation(BimpObservation):
+    """:class:`bimp.envs.scenarios.BimpObservation` with the family's Gaussian noise (module docstring) drawn from the
+    env's ``np_random`` at every observation; absent OV rows stay zeros."""
+
+    def observe(self) -> np.ndarray:
+        env = self.env
+        ego, u_prev, ovs, ref = env.scene.split_obs(super().observe())
+        ovs = ovs.copy()
+        rng, std = env.np_random, env.noise_std
+        present = ovs[:, 0] > 0.5
+        n = len(ovs)
+        ovs[:, _X] += np.where(present, rng.normal(0.0, std["ov_position_noise"], n), 0.0)
+        ovs[:, _Y] += np.where(present, rng.normal(0.0, std["ov_position_noise"], n), 0.0)
+        ovs[:, _SPEED] += np.where(present, rng.normal(0.0, std["ov_speed_noise"], n), 0.0)
+        ego = ego.copy()
+        ego[3] += rng.normal(0.0, std["ev_speed_noise"])
+        return join_obs(ego, u_prev, ovs, ref).astype(np.float32)
+
+
+_COVERED: set[tuple] = set()  # the configs whose worst corner the oracle has passed, by class and values
+
+
+class PaperNoisy:
+    """The mixin of the family's two envs (bases ``(PaperNoisy, <paper env>)``). The family's interface as
+    :class:`bimp.envs.suite.family.Family` has it (``NAME``, ``DIFFICULTIES``, ``DEFAULT_DIFFICULTY``,
+    :meth:`range_keys`, ``DURATION``), on the paper envs' own config machinery: the noise and mismatch keys are
+    ``PARAMS`` of the env (checked, drawn and recorded in ``drawn_params`` as the scenario's own), ``difficulty`` an
+    option that sets all of them at once (a key given beside it overrides its preset; given alone it resets them), and
+    the oracle's worst corner checked on every config (``gym.make``'s and every ``reset``'s). Refusals are
+    ``ValueError`` naming the key. ``difficulty`` as a constructor argument (the ``-easy``/``-hard`` scenarios'
+    registration) refuses a config that names another."""
+
+    NAME: ClassVar[str] = ""
+    DURATION: ClassVar[float] = 0.0  # s
+    DIFFICULTIES: ClassVar[Mapping[str, Mapping[str, tuple[float, float]]]] = DIFFICULTIES
+    DEFAULT_DIFFICULTY: ClassVar[str] = "medium"
+    ORACLE_KEYS: ClassVar[tuple[str, ...]] = ()  # the config keys the oracle's check reads
+    noise_std: dict[str, float]
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None, difficulty: str | None = None):
+        if difficulty is not None and (config is None or isinstance(config, Mapping)):
+            config = {"difficulty": difficulty, **(config or {})}
+            if config["difficulty"] != difficulty:
+                raise ValueError(f"this id is {self.NAME}'s {difficulty!r} difficulty: config difficulty "
+                                 f"{config['difficulty']!r} contradicts it (gym.make('bimp/{self.NAME}-v0', "
+                                 f"config={{'difficulty': ...}}) takes any)")
+        super().__init__(config=config, render_mode=render_mode)
+
+    @classmethod
+    def range_keys(cls) -> tuple[str, ...]:
+        """The config keys of the family's ranges (noise and mismatch), in :data:`NOISE_PARAMS`' order."""
+        return tuple(NOISE_PARAMS)
+
+    def _with_preset(self, overrides: Mapping | None) -> Mapping | None:
+        """``overrides`` with the presets of the ``difficulty`` it names under the keys it does not give."""
+        if not isinstance(overrides, Mapping) or "difficulty" not in overrides:
+            return overrides
+        difficulty = overrides["difficulty"]
+        if not isinstance(difficulty, str) or difficulty not in self.DIFFICULTIES:
+            raise ConfigError("difficulty", f"one of {', '.join(map(repr, self.DIFFICULTIES))}", difficulty,
+                              f"the difficulties {self.NAME}'s oracle covers")
+        return {**self.DIFFICULTIES[difficulty], **overrides}
+
+    def configure(self, config: Mapping | None) -> None:
+        # The paper env stores only the keys given: a difficulty given alone must bring its presets with it.
+        super().configure(self._with_preset(config))
+
+    def _checked_config(self, base: dict, overrides: Mapping | None) -> dict:
+        config = super()._checked_config(base, self._with_preset(overrides))
+        # Every reset checks its config; the oracle's simulation (60 ms) runs once per set of values.
+        key = (type(self).__name__, *((k, config[k]) for k in self.ORACLE_KEYS))
+        if key not in _COVERED:
+            self._check_oracle(config)
+            _COVERED.add(key)
+        return config
+
+    def _check_oracle(self, config: dict) -> None:
+        """``ValueError`` naming the key when the config's worst corner leaves the oracle's cover."""
+        raise NotImplementedError
+
+    def _reset(self) -> None:
+        super()._reset()  # the paper env's draws first, in its order: the scenario is the paper's
+        self.noise_std = {k: self._draw(k) for k in ("ov_position_noise", "ov_speed_noise", "ev_speed_noise")}
+        ratio, lag = self._draw("length_ratio"), self._draw("accel_lag")
+        old = self.vehicle
+        ev = MismatchedEgoVehicle(self.road, old.position, old.heading, old.speed, length_ratio=ratio, accel_lag=lag)
+        ev.color = old.color
+        self.road.vehicles[self.road.vehicles.index(old)] = ev
+        self.vehicle = ev
+
+    def define_spaces(self) -> None:
+        super().define_spaces()
+        self.observation_type = NoisyObservation(self)
+
+
+def _corners(config: dict, keys: tuple[str, ...]) -> list[dict]:
+    """Every corner of ``config``'s ranges of ``keys`` (a fixed number is its own corner)."""
+    values = [config[k] if isinstance(config[k], tuple) else (config[k],) for k in keys]
+    return [dict(zip(keys, c)) for c in itertools.product(*values)]
+
+
+def _refuse_lag(config: dict, least: float, worst: dict, scenario_keys: tuple[str, ...], without_lag: float,
+                what: str) -> None:
+    shown = ", ".join(f"{k}={worst[k]:g}" for k in scenario_keys)
+    if without_lag < BOUNDS.d_min:
+        raise ConfigError(scenario_keys[1], "a range the oracle covers even without a lag", config[scenario_keys[1]],
+                          f"{what} at the worst corner ({shown}) leaves {without_lag:.2f} m, d_min is "
+                          f"{BOUNDS.d_min:g} m")
+    raise ConfigError("accel_lag", "a range the oracle covers", config["accel_lag"],
+                      f"{what} with the lag {worst['accel_lag']:g} s at the worst corner ({shown}) leaves "
+                      f"{least:.2f} m, d_min is {BOUNDS.d_min:g} m")
+
+
+class NoisyOvertakingEnv(PaperNoisy, OvertakingEnv):
+    """``overtaking-noisy``: :class:`bimp.envs.scenarios.OvertakingEnv` with the family's observation noise and EV
+    mismatch (module docstring). Oracle: braking at the bounds from the first step stops at least ``d_min`` behind
+    OV1 and on the straight, under the longest lag; the curve's hold takes at most the steering bound less
+    :data:`STEER_HEADROOM` at the longest length."""
+
+    NAME = "overtaking-noisy"
+    DURATION = 15.0
+    PARAMS = {**OvertakingEnv.PARAMS, **NOISE_PARAMS}
+    OPTIONS = {**OvertakingEnv.OPTIONS, "difficulty": ("medium", "easy", "hard")}
+
+    ORACLE_KEYS = ("ev_speed", "ov1_gap", "ov1_speed", "accel_lag", "radius", "length_ratio")
+
+    def _check_oracle(self, config: dict) -> None:
+        keys = self.ORACLE_KEYS[:4]
+        rows = _corners(config, keys)
+        gaps, travel = brake_with_lag(*(np.array([c[k] for c in rows]) for k in keys[:3]), NEVER, 0.0,
+                                      np.array([c["accel_lag"] for c in rows]), react=False)
+        i = int(np.argmin(gaps))
+        if gaps[i] < BOUNDS.d_min:
+            no_lag = float(brake_with_lag(*(rows[i][k] for k in keys[:3]), NEVER, 0.0, 0.0, react=False)[0])
+            _refuse_lag(config, float(gaps[i]), rows[i], keys[:3], no_lag, "braking at the bounds behind OV1")
+        j = int(np.argmax(travel))
+        far = float(travel[j]) + VEHICLE_LENGTH / 2.0  # the EV's front at its stop, from its start at 0
+        if far > STRAIGHT_IN:
+            no_lag = float(brake_with_lag(*(rows[j][k] for k in keys[:3]), NEVER, 0.0, 0.0, react=False)[1])
+            key = "ev_speed" if no_lag + VEHICLE_LENGTH / 2.0 > STRAIGHT_IN else "accel_lag"
+            raise ConfigError(key, "a range whose stop ends on the straight", config[key],
+                              f"braking at the bounds from ev_speed {rows[j]['ev_speed']:g} m/s with the lag "
+                              f"{rows[j]['accel_lag']:g} s ends {far:.1f} m along the road (the EV's front), past "
+                              f"the {STRAIGHT_IN:g} m straight before the curve")
+        radius = min(np.atleast_1d(config["radius"])) - LANE_WIDTH / 2.0  # the inner lane of the tightest curve
+        length = max(np.atleast_1d(config["length_ratio"])) * VEHICLE_LENGTH
+        hold = float(steer_to_hold(radius, length))
+        if hold > BOUNDS.steer - STEER_HEADROOM:
+            raise ConfigError("length_ratio", "a range whose longest EV holds the tightest curve within the steering "
+                              f"bound less {STEER_HEADROOM:g} rad", config["length_ratio"],
+                              f"holding radius {radius:g} m at {length:g} m takes {hold:.4f} rad, the bound is "
+                              f"{BOUNDS.steer:g} rad")
+
+
+class NoisyEmergencyBrakeEnv(PaperNoisy, EmergencyBrakeEnv):
+    """``emergency-brake-noisy``: :class:`bimp.envs.scenarios.EmergencyBrakeEnv` with OV1 10 m further ahead
+    (``ov1_gap`` 60 - 70 m) and the family's observation noise and EV mismatch (module docstring). Oracle: braking at
+    the bounds from the step after the OVs' deceleration shows stops at least ``d_min`` behind OV1 under the longest
+    lag, on every corner of the ranges."""
+
+    NAME = "emergency-brake-noisy"
+    DURATION = 12.0
+    # 10 m more than the paper's: the hard lag's worst corner (0.4 s) costs 7.9 m of the least gap; at 60 m it keeps
+    # 3.2 m (the paper's 50 m keeps 2.1 m without a lag, and even 0.1 s of lag costs 1.5 m of it).
+    PARAMS = {**EmergencyBrakeEnv.PARAMS,
+              "ov1_gap": Param((60.0, 70.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP,
+                               MAX_GAP),
+              **NOISE_PARAMS}
+    OPTIONS = {**EmergencyBrakeEnv.OPTIONS, "difficulty": ("medium", "easy", "hard")}
+
+    ORACLE_KEYS = ("ev_speed", "ov1_gap", "ov_speed", "brake_onset", "brake_decel", "accel_lag")
+
+    def _check_oracle(self, config: dict) -> None:
+        keys = self.ORACLE_KEYS
+        rows = _corners(config, keys)
+        gaps, _ = brake_with_lag(*(np.array([c[k] for c in rows]) for k in keys))
+        i = int(np.argmin(gaps))
+        if gaps[i] < BOUNDS.d_min:
+            no_lag = float(brake_with_lag(*(rows[i][k] for k in keys[:5]), 0.0)[0])
+            _refuse_lag(config, float(gaps[i]), rows[i], keys[:5], no_lag,
+                        "braking at the bounds once OV1's deceleration shows")
+
+
+FAMILY: tuple[type[PaperNoisy], ...] = (NoisyOvertakingEnv, NoisyEmergencyBrakeEnv)
+
+__all__ = ["DIFFICULTIES", "FAMILY", "NOISE_PARAMS", "MismatchedEgoVehicle", "NoisyEmergencyBrakeEnv",
+           "NoisyObservation", "NoisyOvertakingEnv", "PaperNoisy", "brake_with_lag", "lag_gain", "steer_to_hold"]
