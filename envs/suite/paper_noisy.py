@@ -61,6 +61,7 @@ Success: the time limit reached without collision or leaving the road, as on the
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from collections.abc import Mapping
 from types import MappingProxyType
@@ -95,21 +96,44 @@ NOISE_PARAMS: Mapping[str, Param] = MappingProxyType({
     "ov_position_noise": Param((0.1, 0.3), "std of the Gaussian noise on each observed OV's x and y, m; at most half "
                                "a lane", 0.0, 2.0),
     "ov_speed_noise": Param((0.1, 0.3), "std of the Gaussian noise on each observed OV's speed, m/s", 0.0, 2.0),
-    "ev_speed_noise": Param((0.05, 0.15), "std of the Gaussian noise on the EV's observed speed, m/s", 0.0, 2.0),
     "length_ratio": Param((1.1, 1.25), "the EV's kinematic length over the 5 m its model assumes: the yaw rate per "
                           "steering input scales by its inverse; up to 1.5, where the tightest curve's hold is "
                           "0.042 rad of the 0.05 rad bound", 0.7, 1.5),
     "accel_lag": Param((0.1, 0.25), "time constant of the first-order lag from commanded to achieved "
                        "acceleration, s; 0: none; the oracle limits it further", 0.0, 1.0),
+    "grip": Param((1.0, 1.0), "share of the (lagged) commanded acceleration the EV achieves, its tyres' and brakes' "
+                  "effectiveness; 1: the model's; the oracle limits it further", 0.5, 1.0),
 })
 
-DIFFICULTIES: Mapping[str, Mapping[str, tuple[float, float]]] = MappingProxyType({
-    "easy": MappingProxyType({"ov_position_noise": (0.0, 0.1), "ov_speed_noise": (0.0, 0.1),
-                              "ev_speed_noise": (0.0, 0.05), "length_ratio": (1.0, 1.1), "accel_lag": (0.0, 0.1)}),
-    "medium": MappingProxyType({k: p.default for k, p in NOISE_PARAMS.items()}),
-    "hard": MappingProxyType({"ov_position_noise": (0.3, 0.6), "ov_speed_noise": (0.3, 0.8),
-                              "ev_speed_noise": (0.15, 0.3), "length_ratio": (1.25, 1.5), "accel_lag": (0.25, 0.4)}),
-})
+
+def _presets(grip: Mapping[str, tuple[float, float]]) -> Mapping[str, Mapping[str, tuple[float, float]]]:
+    """The difficulties' ranges: the noise, wheelbase and lag the two scenarios share, and ``grip``'s per difficulty."""
+    shared = {
+        "easy": {"ov_position_noise": (0.0, 0.1), "ov_speed_noise": (0.0, 0.1), "length_ratio": (1.0, 1.1),
+                 "accel_lag": (0.0, 0.1)},
+        "medium": {"ov_position_noise": (0.1, 0.3), "ov_speed_noise": (0.1, 0.3), "length_ratio": (1.1, 1.25),
+                   "accel_lag": (0.1, 0.25)},
+        "hard": {"ov_position_noise": (0.3, 0.6), "ov_speed_noise": (0.3, 0.8), "length_ratio": (1.25, 1.5),
+                 "accel_lag": (0.25, 0.4)},
+    }
+    return MappingProxyType({d: MappingProxyType({**ranges, "grip": grip[d]}) for d, ranges in shared.items()})
+
+
+# Overtaking keeps the model's grip: following OV1 (25 m ahead at 15 m/s, the EV at 27 m/s) leaves 1.97 m with hard's
+# 0.4 s lag, and 0.76 m with a grip of 0.9 besides.
+OVERTAKING_DIFFICULTIES = _presets({"easy": (1.0, 1.0), "medium": (1.0, 1.0), "hard": (1.0, 1.0)})
+# The emergency brake loses grip: what its planners' margins do not absorb (with the lag alone, EnKTS, EnKS and MPPI
+# stopped clear on development seeds 0-9 of hard; with a grip of 0.8 EnKTS hit OV1 on 5 of them).
+EMERGENCY_BRAKE_DIFFICULTIES = _presets({"easy": (0.95, 1.0), "medium": (0.9, 0.95), "hard": (0.8, 0.9)})
+DIFFICULTIES = MappingProxyType({"overtaking-noisy": OVERTAKING_DIFFICULTIES,
+                                 "emergency-brake-noisy": EMERGENCY_BRAKE_DIFFICULTIES})
+
+
+def _params(base: Mapping[str, Param], presets: Mapping[str, Mapping[str, tuple[float, float]]],
+            **changed: Param) -> dict[str, Param]:
+    """A paper env's ``PARAMS`` with ``changed`` and the family's keys, their defaults the ``medium`` presets."""
+    return {**base, **changed, **{k: dataclasses.replace(p, default=presets["medium"][k])
+                                  for k, p in NOISE_PARAMS.items()}}
 
 
 def lag_gain(lag: ArrayLike, dt: float = DT) -> np.ndarray:
@@ -120,17 +144,19 @@ def lag_gain(lag: ArrayLike, dt: float = DT) -> np.ndarray:
         return 1.0 - np.exp(-dt / lag)
 
 
-def brake_with_lag(ev, gap, v_ov, onset, decel, lag, dt: float = DT, length: float = VEHICLE_LENGTH,
-                   steps: int = 200, react: bool = True, bounds: Bounds | None = None) -> tuple[np.ndarray, np.ndarray]:
+def brake_with_lag(ev, gap, v_ov, onset, decel, lag, grip=1.0, dt: float = DT, length: float = VEHICLE_LENGTH,
+                   steps: int = 250, react: bool = True, bounds: Bounds | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`bimp.envs.oracle.brake_at_the_bounds` for an EV whose achieved acceleration follows the command through
-    a first-order lag of ``lag`` [s] (:class:`MismatchedEgoVehicle`): the least footprint gap [m] to the OV ahead,
+    a first-order lag of ``lag`` [s], scaled by ``grip`` (:class:`MismatchedEgoVehicle`): the least footprint gap [m]
+    to the OV ahead,
     and the distance [m] the EV travels (to its stop, where ``steps`` cover it). The command ramps to
     ``bounds.accel[0]`` by ``bounds.accel_rate`` per step from the step after the OV's deceleration shows
     (``react``) or from the first (``react=False``); the achieved acceleration starts at 0. The same arguments and
-    units as ``brake_at_the_bounds`` otherwise, to which it is equal at ``lag`` 0. Arrays broadcast."""
+    units as ``brake_at_the_bounds`` otherwise, to which it is equal at ``lag`` 0 and ``grip`` 1 (``steps``: 25 s
+    cover the stop from 40 m/s at half the grip). Arrays broadcast."""
     b = Bounds() if bounds is None else bounds
-    ev, gap, v_ov, onset, decel, lag = np.broadcast_arrays(
-        *(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel, lag)))
+    ev, gap, v_ov, onset, decel, lag, grip = np.broadcast_arrays(
+        *(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel, lag, grip)))
     alpha = lag_gain(lag, dt)
     s_e, v_e, a_cmd, a_e = np.zeros(ev.shape), ev.copy(), np.zeros(ev.shape), np.zeros(ev.shape)
     s_o, v_o = gap.copy(), v_ov.copy()
@@ -141,7 +167,7 @@ def brake_with_lag(ev, gap, v_ov, onset, decel, lag, dt: float = DT, length: flo
         braking = (clock >= onset) & (v_o > 0)
         a_o = np.where(braking, -decel, 0.0)
         a_cmd = np.where(seen, np.maximum(a_cmd - b.accel_rate, b.accel[0]), a_cmd)
-        a_e = a_e + alpha * (a_cmd - a_e)
+        a_e = a_e + alpha * (grip * a_cmd - a_e)
         s_e, v_e = s_e + v_e * dt, np.maximum(v_e + a_e * dt, 0.0)
         s_o, v_o = s_o + v_o * dt, np.maximum(v_o + a_o * dt, 0.0)
         clock += dt
@@ -163,16 +189,16 @@ class MismatchedEgoVehicle(EgoVehicle):
     the command through a first-order lag of ``accel_lag`` [s] (module docstring). The speed stays >= 0 as the EV's;
     at ratio 1 and lag 0 it steps exactly as :class:`bimp.envs.scenarios.EgoVehicle`."""
 
-    def __init__(self, *args, length_ratio: float = 1.0, accel_lag: float = 0.0, **kwargs):
+    def __init__(self, *args, length_ratio: float = 1.0, accel_lag: float = 0.0, grip: float = 1.0, **kwargs):
         super().__init__(*args, **kwargs)
-        self.length_ratio, self.accel_lag = float(length_ratio), float(accel_lag)
+        self.length_ratio, self.accel_lag, self.grip = float(length_ratio), float(accel_lag), float(grip)
         self.applied_acceleration = 0.0
 
     def step(self, dt: float) -> None:
         # Vehicle.step with the two changes; highway-env's impact translation never happens here (no collisions).
         self.clip_actions()
         self.applied_acceleration += float(lag_gain(self.accel_lag, dt)) * \
-            (self.action["acceleration"] - self.applied_acceleration)
+            (self.grip * self.action["acceleration"] - self.applied_acceleration)
         beta = np.arctan(0.5 * np.tan(self.action["steering"]))
         self.position += self.speed * np.array([np.cos(self.heading + beta), np.sin(self.heading + beta)]) * dt
         self.heading += self.speed * np.sin(beta) / (self.length_ratio * self.LENGTH / 2.0) * dt
@@ -194,8 +220,6 @@ class NoisyObservation(BimpObservation):
         ovs[:, _X] += np.where(present, rng.normal(0.0, std["ov_position_noise"], n), 0.0)
         ovs[:, _Y] += np.where(present, rng.normal(0.0, std["ov_position_noise"], n), 0.0)
         ovs[:, _SPEED] += np.where(present, rng.normal(0.0, std["ov_speed_noise"], n), 0.0)
-        ego = ego.copy()
-        ego[3] += rng.normal(0.0, std["ev_speed_noise"])
         return join_obs(ego, u_prev, ovs, ref).astype(np.float32)
 
 
@@ -214,7 +238,7 @@ class PaperNoisy:
 
     NAME: ClassVar[str] = ""
     DURATION: ClassVar[float] = 0.0  # s
-    DIFFICULTIES: ClassVar[Mapping[str, Mapping[str, tuple[float, float]]]] = DIFFICULTIES
+    DIFFICULTIES: ClassVar[Mapping[str, Mapping[str, tuple[float, float]]]] = {}
     DEFAULT_DIFFICULTY: ClassVar[str] = "medium"
     ORACLE_KEYS: ClassVar[tuple[str, ...]] = ()  # the config keys the oracle's check reads
     noise_std: dict[str, float]
@@ -262,10 +286,11 @@ class PaperNoisy:
 
     def _reset(self) -> None:
         super()._reset()  # the paper env's draws first, in its order: the scenario is the paper's
-        self.noise_std = {k: self._draw(k) for k in ("ov_position_noise", "ov_speed_noise", "ev_speed_noise")}
-        ratio, lag = self._draw("length_ratio"), self._draw("accel_lag")
+        self.noise_std = {k: self._draw(k) for k in ("ov_position_noise", "ov_speed_noise")}
+        ratio, lag, grip = self._draw("length_ratio"), self._draw("accel_lag"), self._draw("grip")
         old = self.vehicle
-        ev = MismatchedEgoVehicle(self.road, old.position, old.heading, old.speed, length_ratio=ratio, accel_lag=lag)
+        ev = MismatchedEgoVehicle(self.road, old.position, old.heading, old.speed, length_ratio=ratio, accel_lag=lag,
+                                  grip=grip)
         ev.color = old.color
         self.road.vehicles[self.road.vehicles.index(old)] = ev
         self.vehicle = ev
@@ -281,49 +306,53 @@ def _corners(config: dict, keys: tuple[str, ...]) -> list[dict]:
     return [dict(zip(keys, c)) for c in itertools.product(*values)]
 
 
-def _refuse_lag(config: dict, least: float, worst: dict, scenario_keys: tuple[str, ...], without_lag: float,
-                what: str) -> None:
-    shown = ", ".join(f"{k}={worst[k]:g}" for k in scenario_keys)
-    if without_lag < BOUNDS.d_min:
-        raise ConfigError(scenario_keys[1], "a range the oracle covers even without a lag", config[scenario_keys[1]],
-                          f"{what} at the worst corner ({shown}) leaves {without_lag:.2f} m, d_min is "
-                          f"{BOUNDS.d_min:g} m")
-    raise ConfigError("accel_lag", "a range the oracle covers", config["accel_lag"],
-                      f"{what} with the lag {worst['accel_lag']:g} s at the worst corner ({shown}) leaves "
-                      f"{least:.2f} m, d_min is {BOUNDS.d_min:g} m")
+def _check_braking(config: dict, scenario_keys: tuple[str, ...], what: str, **fixed) -> np.ndarray:
+    """The oracle's braking (:func:`brake_with_lag`, its first arguments ``scenario_keys`` of ``config``, ``fixed``
+    the rest) on every corner of the ranges of ``scenario_keys``, ``accel_lag`` and ``grip``: ``ConfigError`` when
+    the worst leaves less than ``d_min``, naming the scenario's gap where even the model's EV (no lag, full grip)
+    fails there, else ``grip`` where the full grip would pass, else ``accel_lag``. Returns the distances travelled
+    [m] per corner."""
+    keys = (*scenario_keys, "accel_lag", "grip")
+    rows = _corners(config, keys)
+    column = {k: np.array([c[k] for c in rows]) for k in keys}
+    gaps, travel = brake_with_lag(*(column[k] for k in scenario_keys), lag=column["accel_lag"], grip=column["grip"],
+                                  **fixed)
+    i = int(np.argmin(gaps))
+    if gaps[i] >= BOUNDS.d_min:
+        return travel
+    worst = rows[i]
+    shown = ", ".join(f"{k}={worst[k]:g}" for k in keys)
+    model = float(brake_with_lag(*(worst[k] for k in scenario_keys), lag=0.0, grip=1.0, **fixed)[0])
+    full_grip = float(brake_with_lag(*(worst[k] for k in scenario_keys), lag=worst["accel_lag"], grip=1.0,
+                                     **fixed)[0])
+    key = "ov1_gap" if model < BOUNDS.d_min else "grip" if full_grip >= BOUNDS.d_min else "accel_lag"
+    raise ConfigError(key, "a range the oracle covers" + (" even for the model's EV (no lag, full grip)"
+                                                          if key == "ov1_gap" else ""), config[key],
+                      f"{what} at the worst corner ({shown}) leaves {float(gaps[i]):.2f} m (the model's EV "
+                      f"{model:.2f} m), d_min is {BOUNDS.d_min:g} m")
 
 
 class NoisyOvertakingEnv(PaperNoisy, OvertakingEnv):
     """``overtaking-noisy``: :class:`bimp.envs.scenarios.OvertakingEnv` with the family's observation noise and EV
     mismatch (module docstring). Oracle: braking at the bounds from the first step stops at least ``d_min`` behind
-    OV1 and on the straight, under the longest lag; the curve's hold takes at most the steering bound less
-    :data:`STEER_HEADROOM` at the longest length."""
+    OV1 and on the straight, under the longest lag and the least grip; the curve's hold takes at most the steering
+    bound less :data:`STEER_HEADROOM` at the longest length."""
 
     NAME = "overtaking-noisy"
     DURATION = 15.0
-    PARAMS = {**OvertakingEnv.PARAMS, **NOISE_PARAMS}
+    DIFFICULTIES = OVERTAKING_DIFFICULTIES
+    PARAMS = _params(OvertakingEnv.PARAMS, OVERTAKING_DIFFICULTIES)
     OPTIONS = {**OvertakingEnv.OPTIONS, "difficulty": ("medium", "easy", "hard")}
-
-    ORACLE_KEYS = ("ev_speed", "ov1_gap", "ov1_speed", "accel_lag", "radius", "length_ratio")
+    ORACLE_KEYS = ("ev_speed", "ov1_gap", "ov1_speed", "accel_lag", "grip", "radius", "length_ratio")
 
     def _check_oracle(self, config: dict) -> None:
-        keys = self.ORACLE_KEYS[:4]
-        rows = _corners(config, keys)
-        gaps, travel = brake_with_lag(*(np.array([c[k] for c in rows]) for k in keys[:3]), NEVER, 0.0,
-                                      np.array([c["accel_lag"] for c in rows]), react=False)
-        i = int(np.argmin(gaps))
-        if gaps[i] < BOUNDS.d_min:
-            no_lag = float(brake_with_lag(*(rows[i][k] for k in keys[:3]), NEVER, 0.0, 0.0, react=False)[0])
-            _refuse_lag(config, float(gaps[i]), rows[i], keys[:3], no_lag, "braking at the bounds behind OV1")
-        j = int(np.argmax(travel))
-        far = float(travel[j]) + VEHICLE_LENGTH / 2.0  # the EV's front at its stop, from its start at 0
+        travel = _check_braking(config, ("ev_speed", "ov1_gap", "ov1_speed"), "braking at the bounds behind OV1",
+                                onset=NEVER, decel=0.0, react=False)
+        far = float(travel.max()) + VEHICLE_LENGTH / 2.0  # the EV's front at its stop, from its start at 0
         if far > STRAIGHT_IN:
-            no_lag = float(brake_with_lag(*(rows[j][k] for k in keys[:3]), NEVER, 0.0, 0.0, react=False)[1])
-            key = "ev_speed" if no_lag + VEHICLE_LENGTH / 2.0 > STRAIGHT_IN else "accel_lag"
-            raise ConfigError(key, "a range whose stop ends on the straight", config[key],
-                              f"braking at the bounds from ev_speed {rows[j]['ev_speed']:g} m/s with the lag "
-                              f"{rows[j]['accel_lag']:g} s ends {far:.1f} m along the road (the EV's front), past "
-                              f"the {STRAIGHT_IN:g} m straight before the curve")
+            raise ConfigError("ev_speed", "a range whose stop ends on the straight", config["ev_speed"],
+                              f"braking at the bounds with the ranges' longest lag and least grip ends {far:.1f} m "
+                              f"along the road (the EV's front), past the {STRAIGHT_IN:g} m straight before the curve")
         radius = min(np.atleast_1d(config["radius"])) - LANE_WIDTH / 2.0  # the inner lane of the tightest curve
         length = max(np.atleast_1d(config["length_ratio"])) * VEHICLE_LENGTH
         hold = float(steer_to_hold(radius, length))
@@ -335,35 +364,28 @@ class NoisyOvertakingEnv(PaperNoisy, OvertakingEnv):
 
 
 class NoisyEmergencyBrakeEnv(PaperNoisy, EmergencyBrakeEnv):
-    """``emergency-brake-noisy``: :class:`bimp.envs.scenarios.EmergencyBrakeEnv` with OV1 10 m further ahead
-    (``ov1_gap`` 60 - 70 m) and the family's observation noise and EV mismatch (module docstring). Oracle: braking at
+    """``emergency-brake-noisy``: :class:`bimp.envs.scenarios.EmergencyBrakeEnv` with OV1 22 m further ahead
+    (``ov1_gap`` 72 - 82 m) and the family's observation noise and EV mismatch (module docstring). Oracle: braking at
     the bounds from the step after the OVs' deceleration shows stops at least ``d_min`` behind OV1 under the longest
-    lag, on every corner of the ranges."""
+    lag and the least grip, on every corner of the ranges."""
 
     NAME = "emergency-brake-noisy"
     DURATION = 12.0
-    # 10 m more than the paper's: the hard lag's worst corner (0.4 s) costs 7.9 m of the least gap; at 60 m it keeps
-    # 3.2 m (the paper's 50 m keeps 2.1 m without a lag, and even 0.1 s of lag costs 1.5 m of it).
-    PARAMS = {**EmergencyBrakeEnv.PARAMS,
-              "ov1_gap": Param((60.0, 70.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP,
-                               MAX_GAP),
-              **NOISE_PARAMS}
+    DIFFICULTIES = EMERGENCY_BRAKE_DIFFICULTIES
+    # 22 m more than the paper's 50 - 60 m: hard's worst corner (27 m/s, OV1 at 20 m/s braking at 7 m/s^2 from 1.2 s,
+    # a lag of 0.4 s and a grip of 0.8) stops 2.0 m clear from 72 m; the paper's 50 m leaves 2.1 m to the model's EV.
+    PARAMS = _params(EmergencyBrakeEnv.PARAMS, EMERGENCY_BRAKE_DIFFICULTIES,
+                     ov1_gap=Param((72.0, 82.0), "centre gap of OV1 (EV's lane) ahead of the EV, m", MIN_CENTRE_GAP,
+                                   MAX_GAP))
     OPTIONS = {**EmergencyBrakeEnv.OPTIONS, "difficulty": ("medium", "easy", "hard")}
-
-    ORACLE_KEYS = ("ev_speed", "ov1_gap", "ov_speed", "brake_onset", "brake_decel", "accel_lag")
+    ORACLE_KEYS = ("ev_speed", "ov1_gap", "ov_speed", "brake_onset", "brake_decel", "accel_lag", "grip")
 
     def _check_oracle(self, config: dict) -> None:
-        keys = self.ORACLE_KEYS
-        rows = _corners(config, keys)
-        gaps, _ = brake_with_lag(*(np.array([c[k] for c in rows]) for k in keys))
-        i = int(np.argmin(gaps))
-        if gaps[i] < BOUNDS.d_min:
-            no_lag = float(brake_with_lag(*(rows[i][k] for k in keys[:5]), 0.0)[0])
-            _refuse_lag(config, float(gaps[i]), rows[i], keys[:5], no_lag,
-                        "braking at the bounds once OV1's deceleration shows")
+        _check_braking(config, self.ORACLE_KEYS[:5], "braking at the bounds once OV1's deceleration shows")
 
 
 FAMILY: tuple[type[PaperNoisy], ...] = (NoisyOvertakingEnv, NoisyEmergencyBrakeEnv)
 
-__all__ = ["DIFFICULTIES", "FAMILY", "NOISE_PARAMS", "MismatchedEgoVehicle", "NoisyEmergencyBrakeEnv",
-           "NoisyObservation", "NoisyOvertakingEnv", "PaperNoisy", "brake_with_lag", "lag_gain", "steer_to_hold"]
+__all__ = ["DIFFICULTIES", "EMERGENCY_BRAKE_DIFFICULTIES", "FAMILY", "NOISE_PARAMS", "OVERTAKING_DIFFICULTIES",
+           "MismatchedEgoVehicle", "NoisyEmergencyBrakeEnv", "NoisyObservation", "NoisyOvertakingEnv", "PaperNoisy",
+           "brake_with_lag", "lag_gain", "steer_to_hold"]

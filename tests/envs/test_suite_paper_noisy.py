@@ -19,7 +19,6 @@ from bimp.envs.oracle import NEVER, brake_at_the_bounds
 from bimp.envs.scenarios import EgoVehicle, OvertakingEnv
 from bimp.envs.scene import DT, VEHICLE_LENGTH, Bounds
 from bimp.envs.suite.paper_noisy import (
-    DIFFICULTIES,
     FAMILY,
     STEER_HEADROOM,
     STRAIGHT_IN,
@@ -35,10 +34,10 @@ pytestmark = pytest.mark.filterwarnings("ignore")
 OT, EB = "bimp/overtaking-noisy-v0", "bimp/emergency-brake-noisy-v0"
 DRAWS = 1000
 B = Bounds()
-EXACT = {"ov_position_noise": 0.0, "ov_speed_noise": 0.0, "ev_speed_noise": 0.0, "length_ratio": 1.0,
-         "accel_lag": 0.0}
-EB_KEYS = ("ev_speed", "ov1_gap", "ov_speed", "brake_onset", "brake_decel", "accel_lag")
-OT_KEYS = ("ev_speed", "ov1_gap", "ov1_speed", "accel_lag")
+EXACT = {"ov_position_noise": 0.0, "ov_speed_noise": 0.0, "length_ratio": 1.0, "accel_lag": 0.0, "grip": 1.0}
+DIFFICULTIES = ("easy", "medium", "hard")
+EB_KEYS = ("ev_speed", "ov1_gap", "ov_speed", "brake_onset", "brake_decel", "accel_lag", "grip")
+OT_KEYS = ("ev_speed", "ov1_gap", "ov1_speed", "accel_lag", "grip")
 
 
 def scenario_id(cls, difficulty: str) -> str:
@@ -89,12 +88,13 @@ def test_brake_with_lag_is_the_shared_oracle_without_a_lag():
     np.testing.assert_allclose(brake_with_lag(25.0, 30.0, 15.0, NEVER, 0.0, 0.0, react=False)[0],
                                brake_at_the_bounds(25.0, 30.0, 15.0, NEVER, 0.0, react=False), atol=1e-9)
     assert brake_with_lag(27.0, 60.0, 20.0, 1.2, 7.0, 0.4)[0] < brake_with_lag(27.0, 60.0, 20.0, 1.2, 7.0, 0.2)[0]
+    assert brake_with_lag(27.0, 80.0, 20.0, 1.2, 7.0, 0.4, 0.8)[0] < brake_with_lag(27.0, 80.0, 20.0, 1.2, 7.0, 0.4)[0]
 
 
-@pytest.mark.parametrize("difficulty", list(DIFFICULTIES))
-def test_emergency_brake_stops_clear_under_the_lag_on_every_draw_and_corner(difficulty):
-    """Braking at the bounds once OV1's deceleration shows, through the EV's lag, keeps at least d_min to OV1: on 1000
-    draws of each difficulty and every corner of its ranges (the worst is the corner the env checks)."""
+@pytest.mark.parametrize("difficulty", DIFFICULTIES)
+def test_emergency_brake_stops_clear_under_the_mismatch_on_every_draw_and_corner(difficulty):
+    """Braking at the bounds once OV1's deceleration shows, through the EV's lag and grip, keeps at least d_min to
+    OV1: on 1000 draws of each difficulty and every corner of its ranges."""
     d = cheap_draws(NoisyEmergencyBrakeEnv, difficulty, EB_KEYS)
     gaps, _ = brake_with_lag(*(d[k] for k in EB_KEYS))
     assert gaps.min() >= B.d_min, f"{int(np.sum(gaps < B.d_min))} draws infeasible"
@@ -102,12 +102,13 @@ def test_emergency_brake_stops_clear_under_the_lag_on_every_draw_and_corner(diff
     rows = corners(env, EB_KEYS)
     worst = brake_with_lag(*(np.array([c[k] for c in rows]) for k in EB_KEYS))[0]
     assert worst.min() >= B.d_min
-    lo, hi = env.config["accel_lag"]
-    assert all(lo <= v <= hi for v in d["accel_lag"])
+    for key in ("accel_lag", "grip"):
+        lo, hi = env.config[key]
+        assert all(lo <= v <= hi for v in d[key])
 
 
-@pytest.mark.parametrize("difficulty", list(DIFFICULTIES))
-def test_overtaking_following_ov1_stays_safe_on_the_straight_under_the_lag(difficulty):
+@pytest.mark.parametrize("difficulty", DIFFICULTIES)
+def test_overtaking_following_ov1_stays_safe_on_the_straight_under_the_mismatch(difficulty):
     """Braking at the bounds from the first step keeps at least d_min behind OV1 and stops on the straight before
     the curve (so the wheelbase never has to steer it); a pass still exists; the curve's hold at the longest EV is
     inside the steering bound: 1000 draws and every corner."""
@@ -116,7 +117,7 @@ def test_overtaking_following_ov1_stays_safe_on_the_straight_under_the_lag(diffi
     d = cheap_draws(NoisyOvertakingEnv, difficulty, keys)
     for sample in (d, {k: np.array([c[k] for c in corners(env, keys)]) for k in keys}):
         gaps, travel = brake_with_lag(sample["ev_speed"], sample["ov1_gap"], sample["ov1_speed"], NEVER, 0.0,
-                                      sample["accel_lag"], react=False)
+                                      sample["accel_lag"], sample["grip"], react=False)
         assert gaps.min() >= B.d_min
         assert travel.max() + VEHICLE_LENGTH / 2 <= STRAIGHT_IN
         margins = pass_margin_with_lag(*(sample[k] for k in ("ev_speed", "ov1_gap", "ov1_speed", "ov2_gap",
@@ -133,13 +134,13 @@ def test_real_resets_draw_inside_the_ranges_and_keep_the_oracle(cls):
     for seed in range(20):
         env.reset(seed=seed)
         p = env.drawn_params
-        for key, (lo, hi) in DIFFICULTIES["hard"].items():
+        for key, (lo, hi) in cls.DIFFICULTIES["hard"].items():
             assert lo <= p[key] <= hi, (key, p)
         if cls is NoisyEmergencyBrakeEnv:
             gap = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov_speed"][0], p["brake_onset"], p["brake_decel"],
-                                 p["accel_lag"])[0]
+                                 p["accel_lag"], p["grip"])[0]
         else:
-            gap = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"],
+            gap = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"], p["grip"],
                                  react=False)[0]
         assert gap >= B.d_min
 
@@ -170,22 +171,22 @@ def drive(env_id: str, seed: int, react: bool, config: dict | None = None) -> tu
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_oracle_is_the_env(seed):
-    """Driven by the plan on hard instances, the env's least gap to OV1 is the lagged oracle's (the EV steps as
-    :func:`brake_with_lag` simulates it), with no collision and on the road."""
+    """Driven by the plan on hard instances, the env's least gap to OV1 is the oracle's under the drawn lag and grip
+    (the EV steps as :func:`brake_with_lag` simulates it), with no collision and on the road."""
     least, p, info = drive("bimp/emergency-brake-noisy-hard-v0", seed, react=True, config={"ov2_gap": 300.0})
     expected = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov_speed"][0], p["brake_onset"], p["brake_decel"],
-                              p["accel_lag"])[0]
+                              p["accel_lag"], p["grip"])[0]
     assert least == pytest.approx(float(expected), abs=1e-5)
     assert not info["collision"] and not info["offroad"]
     least, p, info = drive("bimp/overtaking-noisy-hard-v0", seed, react=False)
-    expected = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"],
+    expected = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"], p["grip"],
                               react=False)[0]
     assert least == pytest.approx(float(expected), abs=1e-5)
     assert not info["collision"] and not info["offroad"]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("difficulty", list(DIFFICULTIES))
+@pytest.mark.parametrize("difficulty", DIFFICULTIES)
 @pytest.mark.parametrize("cls", FAMILY)
 def test_the_oracles_plan_is_safe_on_seeds_0_to_99(cls, difficulty):
     """The plan driven through the env on seeds 0-99 of each difficulty: no collision, on the road, at least d_min."""
@@ -197,7 +198,7 @@ def test_the_oracles_plan_is_safe_on_seeds_0_to_99(cls, difficulty):
 # --- configuration ---------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("cls", FAMILY)
 def test_every_difficulty_is_a_scenario_of_its_own(cls):
-    for difficulty, preset in DIFFICULTIES.items():
+    for difficulty, preset in cls.DIFFICULTIES.items():
         name = cls.NAME if difficulty == cls.DEFAULT_DIFFICULTY else f"{cls.NAME}-{difficulty}"
         spec = bimp.envs.scenario_spec(name)
         assert spec.id == scenario_id(cls, difficulty) and spec.max_episode_steps == round(cls.DURATION * 10)
@@ -213,21 +214,25 @@ def test_every_difficulty_is_a_scenario_of_its_own(cls):
     env.reset(seed=0, options={"config": {"difficulty": "hard"}})
     assert env.unwrapped.config["length_ratio"] == (1.25, 1.5)
     env.reset(seed=0)
-    assert env.unwrapped.config["length_ratio"] == DIFFICULTIES["medium"]["length_ratio"]
+    assert env.unwrapped.config["length_ratio"] == cls.DIFFICULTIES["medium"]["length_ratio"]
 
 
 @pytest.mark.parametrize(("env_id", "config", "key"), [
     (EB, {"difficulty": "extreme"}, "difficulty"),
-    (EB, {"accel_lag": (0.3, 0.6)}, "accel_lag"),  # the worst corner (27 m/s, 60 m, 0.6 s) leaves -1.5 m
+    (EB, {"ov1_gap": (60.0, 70.0), "accel_lag": (0.3, 0.6), "grip": 1.0}, "accel_lag"),  # 27 m/s, 60 m, 0.6 s: -1.5 m
+    (EB, {"grip": (0.7, 0.9)}, "grip"),  # medium's lag (0.25 s) and a grip of 0.7 at 72 m: -2.9 m
+    (EB, {"grip": 1.1}, "grip"),  # outside the envelope
     (EB, {"accel_lag": 1.5}, "accel_lag"),  # outside the envelope
-    (EB, {"ov1_gap": (45.0, 55.0), "accel_lag": 0.0}, "ov1_gap"),  # the paper's 50 m at least, even without a lag
+    (EB, {"ov1_gap": (45.0, 55.0), "accel_lag": 0.0, "grip": 1.0}, "ov1_gap"),  # 50 m at least for the model's EV
     (EB, {"ov_position_noise": -0.1}, "ov_position_noise"),
     (EB, {"ov_speed_noise": (0.5, 3.0)}, "ov_speed_noise"),
-    (EB, {"ev_speed_noise": "high"}, "ev_speed_noise"),
+    (EB, {"ov_speed_noise": "high"}, "ov_speed_noise"),
+    (EB, {"ev_speed_noise": 0.1}, "ev_speed_noise"),  # unknown: the EV's own state is observed as it is
     (EB, {"length_ratio": (0.5, 1.0)}, "length_ratio"),
     (OT, {"accel_lag": (0.3, 0.6)}, "accel_lag"),  # behind OV1 at 0.6 s: 0.23 m
     (OT, {"length_ratio": 1.5, "radius": 120.0}, "length_ratio"),  # the hold would take 0.064 rad
-    (OT, {"ev_speed": 36.0, "accel_lag": 0.0}, "ev_speed"),  # stops past the straight
+    (OT, {"ev_speed": 36.0, "ov1_gap": (80.0, 90.0), "accel_lag": 0.0}, "ev_speed"),  # stops past the straight
+    (OT, {"grip": 0.8}, "grip"),  # behind OV1 with medium's lag (0.25 s): 0.78 m
     (OT, {"noise": 0.1}, "noise"),  # unknown key
 ])
 def test_refusals_name_the_key(env_id, config, key):
@@ -278,13 +283,13 @@ def test_without_noise_or_mismatch_it_is_the_paper_scenario(noisy, paper, config
 
 
 def test_noise_is_on_the_observation_not_on_the_safety_info():
-    """The observation's OV positions and speeds and the EV's speed are the true ones plus Gaussian noise of the
-    configured std; the env's info (gaps, ttc) is computed on the true state."""
-    std = {"ov_position_noise": 0.5, "ov_speed_noise": 0.8, "ev_speed_noise": 0.3}
+    """The observation's OV positions and speeds are the true ones plus Gaussian noise of the configured std; the
+    EV's own state is observed as it is; the env's info (gaps) is computed on the true state."""
+    std = {"ov_position_noise": 0.5, "ov_speed_noise": 0.8}
     env = gym.make(OT, config={**EXACT, **std, "difficulty": "hard"})
     obs, _ = env.reset(seed=0)
     base = env.unwrapped
-    errors = {"x": [], "y": [], "speed": [], "ev": []}
+    errors = {"x": [], "y": [], "speed": []}
     for _ in range(100):
         obs, _, term, trunc, info = env.step(np.array([0.0, 0.0], np.float32))
         ego, _, ovs, _ = base.scene.split_obs(obs)
@@ -292,12 +297,12 @@ def test_noise_is_on_the_observation_not_on_the_safety_info():
         errors["x"] += list(ovs[:, 1] - true[:, 1])
         errors["y"] += list(ovs[:, 2] - true[:, 2])
         errors["speed"] += list(ovs[:, 4] - true[:, 4])
-        errors["ev"].append(ego[3] - base.vehicle.speed)
+        np.testing.assert_array_equal(ego, base._ev_state().astype(np.float32))
         np.testing.assert_array_equal(ovs[:, [0, 3, 5]], true[:, [0, 3, 5]].astype(np.float32))
         assert info["ov_distance"] == base.scene.ov_gaps(base._ev_state(), true).tolist()
         if term or trunc:
             break
-    for key, sd in (("x", 0.5), ("y", 0.5), ("speed", 0.8), ("ev", 0.3)):
+    for key, sd in (("x", 0.5), ("y", 0.5), ("speed", 0.8)):
         e = np.array(errors[key])
         assert abs(e.mean()) < 4 * sd / np.sqrt(len(e)) + 1e-3 and np.std(e) == pytest.approx(sd, rel=0.2), key
 
@@ -321,11 +326,11 @@ def test_a_longer_wheelbase_scales_the_yaw_rate():
     assert (ev.heading - h0) / (twin.heading - h0) == pytest.approx(1 / 1.4, rel=1e-9)
 
 
-def test_the_lag_is_a_first_order_response():
-    """A step of the acceleration command reaches a_cmd (1 - exp(-t / lag)) after t; the speed follows the achieved
-    acceleration; the drawn footprint and the command in the observation are the command's."""
-    lag, a_cmd = 0.3, -5.0
-    env = gym.make(EB, config={**EXACT, "accel_lag": lag})
+def test_the_lag_and_grip_give_a_scaled_first_order_response():
+    """A step of the acceleration command reaches grip x a_cmd (1 - exp(-t / lag)) after t; the speed follows the
+    achieved acceleration; the drawn footprint and the command in the observation are the command's."""
+    lag, grip, a_cmd = 0.3, 0.8, -5.0
+    env = gym.make(EB, config={**EXACT, "accel_lag": lag, "grip": grip})
     env.reset(seed=0)
     base = env.unwrapped
     ev = base.vehicle
@@ -333,7 +338,7 @@ def test_the_lag_is_a_first_order_response():
     for n in range(1, 11):
         v0 = ev.speed
         obs, *_ = env.step(base.scene.to_normalized(np.array([a_cmd, 0.0])).astype(np.float32))
-        assert ev.applied_acceleration == pytest.approx(a_cmd * (1 - np.exp(-n * DT / lag)), rel=1e-9)
+        assert ev.applied_acceleration == pytest.approx(grip * a_cmd * (1 - np.exp(-n * DT / lag)), rel=1e-9)
         assert (ev.speed - v0) / DT == pytest.approx(ev.applied_acceleration, rel=1e-9)
         assert base.scene.split_obs(obs)[1][0] == pytest.approx(a_cmd, rel=1e-6)
 
