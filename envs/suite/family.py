@@ -30,6 +30,7 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from highway_env.vehicle.behavior import AggressiveVehicle, DefensiveVehicle, IDMVehicle, LinearVehicle
+from highway_env.vehicle.kinematics import Vehicle
 
 from bimp.configs import ConfigError
 from bimp.envs.scene import ACTUATOR_STEER, Bounds
@@ -75,6 +76,12 @@ def _as_range(value: Any) -> Any:
     if isinstance(value, numbers.Real) and not isinstance(value, bool):
         return (value, value)
     return value
+
+
+def traffic_kind(vehicle: Vehicle) -> str:
+    """``"aggressive"``, ``"defensive"`` or ``"idm"``: the kind of a traffic vehicle (:meth:`Family._place_traffic`)."""
+    return ("aggressive" if isinstance(vehicle, AggressiveVehicle) else "defensive"
+            if isinstance(vehicle, DefensiveVehicle) else "idm")
 
 
 class Family:
@@ -168,23 +175,33 @@ class Family:
             spacing = 1000.0 / density
             x = start + float(self.np_random.uniform(0.0, spacing))
             while x <= end:
-                u = float(self.np_random.uniform())
-                kind = AggressiveVehicle if u < aggressive else DefensiveVehicle if u < aggressive + defensive \
-                    else IDMVehicle
-                speed = float(self.np_random.uniform(*self.config["traffic_speed"]))
-                if not any(lo <= x < hi for lo, hi in (keep_out or {}).get(k, ())):
-                    vehicle = kind(self.road, lane.position(x, 0.0), lane.heading_at(x), speed)
-                    if isinstance(vehicle, LinearVehicle):
-                        # highway-env's randomize_behavior would redraw the very parameters that make a vehicle
-                        # aggressive or defensive; and their data log (for fitting) only costs time here.
-                        vehicle.collecting_data = False
-                    else:
-                        vehicle.randomize_behavior()
-                    counts["aggressive" if kind is AggressiveVehicle else "defensive" if kind is DefensiveVehicle
-                           else "idm"] += 1
-                    self.road.vehicles.append(vehicle)
+                place = not any(lo <= x < hi for lo, hi in (keep_out or {}).get(k, ()))
+                vehicle = self._traffic_vehicle(lane, x, aggressive, defensive, place=place)
+                if vehicle is not None:
+                    counts[traffic_kind(vehicle)] += 1
                 x += max(MIN_TRAFFIC_GAP, spacing * float(self.np_random.uniform(*GAP_JITTER)))
         self.drawn_params.update({f"traffic_{kind}": n for kind, n in counts.items()})
+
+    def _traffic_vehicle(self, lane, x: float, aggressive: float, defensive: float,
+                         place: bool = True) -> Vehicle | None:
+        """One traffic vehicle of :meth:`_place_traffic` at ``x`` [m along ``lane``]: its kind (``AggressiveVehicle``,
+        ``DefensiveVehicle`` or ``IDMVehicle`` with probabilities ``aggressive``, ``defensive`` and the rest) and its
+        speed (from the config's ``traffic_speed``, its target) drawn; put on the road and returned where ``place``,
+        else None (drawn all the same)."""
+        u = float(self.np_random.uniform())
+        kind = AggressiveVehicle if u < aggressive else DefensiveVehicle if u < aggressive + defensive else IDMVehicle
+        speed = float(self.np_random.uniform(*self.config["traffic_speed"]))
+        if not place:
+            return None
+        vehicle = kind(self.road, lane.position(x, 0.0), lane.heading_at(x), speed)
+        if isinstance(vehicle, LinearVehicle):
+            # highway-env's randomize_behavior would redraw the very parameters that make a vehicle aggressive or
+            # defensive; and their data log (for fitting) only costs time here.
+            vehicle.collecting_data = False
+        else:
+            vehicle.randomize_behavior()
+        self.road.vehicles.append(vehicle)
+        return vehicle
 
     def _draw(self, key: str) -> float:
         """This episode's value of the range ``key`` [its unit], uniform on the config's ``(lo, hi)`` from the env's
