@@ -1,8 +1,8 @@
 """``dense-highway`` (issue 27): dense traffic with aggressive drivers mixed in, slower than the EV's target speed;
 hold the target speed by weaving through it, or follow.
 
-A straight road of ``lanes_count`` (default 3) lanes of 4 m, speed limit 30 m/s (highway-env's
-highway-v0 road). At every ``reset(seed=...)``, from the env's own ``np_random``:
+A straight road of ``lanes_count`` (default 3) lanes of 4 m, speed limit 30 m/s (highway-env's highway-v0 road). At
+every ``reset(seed=...)``, from the env's own ``np_random``:
 
 - the EV's lane, uniform among the lanes, and its speed (``ev_speed``), starting at x = 200 m on the lane's centre;
 - the leader: a traffic vehicle ``leader_gap`` ahead of the EV in its lane (centre to centre), its kind and speed
@@ -20,7 +20,10 @@ The EV's target (:attr:`DenseHighwayEnv.TARGET_SPEED`, the behaviour layer's fre
 30 m/s, above every traffic speed: holding it means passing, lane after lane, through traffic denser than any other
 family's at each difficulty, where aggressive drivers (highway-env's ``AggressiveVehicle``: MOBIL with no
 politeness, a linear car-following law that closes to within a car's length of a standing leader at targets above
-23.5 m/s) change lanes in front of it and close up behind it.
+23.5 m/s) change lanes in front of it and close up behind it. At these densities highway-env's IDM traffic does
+not flow at its targets (IDM's desired gap at 20 m/s is 40 m, bumper to bumper; 40 vehicles/km/lane leave 20 m):
+it slows within seconds to 10-15 m/s, in stop-and-go waves on hard, so ``traffic_speed`` is each vehicle's target
+and its speed at reset, not its speed later.
 
 Ranges per ``difficulty`` (:data:`DIFFICULTIES`; units as :class:`DenseHighwayRanges` says):
 
@@ -41,11 +44,12 @@ at least ``d_min`` (1 m) between the footprints. The least gap grows with the le
 the EV's speed (each vehicle's path is monotone in its start), so the worst corner of the ranges is the fastest EV
 behind the slowest leader at the nearest gap: ranges whose worst corner the plan does not keep ``d_min`` clear are
 refused naming ``leader_gap`` (:class:`DenseHighwayRanges`). A standing EV that traffic runs into is not at fault
-(``docs/suite.md``). What the oracle does not cover (counted by the tests on the oracle's plan driven in the env):
+(``docs/suite.md``). What the oracle does not cover (``docs/suite.md`` counts it on the oracle's plan driven in
+the env):
 traffic changing into the EV's lane between the EV and its leader (MOBIL, whose safety rule for its new follower,
 the EV, only bounds the follower's IDM braking at 2 m/s^2), a leader that crashes into its own leader (highway-env
-stops a crashed vehicle at its speed per second, harder than 6 m/s^2), and collisions of the standing EV with
-traffic from behind, never the EV's fault.
+stops a crashed vehicle at its speed per second, harder than 6 m/s^2), OV-OV crashes (aggressive drivers run into
+a queue), and traffic running into the braking or standing EV, never the EV's fault.
 
 Success: the time limit (15 s) reached without collision or leaving the road (no goal); the score's progress and
 speed parts tell weaving at the target from following.
