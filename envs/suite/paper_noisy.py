@@ -4,57 +4,61 @@ MLP fitted to highway-env's kinematic bicycle, :mod:`bimp.planners.dynamics`) pr
 
 Two scenarios, each the paper env with :class:`PaperNoisy` before it in its bases:
 
-- ``overtaking-noisy`` (``bimp/overtaking-noisy-v0``, :class:`NoisyOvertakingEnv`): the paper's overtaking scenario
-  (``bimp/Overtaking-v0``), its ranges unchanged;
-- ``emergency-brake-noisy`` (``bimp/emergency-brake-noisy-v0``, :class:`NoisyEmergencyBrakeEnv`): the paper's
-  emergency brake (``bimp/EmergencyBrake-v0``) with OV1 10 m further ahead (``ov1_gap`` 60 - 70 m instead of
-  50 - 60 m), so that the lagged EV of the hard difficulty can still stop clear of it (the oracle, below).
+- ``overtaking-noisy`` (``bimp/overtaking-noisy-v0``, :class:`NoisyOvertakingEnv`, 15 s): the paper's overtaking
+  scenario (``bimp/Overtaking-v0``), its ranges unchanged;
+- ``emergency-brake-noisy`` (``bimp/emergency-brake-noisy-v0``, :class:`NoisyEmergencyBrakeEnv`, 12 s): the paper's
+  emergency brake (``bimp/EmergencyBrake-v0``) with OV1 22 m further ahead (``ov1_gap`` 72 - 82 m instead of
+  50 - 60 m), so that the lagged, low-grip EV of the hard difficulty can still stop clear of it (the oracle, below).
 
-What changes, every draw from the env's ``np_random`` (the ranges per episode at ``reset``, the noise at every
-observation):
+The paper env draws its scenario first, in its own order, then the family draws its ranges: with no noise and no
+mismatch an episode is the paper env's of the same seed. What changes, every draw from the env's ``np_random`` (the
+ranges per episode at ``reset``, the noise at every observation):
 
 - **observation noise**: the policy's observation of each present OV has independent Gaussian noise of standard
-  deviation ``ov_position_noise`` [m] added to its x and y, and ``ov_speed_noise`` [m/s] to its speed; the EV's own
-  speed has ``ev_speed_noise`` [m/s]. Gaussian: a sensor's error is the sum of many small ones, and its tails are
-  what a planner's margins must absorb. The OVs' heading and acceleration, the EV's pose and the reference are
-  observed as they are (see "Left as they are" in the docs). The env's own safety info (``collision``,
-  ``ov_distance``, ``ttc``, ``edge_distance``, the score's ``contact``) and the overtaking behaviour layer's reference
-  stay on the true state;
+  deviation ``ov_position_noise`` [m] added to its x and y, and ``ov_speed_noise`` [m/s] to its speed. Gaussian: a
+  sensor's error is the sum of many small ones, and its tails are what a planner's margins must absorb. The OVs'
+  heading and acceleration, the EV's own state and the reference are observed as they are: bimp's records take the
+  EV's trajectory from the observation (:mod:`bimp.agents.rollout`), so noise on it would be in every jerk and speed
+  metric. The env's own safety info (``collision``, ``ov_distance``, ``ttc``, ``edge_distance``, the score's
+  ``contact``) and the overtaking behaviour layer's reference stay on the true state;
 - **model mismatch** of the EV (:class:`MismatchedEgoVehicle`): a **longer wheelbase**, ``length_ratio`` times the
   5 m that highway-env's bicycle (and so the planners' MLP) uses in the slip angle's yaw rate
   ``v sin(beta) / (L / 2)``: the same steering turns the EV ``1 / length_ratio`` as fast (the drawn footprint stays
-  5 m); and a **first-order lag** of time constant ``accel_lag`` [s] between the commanded and the achieved
-  acceleration (a powertrain and brake lag): ``a <- a + (1 - exp(-dt / accel_lag)) (a_cmd - a)`` every simulation
-  step, the exact response of ``da/dt = (a_cmd - a) / accel_lag`` to a command held over the step; 0 is no lag.
+  5 m); a **first-order lag** of time constant ``accel_lag`` [s] between the commanded and the achieved
+  acceleration (a powertrain and brake lag); and a **grip** factor, the share of the command the tyres and brakes
+  achieve: ``a <- a + (1 - exp(-dt / accel_lag)) (grip a_cmd - a)`` every simulation step, the exact response of
+  ``da/dt = (grip a_cmd - a) / accel_lag`` to a command held over the step (``accel_lag`` 0: ``a = grip a_cmd``).
 
-Ranges per ``difficulty`` (:data:`DIFFICULTIES`; a ``(lo, hi)`` pair is drawn uniformly per episode, a number fixes
-it; noise keys are standard deviations):
+Ranges per ``difficulty`` (:data:`OVERTAKING_DIFFICULTIES`, :data:`EMERGENCY_BRAKE_DIFFICULTIES`; a ``(lo, hi)`` pair
+is drawn uniformly per episode, a number fixes it; the noise keys are standard deviations):
 
-============  =================  ==============  ==============  ============  ==========
-difficulty    ov_position_noise  ov_speed_noise  ev_speed_noise  length_ratio  accel_lag
-============  =================  ==============  ==============  ============  ==========
-easy          0 - 0.1 m          0 - 0.1 m/s     0 - 0.05 m/s    1 - 1.1       0 - 0.1 s
-medium        0.1 - 0.3 m        0.1 - 0.3 m/s   0.05 - 0.15     1.1 - 1.25    0.1 - 0.25 s
-hard          0.3 - 0.6 m        0.3 - 0.8 m/s   0.15 - 0.3      1.25 - 1.5    0.25 - 0.4 s
-============  =================  ==============  ==============  ============  ==========
+============  =================  ==============  ============  ============  =================  ======================
+difficulty    ov_position_noise  ov_speed_noise  length_ratio  accel_lag     grip (overtaking)  grip (emergency brake)
+============  =================  ==============  ============  ============  =================  ======================
+easy          0 - 0.1 m          0 - 0.1 m/s     1 - 1.1       0 - 0.1 s     1                  0.95 - 1
+medium        0.1 - 0.3 m        0.1 - 0.3 m/s   1.1 - 1.25    0.1 - 0.25 s  1                  0.9 - 0.95
+hard          0.3 - 0.6 m        0.3 - 0.8 m/s   1.25 - 1.5    0.25 - 0.4 s  1                  0.8 - 0.9
+============  =================  ==============  ============  ============  =================  ======================
 
 The envelope (:data:`NOISE_PARAMS`): noise standard deviations in [0, 2] (2 m is half a lane); ``length_ratio`` in
 [0.7, 1.5] (at 1.5 holding the inner lane of the tightest curve of the overtaking ranges, radius 178 m, takes
 0.042 rad of steering, inside the 0.05 rad bound; the overtaking env refuses a ratio and radius whose hold leaves
-less than :data:`STEER_HEADROOM`); ``accel_lag`` in [0, 1] s, and further limited by the oracle.
+less than :data:`STEER_HEADROOM`); ``accel_lag`` in [0, 1] s and ``grip`` in [0.5, 1], both further limited by the
+oracle.
 
 The oracle: every instance leaves a safe plan inside the planning bounds under the mismatch. The plan is the paper
 scenarios' (``tests/envs/test_feasibility.py``): braking at the planning bounds (the command ramps to ``a_min`` by the
 rate bound) in the EV's lane, on the emergency brake from the step after the OVs' deceleration shows, on overtaking
-from the first step behind OV1 (which never brakes). With the lag the achieved deceleration follows the command late:
-:func:`brake_with_lag` simulates it exactly as :class:`MismatchedEgoVehicle` steps (the shared
-:func:`bimp.envs.oracle.brake_at_the_bounds` at ``lag`` 0). The worst case of the ranges is their corner (fastest EV,
-nearest and slowest OV1, braking hardest and latest, longest lag): a config whose worst corner leaves less than
-``d_min`` is refused naming ``accel_lag`` (or the scenario's key, where even no lag fails), and on overtaking one whose
-stop does not end on the straight before the curve (:data:`STRAIGHT_IN`), so that the longer wheelbase never has to
-steer it. The plan drives straight on a straight road, so the wheelbase does not enter it. Observation noise cannot
-break the oracle: the plan is a fact of the world (when to brake is set by the true onset), not of what a policy
-sees; a noisy policy may fail where the plan does not, which is the family's point.
+from the first step behind OV1 (which never brakes). Under the mismatch the achieved deceleration follows the command
+late and short: :func:`brake_with_lag` simulates it exactly as :class:`MismatchedEgoVehicle` steps (the shared
+:func:`bimp.envs.oracle.brake_at_the_bounds` at ``lag`` 0 and ``grip`` 1). The worst case of the ranges is among
+their corners (fastest EV, nearest and slowest OV1, braking hardest and latest, longest lag, least grip), which
+every config is checked on: one whose worst corner leaves less than ``d_min`` is refused naming ``ov1_gap`` (where
+even the model's EV fails), ``grip`` (where the full grip would pass) or ``accel_lag``; on overtaking also one whose
+stop does not end on the straight before the curve (:data:`STRAIGHT_IN`, naming ``ev_speed``), so that the longer
+wheelbase never has to steer it. The plan drives straight on a straight stretch, so the wheelbase does not enter
+it. Observation noise cannot break the oracle: the plan is a fact of the world (when to brake is set by the true
+onset), not of what a policy sees; a noisy policy may fail where the plan does not, which is the family's point.
 
 Success: the time limit reached without collision or leaving the road, as on the paper's scenarios.
 """
@@ -122,8 +126,8 @@ def _presets(grip: Mapping[str, tuple[float, float]]) -> Mapping[str, Mapping[st
 # Overtaking keeps the model's grip: following OV1 (25 m ahead at 15 m/s, the EV at 27 m/s) leaves 1.97 m with hard's
 # 0.4 s lag, and 0.76 m with a grip of 0.9 besides.
 OVERTAKING_DIFFICULTIES = _presets({"easy": (1.0, 1.0), "medium": (1.0, 1.0), "hard": (1.0, 1.0)})
-# The emergency brake loses grip: what its planners' margins do not absorb (with the lag alone, EnKTS, EnKS and MPPI
-# stopped clear on development seeds 0-9 of hard; with a grip of 0.8 EnKTS hit OV1 on 5 of them).
+# The emergency brake loses grip: what its planners' margins do not absorb (with hard's lag and noise alone, OV1 60-70 m
+# ahead, EnKTS, EnKS and MPPI all stopped clear on development seeds 0-9; with hard's grip besides, EnKTS hit OV1 on 2).
 EMERGENCY_BRAKE_DIFFICULTIES = _presets({"easy": (0.95, 1.0), "medium": (0.9, 0.95), "hard": (0.8, 0.9)})
 DIFFICULTIES = MappingProxyType({"overtaking-noisy": OVERTAKING_DIFFICULTIES,
                                  "emergency-brake-noisy": EMERGENCY_BRAKE_DIFFICULTIES})
