@@ -24,22 +24,22 @@ NEVER = np.inf  # an ``onset`` for an OV that never brakes (a stalled vehicle, a
 
 def brake_at_the_bounds(ev, gap, v_ov, onset, decel, dt: float = DT, length: float = VEHICLE_LENGTH,
                         steps: int = 200, react: bool = True, bounds: Bounds | None = None,
-                        duration=NEVER) -> np.ndarray:
+                        duration=NEVER, a0=0.0) -> np.ndarray:
     """Least footprint gap [m] ``(...)`` to the OV ahead in the EV's lane when the EV brakes at the planning bounds.
 
     The OV (centre ``gap`` [m] ahead, speed ``v_ov`` [m/s]) brakes at ``decel`` [m/s^2, a magnitude] from ``onset``
     [s] until it stands, or for ``duration`` [s] (the steps whose clock is in ``[onset, onset + duration)``) and
     then holds its speed (:data:`NEVER` onset: it holds its speed; ``v_ov`` 0: it stands throughout). The EV
-    (speed ``ev`` [m/s], last input 0) sees the OV's deceleration in the observation after the first braking step
-    (``react``) or from the start (``react=False``: it brakes from its first step), and from then ramps to
-    ``bounds.accel[0]`` by ``bounds.accel_rate`` per step (``bounds``: the paper's :class:`bimp.envs.scene.Bounds`
-    by default).
+    (speed ``ev`` [m/s], last input ``a0`` [m/s^2], 0 by default) sees the OV's deceleration in the observation
+    after the first braking step (``react``) or from the start (``react=False``: it brakes from its first step), and
+    from then ramps from ``a0`` to ``bounds.accel[0]`` by ``bounds.accel_rate`` per step (``bounds``: the paper's
+    :class:`bimp.envs.scene.Bounds` by default).
     ``length`` [m]: both vehicles' length, so the footprint gap is the centre gap less it. ``steps`` of ``dt`` [s]
     must cover the stop (200 x 0.1 s: from 40 m/s at 7 m/s^2 the EV stands within 7 s). Arrays broadcast."""
     b = Bounds() if bounds is None else bounds
-    ev, gap, v_ov, onset, decel, duration = np.broadcast_arrays(
-        *(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel, duration)))
-    s_e, v_e, a_e = np.zeros(ev.shape), ev.copy(), np.zeros(ev.shape)
+    ev, gap, v_ov, onset, decel, duration, a0 = np.broadcast_arrays(
+        *(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel, duration, a0)))
+    s_e, v_e, a_e = np.zeros(ev.shape), ev.copy(), a0.copy()
     s_o, v_o = gap.copy(), v_ov.copy()
     seen = np.zeros(ev.shape, bool) if react else np.ones(ev.shape, bool)
     least = np.full(ev.shape, np.inf)
@@ -53,6 +53,8 @@ def brake_at_the_bounds(ev, gap, v_ov, onset, decel, dt: float = DT, length: flo
         clock += dt
         seen |= braking
         least = np.minimum(least, s_o - s_e - length)
+        if not v_e.any():  # every EV stands: the gaps only grow from here (no OV reverses)
+            break
     return least
 
 

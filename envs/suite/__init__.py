@@ -11,6 +11,8 @@ One module per family (its env class, a :class:`bimp.envs.suite.family.Family`),
 - :mod:`.cut_in`: ``cut-in``, a vehicle in the next lane cuts in ahead of the EV at a short time gap and brakes;
 - :mod:`.lane_drop`: ``lane-drop``, the EV's lane closed ahead (a construction zone), traffic in the lane to merge
   into;
+- :mod:`.dense_highway`: ``dense-highway``, dense traffic with aggressive drivers, slower than the EV's target;
+- :mod:`.erratic_traffic`: ``erratic-traffic``, traffic whose braking and lane changes carry heavy-tailed noise;
 - :mod:`.family`: what every family shares (difficulty, ranges, draws);
 - the oracle that shows every instance leaves a safe plan: :mod:`bimp.envs.oracle`.
 """
@@ -20,6 +22,8 @@ from __future__ import annotations
 from types import MappingProxyType
 
 from bimp.envs.suite.cut_in import CutInEnv
+from bimp.envs.suite.dense_highway import DenseHighwayEnv
+from bimp.envs.suite.erratic_traffic import ErraticTrafficEnv
 from bimp.envs.suite.family import Family
 from bimp.envs.suite.lane_drop import LaneDropEnv
 from bimp.envs.suite.stalled_vehicle import StalledVehicleEnv
@@ -30,7 +34,10 @@ FAMILIES: MappingProxyType[str, type[Family]] = MappingProxyType({
         StalledVehicleEnv,
         CutInEnv,
         LaneDropEnv,
+        ErraticTrafficEnv,
+        DenseHighwayEnv,
     )
 })
 
-__all__ = ["FAMILIES", "CutInEnv", "Family", "LaneDropEnv", "StalledVehicleEnv"]
+__all__ = ["FAMILIES", "CutInEnv", "DenseHighwayEnv", "ErraticTrafficEnv", "Family", "LaneDropEnv",
+           "StalledVehicleEnv"]
