@@ -293,8 +293,9 @@ def oracle_episode(env, seed: int, whole: bool = True) -> dict:
 def test_the_oracles_plan_in_the_env_on_100_seeds(difficulty):
     """The oracle's plan driven for whole episodes, seeds 0-99: never a collision at the EV's fault; no vehicle ahead
     in its lane nearer than d_min (the leader, and those that change in ahead of it within their safety bound),
-    unless traffic crashed ahead of it; what the oracle does not cover within the documented counts
-    (docs: the erratic-traffic subsection)."""
+    unless traffic crashed ahead of it; what the oracle does not cover within the documented counts (docs: the
+    erratic-traffic subsection; when written, none rear-ended the EV on easy seeds 0-99 nor hard seeds 0-31, and
+    traffic crashed ahead of it on 0 easy and 5 of those hard seeds)."""
     env = gym.make(ID, config={"difficulty": difficulty})
     runs = [oracle_episode(env, seed) for seed in range(100)]
     assert not [s for s, r in enumerate(runs) if r["at_fault"]]
@@ -302,5 +303,5 @@ def test_the_oracles_plan_in_the_env_on_100_seeds(difficulty):
     assert not [s for s, r in enumerate(runs) if r["least"] < B.d_min and not r["crash_ahead"]]
     rear_ended = [s for s, r in enumerate(runs) if r["collision"]]
     crashes_ahead = [s for s, r in enumerate(runs) if r["crash_ahead"]]
-    assert len(rear_ended) <= {"easy": 5, "medium": 10, "hard": 30}[difficulty], rear_ended
-    assert len(crashes_ahead) <= {"easy": 5, "medium": 10, "hard": 20}[difficulty], crashes_ahead
+    assert len(rear_ended) <= {"easy": 2, "medium": 5, "hard": 15}[difficulty], rear_ended
+    assert len(crashes_ahead) <= {"easy": 2, "medium": 5, "hard": 30}[difficulty], crashes_ahead
