@@ -294,8 +294,8 @@ def test_the_oracles_plan_in_the_env_on_100_seeds(difficulty):
     """The oracle's plan driven for whole episodes, seeds 0-99: never a collision at the EV's fault; no vehicle ahead
     in its lane nearer than d_min (the leader, and those that change in ahead of it within their safety bound),
     unless traffic crashed ahead of it; what the oracle does not cover within the documented counts (docs: the
-    erratic-traffic subsection; when written, none rear-ended the EV on easy seeds 0-99 nor hard seeds 0-31, and
-    traffic crashed ahead of it on 0 easy and 5 of those hard seeds)."""
+    erratic-traffic subsection; when written, nothing rear-ended the EV on easy seeds 0-99, medium 0-44 and hard
+    0-59, and traffic crashed ahead of it on none of the easy and medium ones and 10 of the hard ones)."""
     env = gym.make(ID, config={"difficulty": difficulty})
     runs = [oracle_episode(env, seed) for seed in range(100)]
     assert not [s for s, r in enumerate(runs) if r["at_fault"]]
