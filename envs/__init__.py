@@ -37,7 +37,8 @@ class ScenarioSpec:
     entry_point: str = ""
     max_episode_steps: int = 0
     default: bool = False
-    kwargs: Mapping = field(default_factory=dict)  # the entry point's keyword arguments (a family's difficulty)
+    # The entry point's keyword arguments (a family's difficulty), read-only; left out of the hash as a dict is.
+    kwargs: Mapping = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
         missing = [f.name for f in fields(self)
@@ -56,6 +57,8 @@ class ScenarioSpec:
             problems.append(f"max_episode_steps must be an int >= 1, got {self.max_episode_steps!r}")
         if not isinstance(self.kwargs, Mapping):
             problems.append(f"kwargs must be a mapping, got {self.kwargs!r}")
+        else:
+            object.__setattr__(self, "kwargs", MappingProxyType(dict(self.kwargs)))
         if not isinstance(self.default, bool):
             problems.append(f"default must be true or false, got {self.default!r}")
         if problems:

@@ -185,13 +185,14 @@ def adapter_config(highway_id: str, config: Mapping | None) -> dict:
 
 
 def make(highway_id: str, config: Mapping | None = None, render_mode: str | None = None,
-         n_obstacles: int = N_OBSTACLES) -> "HighwayAdapter":
+         n_obstacles: int = N_OBSTACLES, **kwargs) -> "HighwayAdapter":
     """The adapted env of ``highway_id`` (what ``gym.make("bimp/" + highway_id, config=..., n_obstacles=...)``
-    builds, without gymnasium's wrappers)."""
+    builds, without gymnasium's wrappers). ``kwargs``: the env class's own (a suite family's ``difficulty``, which
+    its ``-easy``/``-hard`` ids pass)."""
     config = adapter_config(highway_id, config)
     if not _is_int(n_obstacles) or n_obstacles < 1:
         raise ValueError(f"n_obstacles must be an int >= 1, got {n_obstacles!r}")
-    env = adapted_class(ENV_CLASSES[highway_id])(config=config, render_mode=render_mode)
+    env = adapted_class(ENV_CLASSES[highway_id])(config=config, render_mode=render_mode, **kwargs)
     return HighwayAdapter(env, highway_id, n_obstacles)
 
 
@@ -230,16 +231,8 @@ def entry_name(highway_id: str) -> str:
 
 def _entry(highway_id: str):
     def make_env(config: Mapping | None = None, render_mode: str | None = None, n_obstacles: int = N_OBSTACLES,
-                 difficulty: str | None = None):
-        # A suite family registered at one of its difficulties (bimp/cut-in-hard-v0); a non-mapping config is left
-        # for make to refuse.
-        if difficulty is not None and (config is None or isinstance(config, Mapping)):
-            config = {"difficulty": difficulty, **(config or {})}
-            if config["difficulty"] != difficulty:
-                raise ValueError(f"this id is {highway_id}'s {difficulty!r} difficulty: config difficulty "
-                                 f"{config['difficulty']!r} contradicts it (gym.make('bimp/{highway_id}', "
-                                 f"config={{'difficulty': ...}}) takes any)")
-        return make(highway_id, config, render_mode, n_obstacles)
+                 **kwargs) -> "HighwayAdapter":
+        return make(highway_id, config, render_mode, n_obstacles, **kwargs)
 
     make_env.__name__ = make_env.__qualname__ = entry_name(highway_id)
     make_env.__doc__ = f"``bimp/{highway_id}``: :func:`make` of {highway_id!r}."

@@ -48,8 +48,9 @@ refused naming ``leader_gap`` (:class:`DenseHighwayRanges`). A standing EV that 
 the env):
 traffic changing into the EV's lane between the EV and its leader (MOBIL, whose safety rule for its new follower,
 the EV, only bounds the follower's IDM braking at 2 m/s^2), a leader that crashes into its own leader (highway-env
-stops a crashed vehicle at its speed per second, harder than 6 m/s^2), OV-OV crashes (aggressive drivers run into
-a queue), and traffic running into the braking or standing EV, never the EV's fault.
+stops a crashed vehicle at its speed per second, harder than 6 m/s^2), a leader that backs up (highway-env's IDM
+reverses where it stands too near what is ahead: its speed is not clamped at 0), OV-OV crashes (aggressive drivers
+run into a queue), and traffic running into the braking or standing EV, never the EV's fault.
 
 Success: the time limit (15 s) reached without collision or leaving the road (no goal); the score's progress and
 speed parts tell weaving at the target from following.

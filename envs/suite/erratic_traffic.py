@@ -27,8 +27,9 @@ from numpy's global generator):
   dry road: the t's tail is unbounded, a car's braking is not. IDM's own braking reaches the same cap (highway-env
   clips it at 6 m/s^2), so that a follower can answer a hard brake ahead as hard as it was made; and a vehicle
   stops at 0, it never reverses (highway-env's IDM backs up when it stands too near);
-- **erratic lane changes**: at each of MOBIL's decisions (every second) one draw ``e ~ t_nu``, and MOBIL decides with
-  its gain threshold lowered and the braking it may impose on its new follower raised by ``lane_noise x |e|``
+- **erratic lane changes**: at each of MOBIL's evaluations of a lane beside (every second, once per side lane) one
+  draw ``e ~ t_nu``, and MOBIL decides with its gain threshold lowered and the braking it may impose on its new
+  follower raised by ``lane_noise x |e|``
   (highway-env's 0.2 and 2 m/s^2): mostly MOBIL, sometimes a lane change for no gain into a short gap. Whatever the
   noise, a lane change is made only into a gap that the **safety bound** (:func:`gap_is_safe`) allows: its new
   follower, braking at the planning bounds from its own current input (the EV's last one, a traffic vehicle's IDM

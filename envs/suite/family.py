@@ -71,6 +71,26 @@ def check_shares(ranges: Any) -> None:
                           "probabilities of one vehicle's kind")
 
 
+def with_difficulty(env: Any, config: Mapping | None, difficulty: str | None) -> Mapping | None:
+    """The constructor's ``config`` of a family env made at one ``difficulty`` (the ``-easy``/``-hard`` ids:
+    ``bimp/cut-in-hard-v0``): that difficulty kept on ``env`` as ``fixed_difficulty`` and put under ``config``'s own
+    keys, so that :func:`check_fixed_difficulty` refuses another one at ``gym.make`` and at every later reset (a
+    non-mapping config is left for the env to refuse)."""
+    env.fixed_difficulty = difficulty
+    if difficulty is None or not (config is None or isinstance(config, Mapping)):
+        return config
+    return {"difficulty": difficulty, **(config or {})}
+
+
+def check_fixed_difficulty(env: Any, difficulty: Any) -> None:
+    """:class:`bimp.configs.ConfigError` naming ``difficulty`` where ``env`` was made at another one
+    (:func:`with_difficulty`): an id that names a difficulty never runs another's episodes."""
+    fixed = getattr(env, "fixed_difficulty", None)
+    if fixed is not None and difficulty != fixed:
+        raise ConfigError("difficulty", f"{fixed!r}, the difficulty this id names", difficulty,
+                          f"gym.make('bimp/{env.NAME}-v0', config={{'difficulty': ...}}) takes any")
+
+
 def _as_range(value: Any) -> Any:
     # A number fixes a range (as the paper's envs take one); anything else is left to check_fields to judge.
     if isinstance(value, numbers.Real) and not isinstance(value, bool):
@@ -100,6 +120,11 @@ class Family:
     REMOVED_KEYS: ClassVar[frozenset[str]] = frozenset()  # highway-env keys the family's own draws replace
 
     drawn_params: dict[str, Any]
+    fixed_difficulty: str | None = None  # the difficulty the id names (bimp/cut-in-hard-v0), else None
+
+    def __init__(self, config: Mapping | None = None, render_mode: str | None = None,
+                 difficulty: str | None = None) -> None:
+        super().__init__(config=with_difficulty(self, config, difficulty), render_mode=render_mode)
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -144,6 +169,7 @@ class Family:
             raise ConfigError("duration", f"{self.DURATION:g} (s)", config["duration"],
                               f"{self.NAME}'s episodes are registered with a {self.DURATION:g} s step limit")
         difficulty = config.get("difficulty", self.config["difficulty"])
+        check_fixed_difficulty(self, difficulty)
         if not isinstance(difficulty, str) or difficulty not in self.DIFFICULTIES:
             raise ConfigError("difficulty", f"one of {', '.join(map(repr, self.DIFFICULTIES))}", difficulty,
                               f"the difficulties {self.NAME}'s oracle covers")

@@ -87,6 +87,7 @@ from bimp.envs.scenarios import (
     Param,
 )
 from bimp.envs.scene import DT, OV_FIELDS, VEHICLE_LENGTH, Bounds, join_obs
+from bimp.envs.suite.family import check_fixed_difficulty, with_difficulty
 
 BOUNDS = Bounds()
 STRAIGHT_IN = 100.0  # m: the overtaking road's straight before the curve (OvertakingEnv._scene_road)
@@ -238,23 +239,19 @@ class PaperNoisy:
     option that sets all of them at once (a key given beside it overrides its preset; given alone it resets them), and
     the oracle's worst corner checked on every config (``gym.make``'s and every ``reset``'s). Refusals are
     ``ValueError`` naming the key. ``difficulty`` as a constructor argument (the ``-easy``/``-hard`` scenarios'
-    registration) refuses a config that names another."""
+    registration) refuses a config, at ``gym.make`` or at any reset, that names another."""
 
     NAME: ClassVar[str] = ""
     DURATION: ClassVar[float] = 0.0  # s
     DIFFICULTIES: ClassVar[Mapping[str, Mapping[str, tuple[float, float]]]] = {}
     DEFAULT_DIFFICULTY: ClassVar[str] = "medium"
     ORACLE_KEYS: ClassVar[tuple[str, ...]] = ()  # the config keys the oracle's check reads
+    fixed_difficulty: str | None = None  # the difficulty the id names (bimp/overtaking-noisy-hard-v0), else None
     noise_std: dict[str, float]
 
-    def __init__(self, config: dict | None = None, render_mode: str | None = None, difficulty: str | None = None):
-        if difficulty is not None and (config is None or isinstance(config, Mapping)):
-            config = {"difficulty": difficulty, **(config or {})}
-            if config["difficulty"] != difficulty:
-                raise ValueError(f"this id is {self.NAME}'s {difficulty!r} difficulty: config difficulty "
-                                 f"{config['difficulty']!r} contradicts it (gym.make('bimp/{self.NAME}-v0', "
-                                 f"config={{'difficulty': ...}}) takes any)")
-        super().__init__(config=config, render_mode=render_mode)
+    def __init__(self, config: dict | None = None, render_mode: str | None = None,
+                 difficulty: str | None = None) -> None:
+        super().__init__(config=with_difficulty(self, config, difficulty), render_mode=render_mode)
 
     @classmethod
     def range_keys(cls) -> tuple[str, ...]:
@@ -266,6 +263,7 @@ class PaperNoisy:
         if not isinstance(overrides, Mapping) or "difficulty" not in overrides:
             return overrides
         difficulty = overrides["difficulty"]
+        check_fixed_difficulty(self, difficulty)
         if not isinstance(difficulty, str) or difficulty not in self.DIFFICULTIES:
             raise ConfigError("difficulty", f"one of {', '.join(map(repr, self.DIFFICULTIES))}", difficulty,
                               f"the difficulties {self.NAME}'s oracle covers")

@@ -82,5 +82,10 @@ def test_every_difficulty_is_a_scenario_of_its_own(name):
     lo, hi = cls.DIFFICULTIES["hard"].__dict__[key]
     config = gym.make(hard, config={key: hi}).unwrapped.config
     assert config["difficulty"] == "hard" and tuple(config[key]) == (hi, hi)
-    with pytest.raises(ValueError, match="contradicts"):
+    with pytest.raises(ValueError, match="difficulty must be 'hard', the difficulty this id names"):
         gym.make(hard, config={"difficulty": "easy"})
+    env = gym.make(hard)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="difficulty must be 'hard'"):  # nor at a reset: never another's episodes
+        env.reset(seed=0, options={"config": {"difficulty": "easy"}})
+    assert env.unwrapped.config["difficulty"] == "hard"

@@ -10,7 +10,6 @@ import itertools
 import gymnasium as gym
 import numpy as np
 import pytest
-from gymnasium.utils import seeding
 from gymnasium.utils.env_checker import check_env
 
 import bimp
@@ -44,17 +43,17 @@ def scenario_id(cls, difficulty: str) -> str:
     return f"bimp/{cls.NAME}{'' if difficulty == cls.DEFAULT_DIFFICULTY else '-' + difficulty}-v0"
 
 
-def cheap_draws(cls, difficulty: str, keys: tuple[str, ...], n: int = DRAWS) -> dict[str, np.ndarray]:
-    """``n`` draws of ``keys`` from the registered env's config at ``difficulty``, each through the env's own ``_draw``
-    from the generator ``reset(seed=i)`` seeds, in ``keys``' order (the road is not built: a reset costs 0.1 s; the
-    env's own resets are :func:`test_real_resets_draw_inside_the_ranges_and_keep_the_oracle`'s)."""
+def real_draws(cls, difficulty: str, keys: tuple[str, ...], n: int = DRAWS) -> dict[str, np.ndarray]:
+    """``keys`` of the registered env's ``drawn_params`` at ``difficulty`` over ``reset(seed=i)``, i < ``n``: the
+    env's own draws, in its order (1000 resets take a few seconds); a key drawn once per OV (``ov_speed``) gives
+    OV1's, the first drawn."""
     env = gym.make(scenario_id(cls, difficulty)).unwrapped
     out = {k: np.empty(n) for k in keys}
     for i in range(n):
-        env.np_random, _ = seeding.np_random(i)
-        env.drawn_params = {}
+        env.reset(seed=i)
         for k in keys:
-            out[k][i] = env._draw(k)
+            value = env.drawn_params[k]
+            out[k][i] = value[0] if isinstance(value, list) else value
     return out
 
 
@@ -95,7 +94,7 @@ def test_brake_with_lag_is_the_shared_oracle_without_a_lag():
 def test_emergency_brake_stops_clear_under_the_mismatch_on_every_draw_and_corner(difficulty):
     """Braking at the bounds once OV1's deceleration shows, through the EV's lag and grip, keeps at least d_min to
     OV1: on 1000 draws of each difficulty and every corner of its ranges."""
-    d = cheap_draws(NoisyEmergencyBrakeEnv, difficulty, EB_KEYS)
+    d = real_draws(NoisyEmergencyBrakeEnv, difficulty, EB_KEYS)
     gaps, _ = brake_with_lag(*(d[k] for k in EB_KEYS))
     assert gaps.min() >= B.d_min, f"{int(np.sum(gaps < B.d_min))} draws infeasible"
     env = gym.make(scenario_id(NoisyEmergencyBrakeEnv, difficulty)).unwrapped
@@ -114,7 +113,7 @@ def test_overtaking_following_ov1_stays_safe_on_the_straight_under_the_mismatch(
     inside the steering bound: 1000 draws and every corner."""
     env = gym.make(scenario_id(NoisyOvertakingEnv, difficulty)).unwrapped
     keys = (*OT_KEYS, "ov2_gap", "ov2_speed")
-    d = cheap_draws(NoisyOvertakingEnv, difficulty, keys)
+    d = real_draws(NoisyOvertakingEnv, difficulty, keys)
     for sample in (d, {k: np.array([c[k] for c in corners(env, keys)]) for k in keys}):
         gaps, travel = brake_with_lag(sample["ev_speed"], sample["ov1_gap"], sample["ov1_speed"], NEVER, 0.0,
                                       sample["accel_lag"], sample["grip"], react=False)
@@ -207,8 +206,11 @@ def test_every_difficulty_is_a_scenario_of_its_own(cls):
         assert {k: config[k] for k in cls.range_keys()} == dict(preset)
     config = gym.make(scenario_id(cls, "hard"), config={"accel_lag": 0.3}).unwrapped.config
     assert config["difficulty"] == "hard" and config["accel_lag"] == 0.3 and config["length_ratio"] == (1.25, 1.5)
-    with pytest.raises(ValueError, match="contradicts"):
+    with pytest.raises(ValueError, match="difficulty must be 'hard', the difficulty this id names"):
         gym.make(scenario_id(cls, "hard"), config={"difficulty": "easy"})
+    hard = gym.make(scenario_id(cls, "hard"))
+    with pytest.raises(ValueError, match="difficulty must be 'hard'"):  # nor for one episode
+        hard.reset(seed=0, options={"config": {"difficulty": "easy"}})
     # a difficulty for one episode only, then back on gym.make's
     env = gym.make(f"bimp/{cls.NAME}-v0")
     env.reset(seed=0, options={"config": {"difficulty": "hard"}})
