@@ -28,7 +28,7 @@ from bimp.envs.suite.dense_highway import (
     least_gap,
 )
 from bimp.envs.suite.family import MIN_TRAFFIC_GAP
-from tests.envs.test_suite_families import BrakeAtTheBounds
+from tests.envs.test_suite_families import BrakeAtTheBounds, drawn_params
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -40,12 +40,7 @@ KINDS = ("idm", "aggressive", "defensive")
 
 def draws(difficulty: str, n: int = DRAWS) -> list[dict]:
     """The drawn parameters of ``n`` seeded resets of the registered env at ``difficulty``."""
-    base = gym.make(ID, config={"difficulty": difficulty}).unwrapped
-    out = []
-    for seed in range(n):
-        base.reset(seed=seed)
-        out.append(dict(base.drawn_params))
-    return out
+    return drawn_params(ID, {"difficulty": difficulty}, n)
 
 
 def test_the_hardest_braking_is_highway_envs_clip():

@@ -27,7 +27,7 @@ from bimp.envs.suite.erratic_traffic import (
     gap_is_safe,
     least_gap,
 )
-from tests.envs.test_suite_families import BrakeAtTheBounds
+from tests.envs.test_suite_families import BrakeAtTheBounds, drawn_params
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -39,12 +39,7 @@ ORACLE_KEYS = ("ev_speed", "leader_gap", "leader_speed")
 
 def draws(difficulty: str, n: int = DRAWS) -> list[dict]:
     """The drawn parameters of ``n`` seeded resets of the registered env at ``difficulty``."""
-    base = gym.make(ID, config={"difficulty": difficulty}).unwrapped
-    out = []
-    for seed in range(n):
-        base.reset(seed=seed)
-        out.append(dict(base.drawn_params))
-    return out
+    return drawn_params(ID, {"difficulty": difficulty}, n)
 
 
 @pytest.mark.parametrize("difficulty", list(DIFFICULTIES))

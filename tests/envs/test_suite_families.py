@@ -31,6 +31,17 @@ class BrakeAtTheBounds:
         return self.env.unwrapped.scene.to_normalized(np.array([self.a, 0.0])).astype(np.float32)
 
 
+def drawn_params(env_id: str, config: dict | None = None, n: int = 1000) -> list[dict]:
+    """The drawn parameters of ``reset(seed=k)``, k < ``n``, of ``gym.make(env_id, config=config)``: a family's own
+    draws, in its order, for its oracle tests."""
+    base = gym.make(env_id, config=config).unwrapped
+    out = []
+    for seed in range(n):
+        base.reset(seed=seed)
+        out.append(dict(base.drawn_params))
+    return out
+
+
 @pytest.mark.parametrize("env_id", IDS)
 def test_same_seed_same_observations_and_other_seeds_differ(env_id):
     runs = []

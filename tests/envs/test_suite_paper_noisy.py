@@ -28,6 +28,7 @@ from bimp.envs.suite.paper_noisy import (
     lag_gain,
     steer_to_hold,
 )
+from tests.envs.test_suite_families import drawn_params
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 OT, EB = "bimp/overtaking-noisy-v0", "bimp/emergency-brake-noisy-v0"
@@ -47,14 +48,8 @@ def real_draws(cls, difficulty: str, keys: tuple[str, ...], n: int = DRAWS) -> d
     """``keys`` of the registered env's ``drawn_params`` at ``difficulty`` over ``reset(seed=i)``, i < ``n``: the
     env's own draws, in its order (1000 resets take a few seconds); a key drawn once per OV (``ov_speed``) gives
     OV1's, the first drawn."""
-    env = gym.make(scenario_id(cls, difficulty)).unwrapped
-    out = {k: np.empty(n) for k in keys}
-    for i in range(n):
-        env.reset(seed=i)
-        for k in keys:
-            value = env.drawn_params[k]
-            out[k][i] = value[0] if isinstance(value, list) else value
-    return out
+    rows = drawn_params(scenario_id(cls, difficulty), n=n)
+    return {k: np.array([r[k][0] if isinstance(r[k], list) else r[k] for r in rows]) for k in keys}
 
 
 def pass_margin_with_lag(ev, gap1, v1, gap2, v2, lag, held=3.0, headway=0.6, dt=DT, duration=15.0):
