@@ -90,13 +90,15 @@ class Profile:
     ``target_speed`` [m/s] of the behaviour layer (from the env's config: the top of its reward speed range or of
     its discrete action's target speeds), ``duration`` [s] (highway-env's, for the registration's step limit), and
     ``drive_on``: whether the behaviour layer drives on where the route's next road leaves from another lane (exit-v0,
-    the exit missed: :class:`bimp.envs.highway.behaviour.DriveOnDriver`)."""
+    the exit missed: :class:`bimp.envs.highway.behaviour.DriveOnDriver`); ``overtake``: whether it overtakes through
+    the lane of oncoming traffic (the suite's two-way-overtake: :class:`bimp.envs.highway.behaviour.OvertakeDriver`)."""
 
     bounds: Bounds
     actuator_steer: tuple[float, float]
     target_speed: float
     duration: float
     drive_on: bool = added_field(False, neutral=False)
+    overtake: bool = added_field(False, neutral=False)
 
 
 def _curve_bounds(steer: float) -> Bounds:
@@ -131,8 +133,8 @@ SUPPORTED = tuple(PROFILES)  # highway-env's ids, what wrap(gym.make(ID)) takes
 
 # The suite's families in the same table, keyed by their ID (registered as bimp/ID): each family class carries its
 # numbers, so a new family adds no line here (bimp.envs.suite.family.Family).
-PROFILES.update({cls.ID: Profile(cls.BOUNDS, cls.ACTUATOR_STEER, cls.TARGET_SPEED, cls.DURATION)
-                 for cls in FAMILIES.values()})
+PROFILES.update({cls.ID: Profile(cls.BOUNDS, cls.ACTUATOR_STEER, cls.TARGET_SPEED, cls.DURATION,
+                                 overtake=cls.OVERTAKE) for cls in FAMILIES.values()})
 # The env class behind every key of PROFILES: highway-env's (fixed.HIGHWAY_CLASSES) and the families'.
 ENV_CLASSES: dict[str, type] = {**HIGHWAY_CLASSES, **{cls.ID: cls for cls in FAMILIES.values()}}
 
@@ -287,7 +289,7 @@ class HighwayAdapter(gym.Wrapper):
         base.OPTIONS = {k: (v,) for k, v in base.config.items() if k not in _VIEW_KEYS}
         base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]
-        self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on)
+        self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on, self.profile.overtake)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)
         self.progress = 0.0
         self._speeds: dict[int, float] = {}
@@ -371,8 +373,11 @@ class HighwayAdapter(gym.Wrapper):
         exit-v0's exit road reached (the exit taken), intersection-v0's ``has_arrived`` (crossed, on the exit road),
         merge-v0's end of the road (x > 370 m, where highway-env ends it) and, on roundabout-v0, the last road of
         the EV's route reached (the roundabout left); past exit's and roundabout's the EV would run off the end of
-        the network, so the adapter ends the episode there."""
+        the network, so the adapter ends the episode there. A suite family with a goal says it by its
+        ``goal_reached()`` (two-way-overtake: the slow vehicle passed)."""
         base = self.env.unwrapped
+        if hasattr(base, "goal_reached"):
+            return bool(base.goal_reached())
         if self.highway_id == "exit-v0":  # on the exit road (highway-env's _is_success also counts the lane beside it)
             return tuple(base.vehicle.lane_index[:2]) == ("2", "exit")
         if self.highway_id == "intersection-v0":

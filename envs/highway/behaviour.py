@@ -6,7 +6,8 @@ simulated, never in the road's vehicle list) and asked what highway-env's driver
 - route: the EV's route (its destination in exit, roundabout, u-turn and intersection; on the other roads the lane
   graph's own choice, ``RoadNetwork.next_lane``), followed by ``follow_road``;
 - lane: MOBIL (``change_lane_policy`` / ``mobil``, politeness and thresholds as highway-env's traffic has them) on
-  multi-lane roads, never into a lane that oncoming traffic drives on (:class:`ShadowDriver`); on exit-v0 the exit
+  multi-lane roads, never into a lane that oncoming traffic drives on (:class:`ShadowDriver`) but where the id's
+  profile lets it overtake there (the suite's two-way-overtake: :class:`OvertakeDriver`); on exit-v0 the exit
   is taken only from the lane it leaves from, else missed (:class:`DriveOnDriver`); an ending lane is
   left when highway-env's driver leaves it (its route moves to the next road's
   nearest lane at the end, and MOBIL's incentive comes from the lane's end as an obstacle only where highway-env
@@ -80,6 +81,119 @@ class ShadowDriver(IDMVehicle):
         return not carries_oncoming_traffic(self.road.network, lane_index) and super().mobil(lane_index)
 
 
+class OvertakeDriver(ShadowDriver):
+    """:class:`ShadowDriver` that overtakes a slower leader through the lane of oncoming traffic beside its own, as a
+    human driver on a two-way road does (the suite's ``two-way-overtake``):
+
+    - **pull out** when the leader in its lane drives at least :attr:`SLOWER` m/s below the target speed, within
+      :attr:`PASS_RANGE` m, and every oncoming vehicle ahead is at least :attr:`PASS_GAP` s away at the closing
+      speed: a fixed critical time gap, as gap-acceptance models of human passing take one. It does not check that
+      the pass fits that gap, so some gaps it accepts are too short: the benchmark's planners have to judge;
+    - **fall back** (abort) when the pass no longer fits: the time to meet the nearest oncoming vehicle is less than
+      :func:`pass_time` to get :attr:`RETURN_GAP` m ahead of the leader (accelerating at IDM's comfortable
+      :attr:`COMFORT_ACC_MAX` up to the target speed) plus :attr:`ABORT_MARGIN` s; IDM then drives behind the
+      leader as if it were in the same lane;
+    - **return** to its own lane as soon as MOBIL's safety criterion allows (the new follower braking at most
+      ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` and the EV itself too), once past the leader or when falling back.
+
+    In the oncoming lane IDM ignores the oncoming vehicles (highway-env's IDM would brake head-on for them): the
+    abort rule is what answers them."""
+
+    PASS_GAP = 8.0  # s
+    SLOWER = 2.0  # m/s
+    PASS_RANGE = 60.0  # m, centre to centre
+    RETURN_GAP = 15.0  # m, centre to centre: the leader's IDM then brakes well under 2 m/s^2 for the EV
+    ABORT_MARGIN = 1.0  # s
+
+    def mobil(self, lane_index) -> bool:
+        network = self.road.network
+        if carries_oncoming_traffic(network, lane_index):
+            return bool(self._slow_leader(self.lane_index) is not None and self._time_to_meet() >= self.PASS_GAP)
+        if carries_oncoming_traffic(network, self.lane_index):
+            return self._may_return(lane_index)
+        return super().mobil(lane_index)
+
+    def acceleration(self, ego_vehicle, front_vehicle=None, rear_vehicle=None) -> float:
+        if ego_vehicle is self and front_vehicle is not None and _oncoming(self, front_vehicle):
+            front_vehicle = self._slow_leader(self._home_lane()) if self._must_fall_back() else None
+        return super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
+
+    def _home_lane(self):
+        """The lane beside the current one that oncoming traffic does not drive on (the current lane if it is one)."""
+        network = self.road.network
+        if not carries_oncoming_traffic(network, self.lane_index):
+            return self.lane_index
+        return next((lane for lane in network.side_lanes(self.lane_index)
+                     if not carries_oncoming_traffic(network, lane)), self.lane_index)
+
+    def _slow_leader(self, lane_index):
+        """The vehicle ahead in ``lane_index`` if it drives :attr:`SLOWER` below the target speed within
+        :attr:`PASS_RANGE`, else None."""
+        leader, _ = self.road.neighbour_vehicles(self, lane_index)
+        if leader is None or _oncoming(self, leader):
+            return None
+        close = self.road.network.get_lane(lane_index).local_coordinates(leader.position)[0] - \
+            self.road.network.get_lane(lane_index).local_coordinates(self.position)[0] < self.PASS_RANGE
+        return leader if close and leader.speed < self._target() - self.SLOWER else None
+
+    def _target(self) -> float:
+        limit = getattr(self.lane, "speed_limit", None)
+        return float(self.target_speed if limit is None else min(self.target_speed, limit))
+
+    def _time_to_meet(self) -> float:
+        """Seconds until the nearest oncoming vehicle ahead meets the EV at today's speeds, footprints touching;
+        inf where none is ahead."""
+        lane = self.lane
+        s = lane.local_coordinates(self.position)[0]
+        times = [(lane.local_coordinates(v.position)[0] - s - (self.LENGTH + v.LENGTH) / 2) /
+                 max(self.speed + v.speed, 1e-6)
+                 for v in self.road.vehicles if v is not self and _oncoming(self, v)
+                 and lane.local_coordinates(v.position)[0] > s]
+        return max(min(times), 0.0) if times else np.inf
+
+    def _must_fall_back(self) -> bool:
+        """In the oncoming lane with a pass that no longer fits before the nearest oncoming vehicle (class doc)."""
+        if not carries_oncoming_traffic(self.road.network, self.lane_index):
+            return False
+        home = self.road.network.get_lane(self._home_lane())
+        leader = self._slow_leader(self._home_lane())
+        if leader is None:
+            return False
+        ahead = home.local_coordinates(leader.position)[0] - home.local_coordinates(self.position)[0]
+        needed = pass_time(ahead + self.RETURN_GAP, self.speed, leader.speed, self._target(), self.COMFORT_ACC_MAX)
+        return self._time_to_meet() < needed + self.ABORT_MARGIN
+
+    def _may_return(self, lane_index) -> bool:
+        """Back to its own lane ``lane_index``: past the leader, or falling back; either where MOBIL's safety
+        criterion holds for the new follower and for the EV."""
+        if self._slow_leader(lane_index) is not None and not self._must_fall_back():
+            return False  # the pass goes on
+        preceding, following = self.road.neighbour_vehicles(self, lane_index)
+        limit = -self.LANE_CHANGE_MAX_BRAKING_IMPOSED
+        return bool((following is None or self.acceleration(following, self) >= limit) and
+                    (preceding is None or self.acceleration(self, preceding) >= limit))
+
+
+def pass_time(distance: float, speed: float, leader_speed: float, top_speed: float, accel: float) -> float:
+    """Seconds [s] for a vehicle at ``speed`` [m/s] accelerating at ``accel`` [m/s^2] up to ``top_speed`` to gain
+    ``distance`` [m] on a leader holding ``leader_speed``; inf where it never does."""
+    if distance <= 0.0:
+        return 0.0
+    w0 = speed - leader_speed  # the relative speed now, and at the top speed
+    t1 = max(top_speed - speed, 0.0) / accel
+    gained = w0 * t1 + accel * t1 ** 2 / 2
+    if gained >= distance:  # within the acceleration: w0 t + a t^2 / 2 = distance
+        return float((-w0 + np.sqrt(w0 ** 2 + 2 * accel * distance)) / accel)
+    w1 = top_speed - leader_speed
+    return float(t1 + (distance - gained) / w1) if w1 > 0.0 else np.inf
+
+
+def _oncoming(vehicle, other) -> bool:
+    """Whether ``other`` drives towards ``vehicle``: on the reverse road of ``vehicle``'s lane, heading against it."""
+    a, b = vehicle.lane_index[:2]
+    return tuple(other.lane_index[:2]) == (b, a) and np.cos(other.heading - vehicle.heading) < 0.0
+
+
 class DriveOnDriver(ShadowDriver):
     """:class:`ShadowDriver` that drives on where its route's next road leaves from another lane than its own (the
     exit missed) instead of following highway-env's ``next_lane``, which then jumps to that road's nearest lane: on
@@ -118,12 +232,12 @@ def carries_oncoming_traffic(network, lane_index) -> bool:
 class Behaviour:
     """highway-env's IDM + MOBIL driver shadowing the EV of ``env`` (a highway-env env). ``target_speed`` [m/s]:
     the speed it aims for on a free road; ``drive_on``: drive on where the route's next road leaves from another
-    lane (:class:`DriveOnDriver`)."""
+    lane (:class:`DriveOnDriver`); ``overtake``: overtake through the oncoming lane (:class:`OvertakeDriver`)."""
 
-    def __init__(self, env, target_speed: float, drive_on: bool = False):
+    def __init__(self, env, target_speed: float, drive_on: bool = False, overtake: bool = False):
         self.env, self.target_speed = env, float(target_speed)
         ev = env.vehicle
-        driver = DriveOnDriver if drive_on else ShadowDriver
+        driver = DriveOnDriver if drive_on else OvertakeDriver if overtake else ShadowDriver
         self.shadow = driver(env.road, np.array(ev.position, float), heading=ev.heading, speed=ev.speed,
                                  target_lane_index=ev.lane_index, target_speed=self.target_speed,
                                  route=copy.deepcopy(getattr(ev, "route", None)) or None, timer=0.0)

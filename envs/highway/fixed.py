@@ -194,11 +194,14 @@ class ExitDestination:
 
 def adapted_class(cls: type) -> type:
     """The adapted subclass of highway-env's env class ``cls``: a fixed one above for the four that fail under
-    continuous actions, else ``Bimp<Name>`` = (:class:`AdaptedEnv`, ``cls``), made once and cached."""
+    continuous actions, else ``Bimp<Name>`` = (:class:`AdaptedEnv`, ``cls``), made once and cached. A subclass of one
+    of the four (a suite family on two-way-v0's road) takes its fix: (``Fixed...``, ``cls``)."""
     if cls in _FIXED:
         return _FIXED[cls]
     if cls not in _ADAPTED:
-        bases = (ExitDestination, AdaptedEnv, cls) if issubclass(cls, ExitEnv) else (AdaptedEnv, cls)
+        fixed = next((_FIXED[base] for base in cls.__mro__ if base in _FIXED), None)
+        bases = ((fixed, cls) if fixed is not None else (ExitDestination, AdaptedEnv, cls)
+                 if issubclass(cls, ExitEnv) else (AdaptedEnv, cls))
         _ADAPTED[cls] = type(f"Bimp{cls.__name__}", bases, {"__module__": __name__})
     return _ADAPTED[cls]
 

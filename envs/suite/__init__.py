@@ -13,6 +13,8 @@ One module per family (its env class, a :class:`bimp.envs.suite.family.Family`),
   into;
 - :mod:`.dense_highway`: ``dense-highway``, dense traffic with aggressive drivers, slower than the EV's target;
 - :mod:`.erratic_traffic`: ``erratic-traffic``, traffic whose braking and lane changes carry heavy-tailed noise;
+- :mod:`.two_way_overtake`: ``two-way-overtake``, pass a slow vehicle on a two-way road through gaps in the
+  oncoming traffic, some too short;
 - :mod:`.family`: what every family shares (difficulty, ranges, draws);
 - the oracle that shows every instance leaves a safe plan: :mod:`bimp.envs.oracle`.
 """
@@ -27,6 +29,7 @@ from bimp.envs.suite.erratic_traffic import ErraticTrafficEnv
 from bimp.envs.suite.family import Family
 from bimp.envs.suite.lane_drop import LaneDropEnv
 from bimp.envs.suite.stalled_vehicle import StalledVehicleEnv
+from bimp.envs.suite.two_way_overtake import TwoWayOvertakeEnv
 
 # The suite's table: family name -> env class. A new family is its module and one entry here.
 FAMILIES: MappingProxyType[str, type[Family]] = MappingProxyType({
@@ -36,8 +39,9 @@ FAMILIES: MappingProxyType[str, type[Family]] = MappingProxyType({
         LaneDropEnv,
         ErraticTrafficEnv,
         DenseHighwayEnv,
+        TwoWayOvertakeEnv,
     )
 })
 
 __all__ = ["FAMILIES", "CutInEnv", "DenseHighwayEnv", "ErraticTrafficEnv", "Family", "LaneDropEnv",
-           "StalledVehicleEnv"]
+           "StalledVehicleEnv", "TwoWayOvertakeEnv"]

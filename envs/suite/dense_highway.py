@@ -66,7 +66,7 @@ from highway_env.envs.highway_env import HighwayEnv
 from highway_env.vehicle.behavior import IDMVehicle
 from numpy.typing import ArrayLike
 
-from bimp.configs import ConfigError, check_fields
+from bimp.configs import check_fields
 from bimp.envs.oracle import brake_at_the_bounds
 from bimp.envs.scene import Bounds
 from bimp.envs.suite.family import (
@@ -74,6 +74,7 @@ from bimp.envs.suite.family import (
     MIN_TRAFFIC_GAP,
     Envelope,
     HighwayFamily,
+    check_leader_gap,
     check_ranges,
     check_shares,
     traffic_kind,
@@ -127,15 +128,7 @@ class DenseHighwayRanges:
         check_fields(self)
         check_ranges(self, ENVELOPE)
         check_shares(self)
-        gap = self.least_gap()
-        if gap < BOUNDS.d_min:
-            need = self.leader_gap[0] + BOUNDS.d_min - gap  # the least gap grows 1:1 with the leader's gap
-            raise ConfigError("leader_gap", f"a range whose low is at least {need:.1f} m with ev_speed up to "
-                              f"{self.ev_speed[1]:g} m/s and traffic_speed from {self.traffic_speed[0]:g} m/s",
-                              self.leader_gap,
-                              f"outside the oracle's cover: braking at the planning bounds from the first step "
-                              f"behind a leader braking at {LEADER_DECEL:g} m/s^2 comes within {gap:.2f} m of it, "
-                              f"d_min is {BOUNDS.d_min:g} m")
+        check_leader_gap(self, self.least_gap(), BOUNDS.d_min, f"braking at {LEADER_DECEL:g} m/s^2")
 
     def least_gap(self) -> float:
         """The oracle's least footprint gap [m] at the ranges' worst corner (the fastest EV, the nearest and slowest

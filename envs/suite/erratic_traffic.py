@@ -76,10 +76,10 @@ from highway_env.envs.highway_env import HighwayEnv
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from bimp.configs import ConfigError, check_fields
+from bimp.configs import check_fields
 from bimp.envs.oracle import brake_at_the_bounds
 from bimp.envs.scene import Bounds
-from bimp.envs.suite.family import EV_X, MIN_TRAFFIC_GAP, Envelope, HighwayFamily, check_ranges
+from bimp.envs.suite.family import EV_X, MIN_TRAFFIC_GAP, Envelope, HighwayFamily, check_leader_gap, check_ranges
 
 TRAFFIC_BEHIND, TRAFFIC_AHEAD = 100.0, 300.0  # m: traffic from this far behind the EV to this far ahead of it
 BRAKE_CAP = 8.0  # m/s^2: the hardest braking of any traffic vehicle, a car's tyres on a dry road (about 0.8 g)
@@ -240,16 +240,7 @@ class ErraticTrafficRanges:
     def __post_init__(self) -> None:
         check_fields(self)
         check_ranges(self, ENVELOPE)
-        gap = self.least_gap()
-        if gap < BOUNDS.d_min:
-            # The least gap grows 1:1 with the leader's distance: the low that would do.
-            need = self.leader_gap[0] + BOUNDS.d_min - gap
-            raise ConfigError("leader_gap", f"a range whose low is at least {need:.1f} m with ev_speed up to "
-                              f"{self.ev_speed[1]:g} m/s and traffic_speed from {self.traffic_speed[0]:g} m/s",
-                              self.leader_gap,
-                              f"outside the oracle's cover: braking at the planning bounds from the first step "
-                              f"comes within {gap:.2f} m of a leader braking at {BRAKE_CAP:g} m/s^2 to a stop at "
-                              f"once, d_min is {BOUNDS.d_min:g} m")
+        check_leader_gap(self, self.least_gap(), BOUNDS.d_min, f"braking at {BRAKE_CAP:g} m/s^2 to a stop at once")
 
     def least_gap(self) -> float:
         """The oracle's least footprint gap [m] at the ranges' worst corner (the fastest EV, the nearest and slowest

@@ -18,8 +18,8 @@ A family is a highway-env env class (a subclass of one of highway-env's, as exit
 - the draws from the env's own ``np_random`` (seeded by ``reset(seed=...)``), recorded in ``drawn_params`` as the
   paper's envs record theirs (the evaluation's records carry them);
 - what the adapter needs per family (:mod:`bimp.envs.highway.adapter`'s ``Profile``): ``BOUNDS``,
-  ``ACTUATOR_STEER``, ``TARGET_SPEED``, ``DURATION``, so that a family is one module plus one entry in the suite's
-  table (:data:`bimp.envs.suite.FAMILIES`).
+  ``ACTUATOR_STEER``, ``TARGET_SPEED``, ``DURATION``, ``OVERTAKE``, so that a family is one module plus one entry
+  in the suite's table (:data:`bimp.envs.suite.FAMILIES`).
 """
 
 from __future__ import annotations
@@ -71,6 +71,19 @@ def check_shares(ranges: Any) -> None:
                           "probabilities of one vehicle's kind")
 
 
+def check_leader_gap(ranges: Any, gap: float, d_min: float, leader: str) -> None:
+    """The ``leader_gap`` range of ``ranges`` (with ``ev_speed`` and ``traffic_speed``) refused where ``gap`` [m],
+    the oracle's least footprint gap at the worst corner behind a leader braking as ``leader`` says, is below
+    ``d_min`` [m]: :class:`bimp.configs.ConfigError` naming ``leader_gap`` and the low that would do (the least gap
+    grows 1:1 with the leader's distance)."""
+    if gap < d_min:
+        need = ranges.leader_gap[0] + d_min - gap
+        raise ConfigError("leader_gap", f"a range whose low is at least {need:.1f} m with ev_speed up to "
+                          f"{ranges.ev_speed[1]:g} m/s and traffic_speed from {ranges.traffic_speed[0]:g} m/s",
+                          ranges.leader_gap, f"outside the oracle's cover: braking at the planning bounds from the "
+                          f"first step behind a leader {leader} comes within {gap:.2f} m of it, d_min is {d_min:g} m")
+
+
 def with_difficulty(env: Any, config: Mapping | None, difficulty: str | None) -> Mapping | None:
     """The constructor's ``config`` of a family env made at one ``difficulty`` (the ``-easy``/``-hard`` ids:
     ``bimp/cut-in-hard-v0``): that difficulty kept on ``env`` as ``fixed_difficulty`` and put under ``config``'s own
@@ -118,6 +131,7 @@ class Family:
     DIFFICULTIES: ClassVar[Mapping[str, Any]] = {}  # difficulty -> RANGES instance
     DEFAULT_DIFFICULTY: ClassVar[str] = "medium"
     REMOVED_KEYS: ClassVar[frozenset[str]] = frozenset()  # highway-env keys the family's own draws replace
+    OVERTAKE: ClassVar[bool] = False  # the behaviour layer overtakes through the oncoming lane (two-way-overtake)
 
     drawn_params: dict[str, Any]
     fixed_difficulty: str | None = None  # the difficulty the id names (bimp/cut-in-hard-v0), else None
@@ -229,6 +243,15 @@ class Family:
         self.road.vehicles.append(vehicle)
         return vehicle
 
+    def _add_ev(self, lane, speed: float):
+        """The EV (the action type's vehicle, drawn :data:`EV_COLOUR`) at :data:`EV_X` on ``lane`` at ``speed``
+        [m/s], as the controlled vehicle and on the road; returned."""
+        ev = self.action_type.vehicle_class(self.road, lane.position(EV_X, 0.0), lane.heading_at(EV_X), speed)
+        ev.color = EV_COLOUR
+        self.controlled_vehicles = [ev]
+        self.road.vehicles.append(ev)
+        return ev
+
     def _draw(self, key: str) -> float:
         """This episode's value of the range ``key`` [its unit], uniform on the config's ``(lo, hi)`` from the env's
         ``np_random``; recorded in ``drawn_params``."""
@@ -241,8 +264,7 @@ class Family:
 class HighwayFamily(Family):
     """A family on highway-env's ``HighwayEnv`` road (bases ``(HighwayFamily, HighwayEnv)``) with its own
     population: highway-env's population keys refused (:attr:`REMOVED_KEYS`), ``lanes_count`` 3 by default and an
-    int in [2, 5] (``LANES_WHY``: what the family needs the lane beside the EV's for), and the EV placed by
-    :meth:`_add_ev`."""
+    int in [2, 5] (``LANES_WHY``: what the family needs the lane beside the EV's for)."""
 
     REMOVED_KEYS = frozenset({"vehicles_count", "vehicles_density", "initial_lane_id", "ego_spacing",
                               "other_vehicles_type", "controlled_vehicles"})
@@ -259,12 +281,3 @@ class HighwayFamily(Family):
         if lanes is not None and (isinstance(lanes, bool) or not isinstance(lanes, int) or not 2 <= lanes <= 5):
             raise ConfigError("lanes_count", "an int in [2, 5]", lanes, self.LANES_WHY)
         super().configure(config)
-
-    def _add_ev(self, lane, speed: float):
-        """The EV (the action type's vehicle, drawn :data:`EV_COLOUR`) at :data:`EV_X` on ``lane`` at ``speed``
-        [m/s], as the controlled vehicle and on the road; returned."""
-        ev = self.action_type.vehicle_class(self.road, lane.position(EV_X, 0.0), lane.heading_at(EV_X), speed)
-        ev.color = EV_COLOUR
-        self.controlled_vehicles = [ev]
-        self.road.vehicles.append(ev)
-        return ev

@@ -24,7 +24,10 @@ class BrakeAtTheBounds:
     """The oracle's plan as a policy: straight on, the acceleration ramped to a_min by the rate bound from step 1."""
 
     def __init__(self, env):
-        self.env, self.a = env, 0.0
+        self.env, self.a, self.step_info = env, 0.0, {}
+
+    def reset(self, seed: int | None = None) -> None:
+        self.a = 0.0
 
     def act(self, obs):
         self.a = max(self.a - B.accel_rate, B.accel[0])
