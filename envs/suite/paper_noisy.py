@@ -50,8 +50,8 @@ The oracle: every instance leaves a safe plan inside the planning bounds under t
 scenarios' (``tests/envs/test_feasibility.py``): braking at the planning bounds (the command ramps to ``a_min`` by the
 rate bound) in the EV's lane, on the emergency brake from the step after the OVs' deceleration shows, on overtaking
 from the first step behind OV1 (which never brakes). Under the mismatch the achieved deceleration follows the command
-late and short: :func:`brake_with_lag` simulates it exactly as :class:`MismatchedEgoVehicle` steps (the shared
-:func:`bimp.envs.oracle.brake_at_the_bounds` at ``lag`` 0 and ``grip`` 1). The worst case of the ranges is among
+late and short: the shared oracle (:func:`bimp.envs.oracle.braking`, with ``lag`` and ``grip``) simulates it exactly
+as :class:`MismatchedEgoVehicle` steps. The worst case of the ranges is among
 their corners (fastest EV, nearest and slowest OV1, braking hardest and latest, longest lag, least grip), which
 every config is checked on: one whose worst corner leaves less than ``d_min`` is refused naming ``ov1_gap`` (where
 even the model's EV fails), ``grip`` (where the full grip would pass) or ``accel_lag``; on overtaking also one whose
@@ -75,7 +75,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from bimp.configs import ConfigError
-from bimp.envs.oracle import NEVER
+from bimp.envs.oracle import NEVER, braking, lag_gain
 from bimp.envs.scenarios import (
     LANE_WIDTH,
     MAX_GAP,
@@ -86,7 +86,7 @@ from bimp.envs.scenarios import (
     OvertakingEnv,
     Param,
 )
-from bimp.envs.scene import DT, OV_FIELDS, VEHICLE_LENGTH, Bounds, join_obs
+from bimp.envs.scene import OV_FIELDS, VEHICLE_LENGTH, Bounds, join_obs
 from bimp.envs.suite.family import check_fixed_difficulty, with_difficulty
 
 BOUNDS = Bounds()
@@ -139,46 +139,6 @@ def _params(base: Mapping[str, Param], presets: Mapping[str, Mapping[str, tuple[
     """A paper env's ``PARAMS`` with ``changed`` and the family's keys, their defaults the ``medium`` presets."""
     return {**base, **changed, **{k: dataclasses.replace(p, default=presets["medium"][k])
                                   for k, p in NOISE_PARAMS.items()}}
-
-
-def lag_gain(lag: ArrayLike, dt: float = DT) -> np.ndarray:
-    """The share ``1 - exp(-dt / lag)`` of the gap between command and achieved acceleration closed in one step of
-    ``dt`` [s] by a first-order lag of time constant ``lag`` [s] (1 for ``lag`` 0: no lag). Arrays broadcast."""
-    lag = np.asarray(lag, float)
-    with np.errstate(divide="ignore"):
-        return 1.0 - np.exp(-dt / lag)
-
-
-def brake_with_lag(ev, gap, v_ov, onset, decel, lag, grip=1.0, dt: float = DT, length: float = VEHICLE_LENGTH,
-                   steps: int = 250, react: bool = True, bounds: Bounds | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`bimp.envs.oracle.brake_at_the_bounds` for an EV whose achieved acceleration follows the command through
-    a first-order lag of ``lag`` [s], scaled by ``grip`` (:class:`MismatchedEgoVehicle`): the least footprint gap [m]
-    to the OV ahead,
-    and the distance [m] the EV travels (to its stop, where ``steps`` cover it). The command ramps to
-    ``bounds.accel[0]`` by ``bounds.accel_rate`` per step from the step after the OV's deceleration shows
-    (``react``) or from the first (``react=False``); the achieved acceleration starts at 0. The same arguments and
-    units as ``brake_at_the_bounds`` otherwise, to which it is equal at ``lag`` 0 and ``grip`` 1 (``steps``: 25 s
-    cover the stop from 40 m/s at half the grip). Arrays broadcast."""
-    b = Bounds() if bounds is None else bounds
-    ev, gap, v_ov, onset, decel, lag, grip = np.broadcast_arrays(
-        *(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel, lag, grip)))
-    alpha = lag_gain(lag, dt)
-    s_e, v_e, a_cmd, a_e = np.zeros(ev.shape), ev.copy(), np.zeros(ev.shape), np.zeros(ev.shape)
-    s_o, v_o = gap.copy(), v_ov.copy()
-    seen = np.zeros(ev.shape, bool) if react else np.ones(ev.shape, bool)
-    least = np.full(ev.shape, np.inf)
-    clock = 0.0
-    for _ in range(steps):
-        braking = (clock >= onset) & (v_o > 0)
-        a_o = np.where(braking, -decel, 0.0)
-        a_cmd = np.where(seen, np.maximum(a_cmd - b.accel_rate, b.accel[0]), a_cmd)
-        a_e = a_e + alpha * (grip * a_cmd - a_e)
-        s_e, v_e = s_e + v_e * dt, np.maximum(v_e + a_e * dt, 0.0)
-        s_o, v_o = s_o + v_o * dt, np.maximum(v_o + a_o * dt, 0.0)
-        clock += dt
-        seen |= braking
-        least = np.minimum(least, s_o - s_e - length)
-    return least, s_e
 
 
 def steer_to_hold(radius: ArrayLike, length: ArrayLike) -> np.ndarray:
@@ -309,24 +269,23 @@ def _corners(config: dict, keys: tuple[str, ...]) -> list[dict]:
 
 
 def _check_braking(config: dict, scenario_keys: tuple[str, ...], what: str, **fixed) -> np.ndarray:
-    """The oracle's braking (:func:`brake_with_lag`, its first arguments ``scenario_keys`` of ``config``, ``fixed``
-    the rest) on every corner of the ranges of ``scenario_keys``, ``accel_lag`` and ``grip``: ``ConfigError`` when
-    the worst leaves less than ``d_min``, naming the scenario's gap where even the model's EV (no lag, full grip)
-    fails there, else ``grip`` where the full grip would pass, else ``accel_lag``. Returns the distances travelled
-    [m] per corner."""
+    """The oracle's braking (:func:`bimp.envs.oracle.braking`, its first arguments ``scenario_keys`` of ``config``,
+    ``fixed`` the rest) on every corner of the ranges of ``scenario_keys``, ``accel_lag`` and ``grip``:
+    ``ConfigError`` when the worst leaves less than ``d_min``, naming the scenario's gap where even the model's EV
+    (no lag, full grip) fails there, else ``grip`` where the full grip would pass, else ``accel_lag``. Returns the
+    distances travelled [m] per corner."""
     keys = (*scenario_keys, "accel_lag", "grip")
     rows = _corners(config, keys)
     column = {k: np.array([c[k] for c in rows]) for k in keys}
-    gaps, travel = brake_with_lag(*(column[k] for k in scenario_keys), lag=column["accel_lag"], grip=column["grip"],
-                                  **fixed)
+    gaps, travel = braking(*(column[k] for k in scenario_keys), lag=column["accel_lag"], grip=column["grip"],
+                           **fixed)
     i = int(np.argmin(gaps))
     if gaps[i] >= BOUNDS.d_min:
         return travel
     worst = rows[i]
     shown = ", ".join(f"{k}={worst[k]:g}" for k in keys)
-    model = float(brake_with_lag(*(worst[k] for k in scenario_keys), lag=0.0, grip=1.0, **fixed)[0])
-    full_grip = float(brake_with_lag(*(worst[k] for k in scenario_keys), lag=worst["accel_lag"], grip=1.0,
-                                     **fixed)[0])
+    model = float(braking(*(worst[k] for k in scenario_keys), lag=0.0, grip=1.0, **fixed)[0])
+    full_grip = float(braking(*(worst[k] for k in scenario_keys), lag=worst["accel_lag"], grip=1.0, **fixed)[0])
     key = "ov1_gap" if model < BOUNDS.d_min else "grip" if full_grip >= BOUNDS.d_min else "accel_lag"
     raise ConfigError(key, "a range the oracle covers" + (" even for the model's EV (no lag, full grip)"
                                                           if key == "ov1_gap" else ""), config[key],
@@ -390,4 +349,4 @@ FAMILY: tuple[type[PaperNoisy], ...] = (NoisyOvertakingEnv, NoisyEmergencyBrakeE
 
 __all__ = ["DIFFICULTIES", "EMERGENCY_BRAKE_DIFFICULTIES", "FAMILY", "NOISE_PARAMS", "OVERTAKING_DIFFICULTIES",
            "MismatchedEgoVehicle", "NoisyEmergencyBrakeEnv", "NoisyObservation", "NoisyOvertakingEnv", "PaperNoisy",
-           "brake_with_lag", "lag_gain", "steer_to_hold"]
+           "lag_gain", "steer_to_hold"]

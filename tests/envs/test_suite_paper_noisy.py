@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 import bimp
 from bimp import make_policy
-from bimp.envs.oracle import NEVER, brake_at_the_bounds
+from bimp.envs.oracle import NEVER, brake_at_the_bounds, braking
 from bimp.envs.scenarios import EgoVehicle, OvertakingEnv
 from bimp.envs.scene import DT, VEHICLE_LENGTH, Bounds
 from bimp.envs.suite.paper_noisy import (
@@ -24,7 +24,6 @@ from bimp.envs.suite.paper_noisy import (
     MismatchedEgoVehicle,
     NoisyEmergencyBrakeEnv,
     NoisyOvertakingEnv,
-    brake_with_lag,
     lag_gain,
     steer_to_hold,
 )
@@ -74,15 +73,22 @@ def corners(env, keys: tuple[str, ...]) -> list[dict]:
 
 
 # --- the oracle -------------------------------------------------------------------------------------------------
-def test_brake_with_lag_is_the_shared_oracle_without_a_lag():
+def lagged(ev, gap, v_ov, onset, decel, lag, grip=1.0, **kwargs):
+    """:func:`bimp.envs.oracle.braking` with the lag and the grip in the order of the draws (``EB_KEYS``)."""
+    return braking(ev, gap, v_ov, onset, decel, lag=lag, grip=grip, **kwargs)
+
+
+def test_the_lag_and_the_grip_only_shorten_the_oracles_braking():
+    """The shared oracle's lag and grip: a longer lag or less grip leaves less gap; at lag 0 and grip 1 it is the
+    braking of the paper's envs, whose achieved acceleration is the command."""
     rng = np.random.default_rng(0)
     args = (rng.uniform(20, 30, 50), rng.uniform(40, 80, 50), rng.uniform(15, 25, 50), rng.uniform(0.5, 1.5, 50),
             rng.uniform(4, 8, 50))
-    np.testing.assert_allclose(brake_with_lag(*args, 0.0)[0], brake_at_the_bounds(*args), atol=1e-9)
-    np.testing.assert_allclose(brake_with_lag(25.0, 30.0, 15.0, NEVER, 0.0, 0.0, react=False)[0],
-                               brake_at_the_bounds(25.0, 30.0, 15.0, NEVER, 0.0, react=False), atol=1e-9)
-    assert brake_with_lag(27.0, 60.0, 20.0, 1.2, 7.0, 0.4)[0] < brake_with_lag(27.0, 60.0, 20.0, 1.2, 7.0, 0.2)[0]
-    assert brake_with_lag(27.0, 80.0, 20.0, 1.2, 7.0, 0.4, 0.8)[0] < brake_with_lag(27.0, 80.0, 20.0, 1.2, 7.0, 0.4)[0]
+    np.testing.assert_array_equal(braking(*args, lag=0.0, grip=1.0)[0], brake_at_the_bounds(*args))
+    for less, more in [(braking(*args, lag=0.4), braking(*args, lag=0.2)),
+                       (braking(*args, lag=0.4, grip=0.8), braking(*args, lag=0.4))]:
+        assert np.all(less[0] <= more[0]) and np.mean(less[0] < more[0]) > 0.9  # equal where the least is at once
+        assert np.all(less[1] >= more[1])  # and a longer way to the stop
 
 
 @pytest.mark.parametrize("difficulty", DIFFICULTIES)
@@ -90,11 +96,11 @@ def test_emergency_brake_stops_clear_under_the_mismatch_on_every_draw_and_corner
     """Braking at the bounds once OV1's deceleration shows, through the EV's lag and grip, keeps at least d_min to
     OV1: on 1000 draws of each difficulty and every corner of its ranges."""
     d = real_draws(NoisyEmergencyBrakeEnv, difficulty, EB_KEYS)
-    gaps, _ = brake_with_lag(*(d[k] for k in EB_KEYS))
+    gaps, _ = lagged(*(d[k] for k in EB_KEYS))
     assert gaps.min() >= B.d_min, f"{int(np.sum(gaps < B.d_min))} draws infeasible"
     env = gym.make(scenario_id(NoisyEmergencyBrakeEnv, difficulty)).unwrapped
     rows = corners(env, EB_KEYS)
-    worst = brake_with_lag(*(np.array([c[k] for c in rows]) for k in EB_KEYS))[0]
+    worst = lagged(*(np.array([c[k] for c in rows]) for k in EB_KEYS))[0]
     assert worst.min() >= B.d_min
     for key in ("accel_lag", "grip"):
         lo, hi = env.config[key]
@@ -110,7 +116,7 @@ def test_overtaking_following_ov1_stays_safe_on_the_straight_under_the_mismatch(
     keys = (*OT_KEYS, "ov2_gap", "ov2_speed")
     d = real_draws(NoisyOvertakingEnv, difficulty, keys)
     for sample in (d, {k: np.array([c[k] for c in corners(env, keys)]) for k in keys}):
-        gaps, travel = brake_with_lag(sample["ev_speed"], sample["ov1_gap"], sample["ov1_speed"], NEVER, 0.0,
+        gaps, travel = lagged(sample["ev_speed"], sample["ov1_gap"], sample["ov1_speed"], NEVER, 0.0,
                                       sample["accel_lag"], sample["grip"], react=False)
         assert gaps.min() >= B.d_min
         assert travel.max() + VEHICLE_LENGTH / 2 <= STRAIGHT_IN
@@ -131,10 +137,10 @@ def test_real_resets_draw_inside_the_ranges_and_keep_the_oracle(cls):
         for key, (lo, hi) in cls.DIFFICULTIES["hard"].items():
             assert lo <= p[key] <= hi, (key, p)
         if cls is NoisyEmergencyBrakeEnv:
-            gap = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov_speed"][0], p["brake_onset"], p["brake_decel"],
+            gap = lagged(p["ev_speed"], p["ov1_gap"], p["ov_speed"][0], p["brake_onset"], p["brake_decel"],
                                  p["accel_lag"], p["grip"])[0]
         else:
-            gap = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"], p["grip"],
+            gap = lagged(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"], p["grip"],
                                  react=False)[0]
         assert gap >= B.d_min
 
@@ -168,12 +174,12 @@ def test_the_oracle_is_the_env(seed):
     """Driven by the plan on hard instances, the env's least gap to OV1 is the oracle's under the drawn lag and grip
     (the EV steps as :func:`brake_with_lag` simulates it), with no collision and on the road."""
     least, p, info = drive("bimp/emergency-brake-noisy-hard-v0", seed, react=True, config={"ov2_gap": 300.0})
-    expected = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov_speed"][0], p["brake_onset"], p["brake_decel"],
+    expected = lagged(p["ev_speed"], p["ov1_gap"], p["ov_speed"][0], p["brake_onset"], p["brake_decel"],
                               p["accel_lag"], p["grip"])[0]
     assert least == pytest.approx(float(expected), abs=1e-5)
     assert not info["collision"] and not info["offroad"]
     least, p, info = drive("bimp/overtaking-noisy-hard-v0", seed, react=False)
-    expected = brake_with_lag(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"], p["grip"],
+    expected = lagged(p["ev_speed"], p["ov1_gap"], p["ov1_speed"], NEVER, 0.0, p["accel_lag"], p["grip"],
                               react=False)[0]
     assert least == pytest.approx(float(expected), abs=1e-5)
     assert not info["collision"] and not info["offroad"]
