@@ -14,6 +14,7 @@ import bimp  # registers bimp/<family>-v0
 from bimp import make_policy
 from bimp.envs.scene import Bounds
 from bimp.envs.suite import FAMILIES
+from bimp.envs.suite.family import HighwayFamily
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 IDS = [f"bimp/{cls.ID}" for cls in FAMILIES.values()]
@@ -103,3 +104,25 @@ def test_every_difficulty_is_a_scenario_of_its_own(name):
     with pytest.raises(ValueError, match="difficulty must be 'hard'"):  # nor at a reset: never another's episodes
         env.reset(seed=0, options={"config": {"difficulty": "easy"}})
     assert env.unwrapped.config["difficulty"] == "hard"
+
+
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_what_every_family_refuses_naming_the_key(name):
+    """An unknown difficulty (at gym.make and at a reset), an unknown key, a highway-env key the family's draws
+    replace, another duration, and on highway-env's straight road fewer than 2 lanes: ValueError naming it. A preset
+    is a valid ranges object of its own."""
+    cls = FAMILIES[name]
+    env_id = f"bimp/{cls.ID}"
+    rows = [({"difficulty": "extreme"}, "difficulty"), ({"difficulty": 2}, "difficulty"),
+            ({"no_such_key": 1}, "no_such_key"), ({"duration": cls.DURATION + 10}, "duration"),
+            *(({key: 1}, key) for key in sorted(cls.REMOVED_KEYS))]
+    if issubclass(cls, HighwayFamily):
+        rows.append(({"lanes_count": 1}, "lanes_count"))
+    for config, match in rows:
+        with pytest.raises(ValueError, match=match):
+            gym.make(env_id, config=config)
+    env = gym.make(env_id)
+    with pytest.raises(ValueError, match="difficulty"):
+        env.reset(seed=0, options={"config": {"difficulty": "insane"}})
+    for preset in cls.DIFFICULTIES.values():
+        assert cls.RANGES(**dataclasses.asdict(preset)) == preset

@@ -177,7 +177,6 @@ def test_the_reference_pulls_out_on_its_critical_gap_and_falls_back():
     ({"slow_distance": 21.0, "ev_speed": 25.0, "slow_speed": 5.0}, "slow_distance must be .*d_min"),
     ({"oncoming_until": (700.0, 1100.0)}, "oncoming_until must be .*clears the road by 25 s"),
     ({"oncoming_first": (600.0, 800.0), "oncoming_until": 700.0}, "oncoming_until must be .*oncoming_first"),
-    ({"other_vehicles_type": "highway_env.vehicle.behavior.IDMVehicle"}, "unknown config key.*other_vehicles_type"),
     ({"slow_speed": (5.0, 21.0)}, "slow_speed must be"),
 ])
 def test_refused_naming_the_key(config, match):
