@@ -18,9 +18,12 @@ rungs of ``--rung`` seeds; after each the running objective is reported and the 
 trails the median of earlier trials at the same rung. Episodes that raise fail the trial with their error (a
 user attribute ``error``), and the study goes on; so does a sampled config that the policy rejects.
 
-Objective (maximized): the success rate over all episodes, ties broken safety-first by the collision rate, then the
-off-road rate, then the share of steps over an input or rate bound: ``success - e (collision + e (offroad + e
-violation))`` with ``e = 1 / (n + 2)`` for ``n`` episodes, small enough that no tie-break outweighs one success.
+Objective (maximized; ``--objective``): ``success`` (the default), the success rate over all episodes, ties broken
+safety-first by the collision rate, then the off-road rate, then the share of steps over an input or rate bound:
+``success - e (collision + e (offroad + e violation))`` with ``e = 1 / (n + 2)`` for ``n`` episodes, small enough
+that no tie-break outweighs one success. ``score``: the mean closed-loop score (``docs/suite.md``: its gates zero an
+at-fault collision or leaving the road; progress, time to collision, speed and comfort grade the rest), for the
+suite's families, where waiting behind an obstacle succeeds and success no longer tells plans apart.
 
 Seeds. Tuning uses the training seeds (100-199 by convention, ``docs/evaluation.md``); seeds from 1000 on are the
 safety, results and claims seeds and are refused.
@@ -181,9 +184,13 @@ def _ends(distribution) -> tuple:
 
 
 # --- the objective -------------------------------------------------------------------------------------------
-def objective_value(summary: dict) -> float:
-    """Success first, then fewer collisions, off-road exits and bound violations (see the module docstring);
-    ``summary`` as :func:`bimp.agents.metrics.summarize` returns it. Rates are pooled over the arms by episodes."""
+OBJECTIVES = ("success", "score")
+
+
+def objective_value(summary: dict, objective: str = "success") -> float:
+    """``objective`` of :data:`OBJECTIVES` (see the module docstring): success first, then fewer collisions, off-road
+    exits and bound violations; or the mean closed-loop score. ``summary`` as :func:`bimp.agents.metrics.summarize`
+    returns it. Rates and scores are pooled over the arms by episodes."""
     arms = [a for a in summary.values() if a["episodes"]]
     n = sum(a["episodes"] for a in arms)
     if not n:
@@ -191,6 +198,9 @@ def objective_value(summary: dict) -> float:
 
     def rate(name: str) -> float:
         return sum(a[name]["mean"] * a["episodes"] for a in arms) / n
+
+    if objective == "score":
+        return rate("score")
 
     violation = (rate("input_violation_rate") + rate("rate_violation_rate")) / 2
     e = 1.0 / (n + 2)
@@ -239,6 +249,7 @@ class Study:
     batch: int
     workers: int
     startup_trials: int
+    objective: str = "success"
 
     def load(self, sampler_seed: int):
         """The study from its storage (created the first time), with a TPE sampler seeded ``sampler_seed``."""
@@ -280,11 +291,11 @@ def objective(spec: Study, trial) -> float:
             message = _trial_error(folder)
             trial.set_user_attr("error", message)
             raise TrialError(message)
-        value = objective_value(summary)
+        value = objective_value(summary, spec.objective)
         trial.report(value, step=min(done, episodes))
         if done < episodes and trial.should_prune():
             raise optuna.TrialPruned()
-    for name in ("success_rate", "collision_rate", "offroad_rate"):
+    for name in ("success_rate", "collision_rate", "offroad_rate", "score"):
         trial.set_user_attr(name, {key: a[name]["mean"] for key, a in summary.items()})
     return value
 
@@ -326,14 +337,18 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
          out: str | Path = "runs/tune", storage: str | None = None, yaml_path: str | Path | None = None,
          rung: int | None = None, batch: int = 1, workers: int = 1, sampler_seed: int = 0,
          startup_trials: int = 5, progress: bool = True, backend: str = "local", address: str | None = None,
-         ray_cpus: int | None = None, parallel: int | None = None):
+         ray_cpus: int | None = None, parallel: int | None = None, objective: str = "success"):
     """Run the study until it holds ``trials`` finished trials; write the best config to ``yaml_path`` (default
     ``OUT/best.yaml``; ``configs/tuned/<policy>.yaml`` ships it as the policy's default) and return the study.
     ``backend="ray"``: the trials run in parallel on the Ray cluster at ``address`` (default: a new local instance
     of ``ray_cpus`` CPUs), ``parallel`` at a time (default: its CPUs // ``workers``), against the one storage
     (a real cluster needs a PostgreSQL or MySQL URL and ``out`` on a shared disk: ``docs/scaling.md``).
-    Raises :class:`TuneError` before any trial for an invalid request."""
+    ``objective``: what a trial maximizes (:data:`OBJECTIVES`, the module docstring). Raises :class:`TuneError`
+    before any trial for an invalid request."""
     import optuna
+
+    if objective not in OBJECTIVES:
+        raise TuneError(f"objective {objective!r}: one of {', '.join(OBJECTIVES)}")
 
     if not scenarios:
         raise TuneError("give at least one scenario")
@@ -365,15 +380,18 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
         raise TuneError(str(err)) from None
     url = storage or f"sqlite:///{out / 'study.db'}"
     # The name holds what the trials mean: a changed space or base config is another study, never a resumed one.
-    meaning = config_hash(policy, {"base": base, "space": {k: repr(v) for k, v in space.items()}})[:8]
+    # Another objective is another study (success's left out of the hash: the studies made before it keep their names).
+    meaning = config_hash(policy, {"base": base, "space": {k: repr(v) for k, v in space.items()},
+                                   **({"objective": objective} if objective != "success" else {})})[:8]
     spec = Study(policy, tuple(scenarios), space, base, str(out), url,
                  f"{study_name(policy, scenarios, episodes, seed)}:{meaning}", trials,
-                 tuple(range(seed, seed + episodes)), rung, batch, workers, startup_trials)
+                 tuple(range(seed, seed + episodes)), rung, batch, workers, startup_trials, objective)
     # A resumed study's sampler is seeded past the trials it holds: the same seed again would redraw the values of
     # its first (random) trials.
     held = sum(s.n_trials for s in optuna.get_all_study_summaries(_storage(url)) if s.study_name == spec.name)
     study = spec.load(sampler_seed + held)
-    study.set_user_attr("request", {"policy": policy, "scenarios": scenarios, "episodes": episodes, "seed": seed})
+    study.set_user_attr("request", {"policy": policy, "scenarios": scenarios, "episodes": episodes, "seed": seed,
+                                    "objective": objective})
     remaining = trials - len(study.get_trials(deepcopy=False, states=_finished()))
     if remaining > 0 and backend == "ray":
         run_trials_on_ray(spec, remaining, sampler_seed + held, parallel, address, ray_cpus)
@@ -397,10 +415,11 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
         counts[t.state.name.lower()] = counts.get(t.state.name.lower(), 0) + 1
     doc = {
         "policy": policy,
-        "tuning": {"study": study.study_name, "trial": best.number, "objective": best.value, "trials": counts,
+        "tuning": {"study": study.study_name, "trial": best.number, "objective": best.value,
+                   "objective_of": request.get("objective", "success"), "trials": counts,
                    "scenarios": request.get("scenarios"), "episodes_per_scenario": request.get("episodes"),
                    "first_seed": request.get("seed"), "params": params,
-                   "success_rate": best.user_attrs.get("success_rate"),
+                   "success_rate": best.user_attrs.get("success_rate"), "score": best.user_attrs.get("score"),
                    "written": datetime.now(timezone.utc).isoformat(timespec="seconds")},
         "config": config,
     }
@@ -427,6 +446,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--sampler-seed", type=int, default=0)
+    parser.add_argument("--objective", choices=OBJECTIVES, default="success",
+                        help="what a trial maximizes: success (safety-first ties) or the closed-loop score")
     add_backend_arguments(parser)
     parser.add_argument("--parallel", type=int, default=None, metavar="N", help="with --backend ray: trials at "
                         "once, each on its own worker (default: the cluster's CPUs // --workers)")
@@ -435,6 +456,7 @@ def main(argv: list[str] | None = None) -> int:
         study = tune(args.policy, args.scenario, args.trials, args.episodes, args.seed, out=args.out,
                      storage=args.storage, yaml_path=args.yaml, rung=args.rung, batch=args.batch,
                      workers=args.workers, sampler_seed=args.sampler_seed, parallel=args.parallel,
+                     objective=args.objective,
                      **backend_options(args))
     except TuneError as err:
         print(f"bimp tune: error: {err}", file=sys.stderr)

@@ -145,6 +145,24 @@ def test_the_objective_is_success_first_then_collisions_then_off_road_then_viola
     assert values == sorted(values, reverse=True) and len(set(values)) == len(values)
 
 
+def test_the_score_objective_is_the_pooled_mean_score_and_its_own_study(tmp_path):
+    """--objective score: a trial's value is the mean closed-loop score over every episode of every scenario (pooled
+    by episodes); the best config records which objective chose it; a study of another objective never resumes
+    onto the success study's trials."""
+    summary = {("a", "x"): {"episodes": 3, "score": {"mean": 0.6}}, ("b", "x"): {"episodes": 1, "score": {"mean": 0.2}}}
+    assert objective_value(summary, "score") == pytest.approx(0.5)
+    success = _run(tmp_path / "success", 1)
+    score = _run(tmp_path / "score", 2, objective="score")
+    assert success.study_name != score.study_name
+    for t in score.trials:
+        scores = t.user_attrs["score"]
+        assert t.value == pytest.approx(sum(scores.values()) / len(scores))  # one scenario, equal episodes
+    doc = yaml.safe_load((tmp_path / "score" / "best.yaml").read_text())
+    assert doc["tuning"]["objective_of"] == "score" and doc["tuning"]["objective"] == score.best_value
+    with pytest.raises(TuneError, match="objective 'comfort'"):
+        _run(tmp_path / "bad", 1, objective="comfort")
+
+
 @pytest.mark.parametrize("path", sorted(TUNED_DIR.glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_shipped_tuned_config_is_its_policys_and_drives(path):
     import numpy as np
