@@ -46,7 +46,8 @@ def braking(ev, gap, v_ov, onset, decel, dt: float = DT, length: float = VEHICLE
     through a first-order lag of ``lag`` [s] (:func:`lag_gain`), scaled by ``grip`` (the suite's paper-noisy EV);
     ``lag`` 0 and ``grip`` 1 (the defaults): the command itself. ``length`` [m]: both vehicles' length, so the
     footprint gap is the centre gap less it. ``steps`` of ``dt`` [s] must cover the stop (200 x 0.1 s: from
-    40 m/s at 7 m/s^2 the EV stands within 7 s). Arrays broadcast."""
+    40 m/s at 7 m/s^2 the EV stands within 7 s; a lag and less grip take longer, paper-noisy passes 250); the loop
+    ends early once every EV stands. Arrays broadcast."""
     b = Bounds() if bounds is None else bounds
     ev, gap, v_ov, onset, decel, duration, a0, lag, grip = np.broadcast_arrays(
         *(np.asarray(a, float) for a in (ev, gap, v_ov, onset, decel, duration, a0, lag, grip)))
@@ -57,14 +58,14 @@ def braking(ev, gap, v_ov, onset, decel, dt: float = DT, length: float = VEHICLE
     least = np.full(ev.shape, np.inf)
     clock = 0.0
     for _ in range(steps):
-        braking = (clock >= onset) & (clock < onset + duration) & (v_o > 0)  # NEVER + anything: never ends
-        a_o = np.where(braking, -decel, 0.0)
+        ov_brakes = (clock >= onset) & (clock < onset + duration) & (v_o > 0)  # NEVER + anything: never ends
+        a_o = np.where(ov_brakes, -decel, 0.0)
         a_cmd = np.where(seen, np.maximum(a_cmd - b.accel_rate, b.accel[0]), a_cmd)
         a_e = a_e + alpha * (grip * a_cmd - a_e)
         s_e, v_e = s_e + v_e * dt, np.maximum(v_e + a_e * dt, 0.0)
         s_o, v_o = s_o + v_o * dt, np.maximum(v_o + a_o * dt, 0.0)
         clock += dt
-        seen |= braking
+        seen |= ov_brakes
         least = np.minimum(least, s_o - s_e - length)
         if not v_e.any():  # every EV stands: the gaps only grow from here (no OV reverses)
             break

@@ -89,34 +89,60 @@ class OvertakeDriver(ShadowDriver):
       :attr:`PASS_RANGE` m, and every oncoming vehicle ahead is at least :attr:`PASS_GAP` s away at the closing
       speed: a fixed critical time gap, as gap-acceptance models of human passing take one. It does not check that
       the pass fits that gap, so some gaps it accepts are too short: the benchmark's planners have to judge;
-    - **fall back** (abort) when the pass no longer fits: the time to meet the nearest oncoming vehicle is less than
-      :func:`pass_time` to get :attr:`RETURN_GAP` m ahead of the leader (accelerating at IDM's comfortable
-      :attr:`COMFORT_ACC_MAX` up to the target speed) plus :attr:`ABORT_MARGIN` s; IDM then drives behind the
-      leader as if it were in the same lane;
-    - **return** to its own lane as soon as MOBIL's safety criterion allows (the new follower braking at most
-      ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` and the EV itself too), once past the leader or when falling back.
+    - **withdraw** a pull-out while still in its own lane once the nearest oncoming vehicle is less than
+      :attr:`PASS_GAP` - :attr:`HESITATION` s away (the gap it took is gone before the EV moved over: a planner that
+      did not follow);
+    - **fall back** out in the oncoming lane when the pass no longer fits: the time to meet the nearest oncoming
+      vehicle is less than :func:`pass_time` to get the return gap ahead of the leader (accelerating at IDM's
+      comfortable ``COMFORT_ACC_MAX`` up to the target speed) plus :attr:`ABORT_MARGIN` s. The return gap is the
+      least lead at which the leader's IDM brakes at most ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` for the EV
+      (:meth:`return_gap`: about 16-25 m at hard's speeds). IDM then drives behind the leader as if it were in the
+      same lane;
+    - **return** to its own lane once past the leader or when falling back, checked at every step while in the
+      oncoming lane (not every ``LANE_CHANGE_DELAY``): where the new follower brakes at most
+      ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` and the EV itself too (falling back: up to ``ACC_MAX``).
 
-    In the oncoming lane IDM ignores the oncoming vehicles (highway-env's IDM would brake head-on for them): the
-    abort rule is what answers them."""
+    In the oncoming lane IDM ignores the oncoming vehicles (highway-env's IDM would brake head-on for them, and
+    behind the leader's tail that only strands it there): the fall-back rule answers them. The oncoming traffic's
+    own IDM brakes for an EV in its lane, which is highway-env's and not the reference's doing."""
 
     PASS_GAP = 8.0  # s
     SLOWER = 2.0  # m/s
     PASS_RANGE = 60.0  # m, centre to centre
-    RETURN_GAP = 15.0  # m, centre to centre: the leader's IDM then brakes well under 2 m/s^2 for the EV
-    ABORT_MARGIN = 1.0  # s
+    ABORT_MARGIN = 3.0  # s: the return's lane change (about 2 s at the planning bounds) and a step's decision
+    HESITATION = 2.0  # s: how far below the critical gap a pull-out not yet begun is kept (no flicker at the gap)
 
     def mobil(self, lane_index) -> bool:
-        network = self.road.network
-        if carries_oncoming_traffic(network, lane_index):
-            return bool(self._slow_leader(self.lane_index) is not None and self._time_to_meet() >= self.PASS_GAP)
-        if carries_oncoming_traffic(network, self.lane_index):
-            return self._may_return(lane_index)
+        if carries_oncoming_traffic(self.road.network, lane_index):
+            return bool(self._slow_leader(self.lane_index, self.PASS_RANGE) is not None
+                        and self._time_to_meet() >= self.PASS_GAP)
         return super().mobil(lane_index)
+
+    def change_lane_policy(self) -> None:
+        network = self.road.network
+        if self.lane_index != self.target_lane_index and carries_oncoming_traffic(network, self.target_lane_index):
+            if (self._time_to_meet() < self.PASS_GAP - self.HESITATION
+                    or self._slow_leader(self.lane_index, self.PASS_RANGE) is None):
+                self.target_lane_index = self.lane_index  # the gap taken is gone before the EV moved over
+            return
+        if carries_oncoming_traffic(network, self.lane_index):
+            home = self._home_lane()
+            if self.target_lane_index == self.lane_index != home and self._may_return(home):
+                self.target_lane_index = home
+            return
+        super().change_lane_policy()
 
     def acceleration(self, ego_vehicle, front_vehicle=None, rear_vehicle=None) -> float:
         if ego_vehicle is self and front_vehicle is not None and _oncoming(self, front_vehicle):
             front_vehicle = self._slow_leader(self._home_lane()) if self._must_fall_back() else None
         return super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
+
+    def return_gap(self, leader) -> float:
+        """The least lead [m, centre to centre] on ``leader`` at which its IDM, holding its target speed, brakes at
+        most ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` for the EV at today's speeds: IDM's ``-COMFORT_ACC_MAX (s* / d)^2``
+        at the desired gap ``s*``."""
+        return float(self.desired_gap(leader, self) *
+                     np.sqrt(self.COMFORT_ACC_MAX / self.LANE_CHANGE_MAX_BRAKING_IMPOSED))
 
     def _home_lane(self):
         """The lane beside the current one that oncoming traffic does not drive on (the current lane if it is one)."""
@@ -126,15 +152,15 @@ class OvertakeDriver(ShadowDriver):
         return next((lane for lane in network.side_lanes(self.lane_index)
                      if not carries_oncoming_traffic(network, lane)), self.lane_index)
 
-    def _slow_leader(self, lane_index):
-        """The vehicle ahead in ``lane_index`` if it drives :attr:`SLOWER` below the target speed within
-        :attr:`PASS_RANGE`, else None."""
+    def _slow_leader(self, lane_index, within: float = np.inf):
+        """The vehicle ahead in ``lane_index`` if it drives :attr:`SLOWER` below the target speed, its centre less
+        than ``within`` m ahead, else None."""
         leader, _ = self.road.neighbour_vehicles(self, lane_index)
         if leader is None or _oncoming(self, leader):
             return None
-        close = self.road.network.get_lane(lane_index).local_coordinates(leader.position)[0] - \
-            self.road.network.get_lane(lane_index).local_coordinates(self.position)[0] < self.PASS_RANGE
-        return leader if close and leader.speed < self._target() - self.SLOWER else None
+        lane = self.road.network.get_lane(lane_index)
+        ahead = lane.local_coordinates(leader.position)[0] - lane.local_coordinates(self.position)[0]
+        return leader if ahead < within and leader.speed < self._target() - self.SLOWER else None
 
     def _target(self) -> float:
         limit = getattr(self.lane, "speed_limit", None)
@@ -152,26 +178,33 @@ class OvertakeDriver(ShadowDriver):
         return max(min(times), 0.0) if times else np.inf
 
     def _must_fall_back(self) -> bool:
-        """In the oncoming lane with a pass that no longer fits before the nearest oncoming vehicle (class doc)."""
-        if not carries_oncoming_traffic(self.road.network, self.lane_index):
+        """Out in the oncoming lane with a pass that no longer fits before the nearest oncoming vehicle (class
+        doc)."""
+        network = self.road.network
+        if not carries_oncoming_traffic(network, self.lane_index):
             return False
-        home = self.road.network.get_lane(self._home_lane())
-        leader = self._slow_leader(self._home_lane())
+        home_index = self._home_lane()
+        leader = self._slow_leader(home_index)
         if leader is None:
             return False
+        home = network.get_lane(home_index)
         ahead = home.local_coordinates(leader.position)[0] - home.local_coordinates(self.position)[0]
-        needed = pass_time(ahead + self.RETURN_GAP, self.speed, leader.speed, self._target(), self.COMFORT_ACC_MAX)
+        needed = pass_time(ahead + self.return_gap(leader), self.speed, leader.speed, self._target(),
+                           self.COMFORT_ACC_MAX)
         return self._time_to_meet() < needed + self.ABORT_MARGIN
 
     def _may_return(self, lane_index) -> bool:
-        """Back to its own lane ``lane_index``: past the leader, or falling back; either where MOBIL's safety
-        criterion holds for the new follower and for the EV."""
-        if self._slow_leader(lane_index) is not None and not self._must_fall_back():
+        """Back to its own lane ``lane_index`` from the oncoming lane: past every slower vehicle there, or falling
+        back; either where the new follower brakes at most ``LANE_CHANGE_MAX_BRAKING_IMPOSED`` for the EV and the EV
+        itself too (falling back: up to ``ACC_MAX``)."""
+        falling_back = self._must_fall_back()
+        if self._slow_leader(lane_index) is not None and not falling_back:
             return False  # the pass goes on
         preceding, following = self.road.neighbour_vehicles(self, lane_index)
-        limit = -self.LANE_CHANGE_MAX_BRAKING_IMPOSED
-        return bool((following is None or self.acceleration(following, self) >= limit) and
-                    (preceding is None or self.acceleration(self, preceding) >= limit))
+        own = self.ACC_MAX if falling_back else self.LANE_CHANGE_MAX_BRAKING_IMPOSED
+        return bool((following is None or
+                     self.acceleration(following, self) >= -self.LANE_CHANGE_MAX_BRAKING_IMPOSED) and
+                    (preceding is None or self.acceleration(self, preceding) >= -own))
 
 
 def pass_time(distance: float, speed: float, leader_speed: float, top_speed: float, accel: float) -> float:
@@ -191,7 +224,7 @@ def pass_time(distance: float, speed: float, leader_speed: float, top_speed: flo
 def _oncoming(vehicle, other) -> bool:
     """Whether ``other`` drives towards ``vehicle``: on the reverse road of ``vehicle``'s lane, heading against it."""
     a, b = vehicle.lane_index[:2]
-    return tuple(other.lane_index[:2]) == (b, a) and np.cos(other.heading - vehicle.heading) < 0.0
+    return bool(tuple(other.lane_index[:2]) == (b, a) and np.cos(other.heading - vehicle.heading) < 0.0)
 
 
 class DriveOnDriver(ShadowDriver):
@@ -235,6 +268,9 @@ class Behaviour:
     lane (:class:`DriveOnDriver`); ``overtake``: overtake through the oncoming lane (:class:`OvertakeDriver`)."""
 
     def __init__(self, env, target_speed: float, drive_on: bool = False, overtake: bool = False):
+        if drive_on and overtake:
+            raise ValueError("a behaviour layer drives on past a missed exit (drive_on) or overtakes in the oncoming "
+                             "lane (overtake), not both")
         self.env, self.target_speed = env, float(target_speed)
         ev = env.vehicle
         driver = DriveOnDriver if drive_on else OvertakeDriver if overtake else ShadowDriver

@@ -268,6 +268,9 @@ def _corners(config: dict, keys: tuple[str, ...]) -> list[dict]:
     return [dict(zip(keys, c)) for c in itertools.product(*values)]
 
 
+STOP_STEPS = 250  # the oracle's steps of 0.1 s: 25 s cover the stop from 40 m/s at half the grip and a 1 s lag
+
+
 def _check_braking(config: dict, scenario_keys: tuple[str, ...], what: str, **fixed) -> np.ndarray:
     """The oracle's braking (:func:`bimp.envs.oracle.braking`, its first arguments ``scenario_keys`` of ``config``,
     ``fixed`` the rest) on every corner of the ranges of ``scenario_keys``, ``accel_lag`` and ``grip``:
@@ -277,6 +280,7 @@ def _check_braking(config: dict, scenario_keys: tuple[str, ...], what: str, **fi
     keys = (*scenario_keys, "accel_lag", "grip")
     rows = _corners(config, keys)
     column = {k: np.array([c[k] for c in rows]) for k in keys}
+    fixed = {"steps": STOP_STEPS, **fixed}
     gaps, travel = braking(*(column[k] for k in scenario_keys), lag=column["accel_lag"], grip=column["grip"],
                            **fixed)
     i = int(np.argmin(gaps))

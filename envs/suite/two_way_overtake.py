@@ -12,7 +12,7 @@ the one to pass in), 2000 m long, every lane's speed limit 25 m/s (a rural road'
   ``oncoming_first`` ahead of the EV, each next one an ``oncoming_gap`` further (centre to centre, each gap drawn),
   none beyond ``oncoming_until``; each holds its own speed drawn from ``oncoming_speed``. Past the stream the road is
   clear. highway-env's IDM sees a vehicle in its lane whichever way it drives: an oncoming vehicle brakes for an EV
-  in its lane.
+  in its lane, and hard (highway-env's doing, not the reference's).
 
 Ranges per ``difficulty`` (:data:`DIFFICULTIES`; m/s and m):
 
@@ -31,7 +31,7 @@ accelerating at 3 m/s^2, and the lane changes), a gap of about 370 m at the clos
 The behaviour layer (the reference every planner reads, and the ``idm`` policy) is
 :class:`bimp.envs.highway.behaviour.OvertakeDriver`: it pulls out on a fixed critical gap of 8 s to the nearest
 oncoming vehicle, without checking that the pass fits it, and falls back behind the slow vehicle when the pass no
-longer fits. Some gaps it takes are too short.
+longer fits (a pull-out not begun is withdrawn). Some gaps it takes are too short.
 
 **Goal** (success needs it, as exit-v0's exit): the slow vehicle passed, the EV back in its lane (its centre within
 1 m of the lane's) at least :data:`PASSED` m ahead of the slow vehicle's centre. The episode ends there; the time
@@ -43,11 +43,12 @@ Every instance leaves a safe plan inside the planning bounds, and a plan that me
   .brake_at_the_bounds` with the slow vehicle holding its speed) keeps at least ``d_min`` (1 m) at the ranges'
   worst corner (the fastest EV, the slowest and nearest slow vehicle); ranges that fail are refused naming
   ``slow_distance``. From there the EV follows the slow vehicle, which never brakes (nothing is ahead of it);
-- **the goal**: the last oncoming vehicle has met an EV that follows the slow vehicle by ``oncoming_until`` /
-  (``oncoming_speed`` + ``slow_speed``) s (their lows: the latest), and the road is clear from then; a pass on a
-  clear road takes at most :data:`CLEAR_PASS` s. Ranges that leave less than that before the time limit are refused
+- **the goal**: the last oncoming vehicle has met an EV that follows the slow vehicle by (``oncoming_until``'s high
+  + 5 m) / (``oncoming_speed``'s low + ``slow_speed``'s low) s, and the road is clear from then; a pass on a clear
+  road takes at most :data:`CLEAR_PASS` s. Ranges that leave less than that before the time limit are refused
   naming ``oncoming_until``. The tests drive that plan (the ``idm`` policy clipped to the bounds, pulling out only
-  onto a clear road) on whole episodes, seeds 0-99 per difficulty (a slow test): goal reached, no collision.
+  onto a clear road) on whole episodes, seeds 0-99 per difficulty (a slow test): goal reached, no collision, and
+  within :data:`CLEAR_PASS` of the road clearing.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ ROAD_LENGTH = 2000.0  # m: the EV drives at most 40 s x 25 m/s from x = 200 m; t
 SPEED_LIMIT = 25.0  # m/s, every lane
 RIGHT, PASSING, ONCOMING = ("a", "b", 1), ("a", "b", 0), ("b", "a", 0)  # two-way-v0's lanes
 PASSED = VEHICLE_LENGTH + 5.0  # m, centre to centre: the goal's lead on the slow vehicle
-DURATION = 40.0  # s: two-way-v0's own; the road clears by 25 s at the latest, 15 s before it
+DURATION = 40.0  # s: bimp's profile of two-way-v0 too; the road clears by 25 s at the latest, 15 s before it
 CLEAR_PASS = 15.0  # s: a pass on a clear road, from following the slow vehicle to the goal (the slow test shows it)
 SLOW_COLOUR = (200, 100, 0)  # orange: the vehicle to pass
 BOUNDS = Bounds()
