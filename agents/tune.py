@@ -23,7 +23,9 @@ safety-first by the collision rate, then the off-road rate, then the share of st
 ``success - e (collision + e (offroad + e violation))`` with ``e = 1 / (n + 2)`` for ``n`` episodes, small enough
 that no tie-break outweighs one success. ``score``: the mean closed-loop score (``docs/suite.md``: its gates zero an
 at-fault collision or leaving the road; progress, time to collision, speed and comfort grade the rest), for the
-suite's families, where waiting behind an obstacle succeeds and success no longer tells plans apart.
+suite's families without a goal, where waiting behind an obstacle succeeds and success no longer tells plans apart.
+The score has no goal gate: on a family with a goal (two-way-overtake: waiting scored 0.75-0.76, passing 0.79 on
+development seeds) tune on success.
 
 Seeds. Tuning uses the training seeds (100-199 by convention, ``docs/evaluation.md``); seeds from 1000 on are the
 safety, results and claims seeds and are refused.
