@@ -158,8 +158,7 @@ class OvertakeDriver(ShadowDriver):
         leader, _ = self.road.neighbour_vehicles(self, lane_index)
         if leader is None or _oncoming(self, leader):
             return None
-        lane = self.road.network.get_lane(lane_index)
-        ahead = lane.local_coordinates(leader.position)[0] - lane.local_coordinates(self.position)[0]
+        ahead = self.lane_distance_to(leader, self.road.network.get_lane(lane_index))
         return leader if ahead < within and leader.speed < self._target() - self.SLOWER else None
 
     def _target(self) -> float:
@@ -169,12 +168,8 @@ class OvertakeDriver(ShadowDriver):
     def _time_to_meet(self) -> float:
         """Seconds until the nearest oncoming vehicle ahead meets the EV at today's speeds, footprints touching;
         inf where none is ahead."""
-        lane = self.lane
-        s = lane.local_coordinates(self.position)[0]
-        times = [(lane.local_coordinates(v.position)[0] - s - (self.LENGTH + v.LENGTH) / 2) /
-                 max(self.speed + v.speed, 1e-6)
-                 for v in self.road.vehicles if v is not self and _oncoming(self, v)
-                 and lane.local_coordinates(v.position)[0] > s]
+        ahead = [(self.lane_distance_to(v), v) for v in self.road.vehicles if v is not self and _oncoming(self, v)]
+        times = [(d - (self.LENGTH + v.LENGTH) / 2) / max(self.speed + v.speed, 1e-6) for d, v in ahead if d > 0]
         return max(min(times), 0.0) if times else np.inf
 
     def _must_fall_back(self) -> bool:
@@ -187,8 +182,7 @@ class OvertakeDriver(ShadowDriver):
         leader = self._slow_leader(home_index)
         if leader is None:
             return False
-        home = network.get_lane(home_index)
-        ahead = home.local_coordinates(leader.position)[0] - home.local_coordinates(self.position)[0]
+        ahead = self.lane_distance_to(leader, network.get_lane(home_index))
         needed = pass_time(ahead + self.return_gap(leader), self.speed, leader.speed, self._target(),
                            self.COMFORT_ACC_MAX)
         return self._time_to_meet() < needed + self.ABORT_MARGIN
