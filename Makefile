@@ -24,10 +24,11 @@ install-ray: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/bimp demo --out $(DEMO_OUT)
 
-# Lint and import order first (ruff, configured in pyproject.toml): seconds, before minutes of tests.
+# Lint and import order first (ruff, configured in pyproject.toml): seconds, before minutes of tests. The tests run
+# on every core (pytest-xdist), a test file per worker so that a file's compiled planners are built once.
 test: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow

@@ -24,6 +24,7 @@ from bimp.envs.suite.cut_in import (
     least_gap,
     on_the_step,
 )
+from tests.envs.test_suite_families import drawn_params
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -35,12 +36,7 @@ ORACLE_KEYS = ("ev_speed", "cutter_start", "cut_time", "time_gap", "cutter_decel
 
 def draws(difficulty: str, n: int = DRAWS) -> list[dict]:
     """The drawn parameters of ``n`` seeded resets of the registered env at ``difficulty``."""
-    base = gym.make(ID, config={"difficulty": difficulty}).unwrapped
-    out = []
-    for seed in range(n):
-        base.reset(seed=seed)
-        out.append(dict(base.drawn_params))
-    return out
+    return drawn_params(ID, {"difficulty": difficulty}, n)
 
 
 @pytest.mark.parametrize("difficulty", list(DIFFICULTIES))

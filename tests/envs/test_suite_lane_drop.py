@@ -19,7 +19,7 @@ from bimp.envs.oracle import stop_behind
 from bimp.envs.scene import VEHICLE_LENGTH, Bounds
 from bimp.envs.suite import FAMILIES
 from bimp.envs.suite.lane_drop import BLOCK_SPACING, CLOSURE_BLOCKS, DIFFICULTIES, LaneDropEnv
-from tests.envs.test_suite_families import BrakeAtTheBounds
+from tests.envs.test_suite_families import BrakeAtTheBounds, drawn_params
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -30,12 +30,7 @@ B = Bounds()
 
 def draws(difficulty: str, n: int = DRAWS) -> list[dict]:
     """The drawn parameters of ``n`` seeded resets of the registered env at ``difficulty``."""
-    base = gym.make(ID, config={"difficulty": difficulty}).unwrapped
-    out = []
-    for seed in range(n):
-        base.reset(seed=seed)
-        out.append(dict(base.drawn_params))
-    return out
+    return drawn_params(ID, {"difficulty": difficulty}, n)
 
 
 @pytest.mark.parametrize("difficulty", list(DIFFICULTIES))

@@ -19,7 +19,7 @@ from bimp.envs.oracle import stop_behind
 from bimp.envs.scene import VEHICLE_LENGTH, Bounds
 from bimp.envs.suite import FAMILIES
 from bimp.envs.suite.stalled_vehicle import DIFFICULTIES, StalledVehicleEnv
-from tests.envs.test_suite_families import BrakeAtTheBounds
+from tests.envs.test_suite_families import BrakeAtTheBounds, drawn_params
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -31,12 +31,7 @@ B = Bounds()
 def draws(difficulty: str, n: int = DRAWS) -> list[dict]:
     """The drawn parameters of ``n`` seeded resets of the registered env at ``difficulty`` (highway-env's reset of
     the env under the adapter: the draws, without the adapter's scene)."""
-    base = gym.make(ID, config={"difficulty": difficulty}).unwrapped
-    out = []
-    for seed in range(n):
-        base.reset(seed=seed)
-        out.append(dict(base.drawn_params))
-    return out
+    return drawn_params(ID, {"difficulty": difficulty}, n)
 
 
 @pytest.mark.parametrize("difficulty", list(DIFFICULTIES))
