@@ -33,7 +33,8 @@ import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from typing import Callable
+from contextlib import contextmanager
+from typing import Callable, Iterator
 
 BACKENDS = ("local", "ray")
 INSTALL_RAY = 'pip install -e ".[ray]"'
@@ -71,15 +72,38 @@ def run_groups(groups: list, run: Callable, crashed: Callable, write: Callable, 
                workers: int = 1, address: str | None = None, cpus: int | None = None) -> None:
     """Run ``run(group)`` for every group on ``backend`` and ``write`` every record as its group finishes; a group
     whose worker died twice is written as ``crashed(group, why)``. ``local``: a pool of ``workers`` processes (in
-    this process when there is one worker or one group); ``ray``: one task per group on the cluster."""
+    this process, on one thread as a worker runs (:func:`one_thread`), when there is one worker or one group);
+    ``ray``: one task per group on the cluster."""
     if backend == "ray":
         run_ray(groups, run, crashed, write, address=address, cpus=cpus)
     elif workers > 1 and len(groups) > 1:
         run_local(groups, workers, run, crashed, write)
     else:
-        for group in groups:
-            for record in run(group):
-                write(record)
+        with one_thread():
+            for group in groups:
+                for record in run(group):
+                    write(record)
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Run the enclosed episodes in this process as a worker runs them: one BLAS / OpenMP thread
+    (``threadpoolctl``; a worker gets it from :data:`THREADS` before numpy loads) and one torch thread. Why: OpenBLAS
+    splits a product differently over more threads, the floats change in their last digits, and a sampling planner's
+    trajectory then drifts apart (MPPI on lane-drop-hard seed 3001: score 0.75 on one thread, 0.44 on this 2-core
+    machine's two), so a record would depend on ``--workers`` and on the cores of the machine that made it. XLA's
+    threads are fixed when JAX starts and stay as they are; they changed no action in the cases measured
+    (``docs/scaling.md``)."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _ray():

@@ -14,13 +14,55 @@ from pathlib import Path
 import pytest
 
 from bimp.agents import evaluate as ev
-from bimp.agents.backends import BackendError, connect_ray
+from bimp.agents.backends import THREADS, BackendError, connect_ray, one_thread
 from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import read_records
 from tests.agents.test_evaluate import ARGS, FAULTY, deadline
 
 TIMING = {"plan_time_ms_p50", "plan_time_ms_p95"}  # wall-clock: the only metrics allowed to differ
+
+
+# MPPI's first actions on a highway-env road, as hashes: on two BLAS threads they part from one thread's at step 3.
+ACTIONS = """
+import hashlib, sys
+import gymnasium as gym
+import numpy as np
+import bimp
+from bimp.agents.backends import one_thread
+env = gym.make("bimp/lane-drop-hard-v0")
+policy = bimp.make_policy("mppi", env)
+obs, _ = env.reset(seed=3001)
+hashes = []
+with one_thread() if sys.argv[1] == "in-process" else open(__file__):
+    for _ in range(6):
+        action = np.asarray(policy.act(obs))
+        hashes.append(hashlib.sha1(action.tobytes()).hexdigest())
+        obs, *_ = env.step(action)
+print(" ".join(hashes))
+"""
+
+
+def test_one_thread_in_process_gives_a_workers_actions(tmp_path):
+    """Episodes that run in the command's own process (``--workers 1``) run on one BLAS and torch thread, as a pool
+    worker does: the same actions, whatever cores the machine has. A machine with one core cannot fail this."""
+    script = tmp_path / "actions.py"
+    script.write_text(ACTIONS)
+    run = lambda env, mode: subprocess.run([sys.executable, str(script), mode], env=env, capture_output=True,  # noqa: E731
+                                           text=True, timeout=600, check=True).stdout.split()
+    in_process = run(dict(os.environ), "in-process")
+    worker = run({**os.environ, **THREADS}, "worker")
+    assert len(worker) == 6 and in_process == worker
+
+
+def test_one_thread_restores_the_threads_it_found():
+    import torch
+    from threadpoolctl import threadpool_info
+
+    before = torch.get_num_threads(), [pool["num_threads"] for pool in threadpool_info()]
+    with one_thread():
+        assert torch.get_num_threads() == 1 and all(pool["num_threads"] == 1 for pool in threadpool_info())
+    assert (torch.get_num_threads(), [pool["num_threads"] for pool in threadpool_info()]) == before
 
 
 @pytest.mark.parametrize("argv, message", [
