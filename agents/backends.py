@@ -72,23 +72,24 @@ def run_groups(groups: list, run: Callable, crashed: Callable, write: Callable, 
                workers: int = 1, address: str | None = None, cpus: int | None = None) -> None:
     """Run ``run(group)`` for every group on ``backend`` and ``write`` every record as its group finishes; a group
     whose worker died twice is written as ``crashed(group, why)``. ``local``: a pool of ``workers`` processes (in
-    this process, on one thread as a worker runs (:func:`one_thread`), when there is one worker or one group);
+    this process when there is one worker or one group, on one thread as in a worker: :func:`one_thread`);
     ``ray``: one task per group on the cluster."""
     if backend == "ray":
         run_ray(groups, run, crashed, write, address=address, cpus=cpus)
     elif workers > 1 and len(groups) > 1:
         run_local(groups, workers, run, crashed, write)
     else:
-        with one_thread():
-            for group in groups:
-                for record in run(group):
-                    write(record)
+        for group in groups:
+            for record in run(group):
+                write(record)
 
 
 @contextmanager
 def one_thread() -> Iterator[None]:
     """Run the enclosed episodes in this process as a worker runs them: one BLAS / OpenMP thread
-    (``threadpoolctl``; a worker gets it from :data:`THREADS` before numpy loads) and one torch thread. Why: OpenBLAS
+    (``threadpoolctl``; a worker gets it from :data:`THREADS` before numpy loads) and one torch thread. The episode
+    loops (:func:`bimp.agents.rollout.rollout` and ``rollout_batch``) run under it, whoever calls them: ``bimp
+    evaluate --workers 1``, ``bimp render``, the demo's figures. Why: OpenBLAS
     splits a product differently over more threads, the floats change in their last digits, and a sampling planner's
     trajectory then drifts apart (MPPI on lane-drop-hard seed 3001: score 0.75 on one thread, 0.44 on this 2-core
     machine's two), so a record would depend on ``--workers`` and on the cores of the machine that made it. XLA's

@@ -22,6 +22,8 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 
+from bimp.agents.backends import one_thread
+
 SEEDING = "np.random.SeedSequence(seed).spawn(2) -> (env, policy); each: generate_state(1, uint64)[0] >> 1"
 
 # Per-step trace keys read from ``info`` (the env measures; the loop never re-derives). ``contact`` and
@@ -89,6 +91,7 @@ def _start(env: gym.Env, seed: int) -> tuple[Episode, np.ndarray, dict]:
     return episode, obs, info
 
 
+@one_thread()
 def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
             on_step: Callable[[gym.Env, np.ndarray, dict], None] | None = None,
             observations: list | None = None) -> Episode:
@@ -123,6 +126,7 @@ def rollout(env: gym.Env, policy, seed: int, *, max_steps: int | None = None,
     return _said(episode)
 
 
+@one_thread()
 def rollout_batch(envs: list[gym.Env], policy, seeds: list[int]) -> list[Episode]:
     """Episodes of a batched ``policy`` on ``envs`` (one per seed) in lockstep: one ``act(obs (B, d))`` per step
     after ``reset(seed=[...])`` with the episodes' policy seeds, row ``i`` planning for ``envs[i]``. An env whose

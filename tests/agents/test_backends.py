@@ -23,45 +23,56 @@ from tests.agents.test_evaluate import ARGS, FAULTY, deadline
 TIMING = {"plan_time_ms_p50", "plan_time_ms_p95"}  # wall-clock: the only metrics allowed to differ
 
 
-# MPPI's first actions on a highway-env road, as hashes: on two BLAS threads they part from one thread's at step 3.
+# The observations MPPI acts on over its first 6 steps of lane-drop-hard seed 3001, as hashes: "loop" through the
+# episode loop, "bare" by the same steps outside it. On two BLAS threads MPPI's action 3 parts from one thread's.
 ACTIONS = """
 import hashlib, sys
 import gymnasium as gym
 import numpy as np
 import bimp
-from bimp.agents.backends import one_thread
+from bimp.agents.rollout import episode_seeds, rollout
 env = gym.make("bimp/lane-drop-hard-v0")
 policy = bimp.make_policy("mppi", env)
-obs, _ = env.reset(seed=3001)
-hashes = []
-with one_thread() if sys.argv[1] == "in-process" else open(__file__):
+seen = []
+if sys.argv[1] == "loop":
+    rollout(env, policy, 3001, max_steps=6, observations=seen)
+else:
+    env_seed, policy_seed = episode_seeds(3001)
+    obs, _ = env.reset(seed=env_seed)
+    policy.reset(policy_seed)
     for _ in range(6):
-        action = np.asarray(policy.act(obs))
-        hashes.append(hashlib.sha1(action.tobytes()).hexdigest())
-        obs, *_ = env.step(action)
-print(" ".join(hashes))
+        seen.append(obs)
+        obs, *_ = env.step(policy.act(obs))
+print(" ".join(hashlib.sha1(np.asarray(o).tobytes()).hexdigest() for o in seen))
 """
 
 
-def test_one_thread_in_process_gives_a_workers_actions(tmp_path):
-    """Episodes that run in the command's own process (``--workers 1``) run on one BLAS and torch thread, as a pool
-    worker does: the same actions, whatever cores the machine has. A machine with one core cannot fail this."""
-    script = tmp_path / "actions.py"
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one core: every BLAS runs one thread anyway")
+def test_the_episode_loop_in_process_gives_a_workers_episode(tmp_path):
+    """The episode loop runs on one BLAS and torch thread (one_thread) in the command's own process (``--workers
+    1``, ``bimp render``), as a pool worker does: the same episode, whatever cores the machine has. The control (the
+    same steps outside the loop, this process's threads) shows that the threads do change it here."""
+    script = tmp_path / "observations.py"
     script.write_text(ACTIONS)
+    own = {k: v for k, v in os.environ.items() if k not in THREADS}  # an earlier pool may have set them here
     run = lambda env, mode: subprocess.run([sys.executable, str(script), mode], env=env, capture_output=True,  # noqa: E731
                                            text=True, timeout=600, check=True).stdout.split()
-    in_process = run(dict(os.environ), "in-process")
-    worker = run({**os.environ, **THREADS}, "worker")
-    assert len(worker) == 6 and in_process == worker
+    worker = run({**own, **THREADS}, "bare")
+    bare = run(own, "bare")
+    if bare == worker:
+        pytest.skip("this machine's BLAS gave one thread's floats on more: nothing to tell apart")
+    assert len(worker) == 6 and run(own, "loop") == worker
 
 
-def test_one_thread_restores_the_threads_it_found():
+def test_one_thread_limits_numpys_blas_and_restores_the_threads_it_found():
     import torch
     from threadpoolctl import threadpool_info
 
     before = torch.get_num_threads(), [pool["num_threads"] for pool in threadpool_info()]
     with one_thread():
-        assert torch.get_num_threads() == 1 and all(pool["num_threads"] == 1 for pool in threadpool_info())
+        pools = threadpool_info()
+        assert any(pool["internal_api"] == "openblas" for pool in pools)  # numpy's: an old threadpoolctl misses it
+        assert torch.get_num_threads() == 1 and all(pool["num_threads"] == 1 for pool in pools)
     assert (torch.get_num_threads(), [pool["num_threads"] for pool in threadpool_info()]) == before
 
 
