@@ -25,7 +25,7 @@ TIMING = {"plan_time_ms_p50", "plan_time_ms_p95"}  # wall-clock: the only metric
 
 # The observations MPPI acts on over its first 6 steps of lane-drop-hard seed 3001, as hashes: "loop" through the
 # episode loop, "bare" by the same steps outside it. On two BLAS threads MPPI's action 3 parts from one thread's.
-ACTIONS = """
+OBSERVATIONS = """
 import hashlib, sys
 import gymnasium as gym
 import numpy as np
@@ -53,7 +53,7 @@ def test_the_episode_loop_in_process_gives_a_workers_episode(tmp_path):
     1``, ``bimp render``), as a pool worker does: the same episode, whatever cores the machine has. The control (the
     same steps outside the loop, this process's threads) shows that the threads do change it here."""
     script = tmp_path / "observations.py"
-    script.write_text(ACTIONS)
+    script.write_text(OBSERVATIONS)
     own = {k: v for k, v in os.environ.items() if k not in THREADS}  # an earlier pool may have set them here
     run = lambda env, mode: subprocess.run([sys.executable, str(script), mode], env=env, capture_output=True,  # noqa: E731
                                            text=True, timeout=600, check=True).stdout.split()
