@@ -16,7 +16,9 @@ Trial. The sampled values replace those keys in the policy's resolved config; th
 ``OUT/trials/<config hash>``, so a trial that is retried after an interruption resumes its episodes. It runs in
 rungs of ``--rung`` seeds; after each the running objective is reported and the median pruner stops a trial that
 trails the median of earlier trials at the same rung. Episodes that raise fail the trial with their error (a
-user attribute ``error``), and the study goes on; so does a sampled config that the policy rejects.
+user attribute ``error``), and the study goes on; so does a sampled config that the policy rejects. A new study's
+first trial is not sampled: it is the config the policy ships with (its searched keys' values, those inside the
+space), so the best config is never one that trails what users run on the study's own seeds.
 
 Objective (maximized; ``--objective``): ``success`` (the default), the success rate over all episodes, ties broken
 safety-first by the collision rate, then the off-road rate, then the share of steps over an input or rate bound:
@@ -132,6 +134,17 @@ def set_value(tree: dict, key: str, value: Any) -> dict:
     return root
 
 
+def get_value(tree: dict, key: str) -> Any:
+    """The entry ``key`` (``a.b[1]``) of the nested config ``tree``; :class:`TuneError` naming the key if absent."""
+    node = tree
+    for part in _path(key):
+        try:
+            node = node[part]
+        except (KeyError, IndexError, TypeError):
+            raise TuneError(f"no config entry {key!r}") from None
+    return node
+
+
 def with_params(base: dict, params: dict) -> dict:
     """``base`` (factory kwargs) with every ``key: value`` of ``params`` set."""
     tree = base
@@ -167,6 +180,21 @@ def check_space(policy: str, scenarios: list[str], space: dict) -> dict:
                 raise TuneError(f"{policy} rejects its search space's {'low' if end == 0 else 'high'} end "
                                 f"{params}: {err}") from None
     return base
+
+
+def shipped_params(policy: str, scenario: str, space: dict) -> dict:
+    """The values of ``space``'s keys in the config ``policy`` ships with (its shipped tuned config where it has
+    one), each that lies in its distribution: a new study's first trial, so that its best is never a config that
+    does worse on its training seeds than the one users already run."""
+    shipped = factory_kwargs(make_policy(policy, gym.make(envs.env_id(scenario))))
+    values = {key: get_value(shipped, key) for key in space}
+    return {key: value for key, value in values.items() if _contains(space[key], value)}
+
+
+def _contains(distribution, value) -> bool:
+    if hasattr(distribution, "choices"):
+        return value in distribution.choices
+    return isinstance(value, (int, float)) and distribution.low <= value <= distribution.high
 
 
 def _suggest(trial, key: str, distribution):
@@ -392,6 +420,8 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
     # its first (random) trials.
     held = sum(s.n_trials for s in optuna.get_all_study_summaries(_storage(url)) if s.study_name == spec.name)
     study = spec.load(sampler_seed + held)
+    if not study.trials:  # a new study starts from what users run; a resumed one keeps its first trial
+        study.enqueue_trial(shipped_params(policy, scenarios[0], space))
     study.set_user_attr("request", {"policy": policy, "scenarios": scenarios, "episodes": episodes, "seed": seed,
                                     "objective": objective})
     remaining = trials - len(study.get_trials(deepcopy=False, states=_finished()))

@@ -48,6 +48,23 @@ def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
     assert len(_run(tmp_path, 3).trials) == 3  # a finished study runs nothing more
 
 
+def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_its_first(tmp_path, monkeypatch):
+    import bimp.agents.registry
+
+    env = gym.make("bimp/EmergencyBrake-v0")
+    shipped = dataclasses.asdict(make_policy("lane-keep", env).config)
+    assert _run(tmp_path, 1).trials[0].params == pytest.approx(shipped)
+    # A shipped tuned config is what users run, so it is the first trial; a value outside the space is sampled.
+    monkeypatch.setattr(bimp.agents.registry, "TUNED_DIR", tmp_path)
+    tuned = {**shipped, "k_lat": 0.015, "k_head": 5.0}
+    (tmp_path / "lane-keep.yaml").write_text(yaml.safe_dump({"policy": "lane-keep", "config": tuned}))
+    first = _run(tmp_path / "tuned", 2).trials
+    assert first[0].params["k_lat"] == 0.015 and first[0].params["k_head"] <= 0.5
+    assert first[0].params["k_speed"] == pytest.approx(shipped["k_speed"])
+    assert first[1].params != first[0].params
+    assert _run(tmp_path / "tuned", 3).trials[0].params == first[0].params  # resumed: not enqueued again
+
+
 def test_a_trial_whose_episodes_raise_fails_with_its_error_and_the_study_goes_on(tmp_path):
     study = _run(tmp_path, 6, policy="fragile")
     states = {t.state for t in study.trials}
