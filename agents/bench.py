@@ -17,9 +17,9 @@ EnKTS/floor and EnKTS/MPPI per N and NMPC/EnKTS at N = 50; EnKTS at N = 50 for H
 with H); and the first call of each JAX planner shape (compile + one plan). ``--quick``: N in {50, 500} and 5
 repeats. EnKTS and EnKS compute in float32 (``bimp.planners.core``).
 
-One thread everywhere: ``torch.set_num_threads(1)`` and ``OPENBLAS_NUM_THREADS=1`` (also OMP / MKL). BLAS reads the
-latter only when numpy loads, and ``bimp`` has loaded numpy before this module (the ``agents`` package imports
-gymnasium), so unless the variable is already 1 the benchmark reruns itself in a fresh interpreter with it set.
+One thread everywhere: ``run``, ``run_highway`` and ``run_device`` run under :func:`bimp.agents.backends.one_thread`
+(one BLAS / OpenMP thread through ``threadpoolctl``, one torch thread), as every episode does, and the JSON says
+what it found there.
 On a shared machine the numbers move with the load: compare ratios from one run, not times across runs.
 
 ``--scenario ID`` (a wrapped highway-env id, e.g. ``highway-v0``; default ``overtaking``, the above) times EnKTS and
@@ -44,7 +44,6 @@ import json
 import math
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -52,13 +51,13 @@ from pathlib import Path
 import gymnasium as gym
 
 from bimp import envs
+from bimp.agents.backends import one_thread
 from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.registry import POLICIES, make_policy
 from bimp.agents.rollout import rollout
 from bimp.envs.highway.adapter import SUPPORTED as HIGHWAY_IDS
 from bimp.planners.dynamics import load_model
 
-THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 SCENARIO = "overtaking"
 N_VALUES, N_QUICK = (50, 500, 2000), (50, 500)
 N_LARGE = 10_000  # EnKTS and EnKS only: MPPI and the floor take seconds there
@@ -78,8 +77,12 @@ def sampled() -> list[str]:
     return [name for name, spec in POLICIES.items() if spec.frontier_axis == "n_particles"]
 
 
-def _single_threaded() -> bool:
-    return all(os.environ.get(v) == "1" for v in THREAD_VARS)
+def _threads() -> dict:
+    """The thread counts the timing ran on: torch's and each BLAS / OpenMP library's (threadpoolctl)."""
+    import torch
+    from threadpoolctl import threadpool_info
+
+    return {"torch": torch.get_num_threads(), **{i["internal_api"]: i["num_threads"] for i in threadpool_info()}}
 
 
 def observations(count: int):
@@ -229,11 +232,9 @@ def floor_ms(n: int, repeats: int, horizon: int = H_DEFAULT) -> float:
     return float(np.median(times[1:]))
 
 
+@one_thread()
 def run(repeats: int, quick: bool, steps: int, progress=print) -> dict:
     """Time everything; returns the JSON-ready result (rows and ratios)."""
-    import torch
-
-    torch.set_num_threads(1)
     env, recorded = observations(steps + repeats + 1)
     obs = recorded[steps:]
     n_values = N_QUICK if quick else N_VALUES
@@ -265,7 +266,7 @@ def run(repeats: int, quick: bool, steps: int, progress=print) -> dict:
     ratios["nmpc/enkts N=50"] = nmpc["median_ms"] / median["enkts", 50]
     return {
         "scenario": SCENARIO, "env_seed": 0, "steps_before": steps, "horizon": H_DEFAULT, "repeats": repeats,
-        "threads": {"torch": torch.get_num_threads(), **{v: os.environ.get(v) for v in THREAD_VARS}},
+        "threads": _threads(),
         "machine": _machine(),
         "float": "float32", "floor_ms": {str(n): f for n, f in floors.items()},
         "rows": rows, "nmpc": nmpc, "enkts_vs_horizon": h_rows, "ratios": ratios,
@@ -277,12 +278,10 @@ def _machine() -> dict:
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
 
 
+@one_thread()
 def run_highway(scenario: str, repeats: int, quick: bool, steps: int, progress=print) -> dict:
     """EnKTS and EnKS on a wrapped highway-env env's recorded observations (module docstring): the point
     (N = 50, H = 20, K = 8, P = 160), the floor, the K and P sweeps; returns the JSON-ready result."""
-    import torch
-
-    torch.set_num_threads(1)
     k_values, p_values = (K_QUICK, P_QUICK) if quick else (K_VALUES, P_VALUES)
     count = steps + repeats + 1
     recorded = {k: highway_observations(scenario, count, k)[steps:] for k in sorted({*k_values, HIGHWAY_K})}
@@ -311,7 +310,7 @@ def run_highway(scenario: str, repeats: int, quick: bool, steps: int, progress=p
         "n_particles": HIGHWAY_N, "n_obstacles": HIGHWAY_K, "road_points": HIGHWAY_P,
         "road_spacing": ROAD_WINDOW / HIGHWAY_P, "repeats": repeats, "quick": quick,
         "p_sweep_spacing": f"road_spacing = {ROAD_WINDOW:g} m / P: the window's length held, resolution varied",
-        "threads": {"torch": torch.get_num_threads(), **{v: os.environ.get(v) for v in THREAD_VARS}},
+        "threads": _threads(),
         "machine": _machine(), "float": "float32", "timing": "interleaved",
         "floor_ms": {str(HIGHWAY_N): floor}, "floor_p95_ms": floor_row["p95_ms"], "rows": rows,
         "k_sweep": k_sweep, "p_sweep": p_sweep,
@@ -321,6 +320,7 @@ def run_highway(scenario: str, repeats: int, quick: bool, steps: int, progress=p
     }
 
 
+@one_thread()
 def run_device(repeats: int, steps: int, sizes=N_DEVICE, progress=print) -> dict:
     """EnKTS on JAX's default device (a GPU when JAX sees one) at large N: median plan time and first call."""
     import jax
@@ -449,10 +449,6 @@ def main(argv: list[str] | None = None) -> int:
         except EvaluationError as err:
             print(f"bimp bench: error: {err}", file=sys.stderr)
             return 2
-    if not _single_threaded():
-        env = {**os.environ, **{v: "1" for v in THREAD_VARS}}
-        forwarded = list(sys.argv[1:] if argv is None else argv)
-        return subprocess.run([sys.executable, "-m", "bimp.agents.bench", *forwarded], env=env).returncode
     print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
     progress = lambda s: print(s, flush=True)  # noqa: E731
     if args.device:

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from bimp.agents import bench
 
@@ -98,4 +99,7 @@ def test_highway_quick_run_has_both_sweeps():
     point = [r for r in result["k_sweep"] if r["n_obstacles"] == 8]
     assert point[0]["ratio"] == 1.0 and point[0]["road_points"] == 160
     assert all(math.isfinite(v) for v in result["ratios"].values()) and isinstance(result["target_met"], bool)
+    # Timed on one thread of each kind (bimp.agents.backends.one_thread), and those restored afterwards.
+    assert set(result["threads"].values()) == {1} and "torch" in result["threads"], result["threads"]
+    assert bench._threads()["torch"] == torch.get_num_threads()
     assert "EnKTS vs K" in bench.report_highway(result)
