@@ -523,6 +523,7 @@ def make_nmpc(env, config: str | None = None, **overrides) -> NMPCPlanner:
     ``problem.barrier.bound_margin =`` :data:`HARD_BOUND_MARGIN`), the YAML ``config`` on top if given (a file of
     overrides: a key it leaves out keeps its default), then ``overrides`` (``problem=`` a mapping merged key by
     key; an unknown key raises naming it)."""
+    closed_form(env.unwrapped.scene)  # refused at build, where bimp evaluate names it, not in every episode
     nu_inf = {"problem": {"nu": math.inf}}
     return NMPCPlanner(lambda: env.unwrapped.scene,
                        load_planner_config(NMPCConfig, HARD_BOUNDS, nu_inf, config, overrides))
@@ -532,6 +533,7 @@ def make_nmpc_t(env, config: str | None = None, **overrides) -> NMPCPlanner:
     """NMPC with the Student's-t log cost of section IV, ``problem.nu`` the shared problem's (EnKTS's); configured
     in layers as :func:`make_nmpc`. ``bimp.agents.make_policy("nmpc-t", ...)`` starts from the shipped tuned config
     (``configs/tuned/nmpc-t.yaml``) instead."""
+    closed_form(env.unwrapped.scene)
     return NMPCPlanner(lambda: env.unwrapped.scene, load_planner_config(NMPCConfig, HARD_BOUNDS, config, overrides))
 
 

@@ -371,6 +371,19 @@ def test_actions_are_finite_and_in_the_action_space(scenario, factory):
         assert planner.config.problem.nu == load_problem().nu
 
 
+@pytest.mark.parametrize("policy", ["nmpc", "nmpc-t"])
+def test_a_highway_env_road_is_refused_when_the_policy_is_built_not_in_its_episodes(policy, tmp_path):
+    from bimp.agents.evaluate import main as evaluate_main
+    from bimp.agents.registry import make_policy
+
+    with pytest.raises(ValueError, match="closed-form road"):
+        make_policy(policy, gym.make(envs.env_id("stalled-vehicle")))
+    assert evaluate_main(["--scenario", "stalled-vehicle", "--policy", policy, "--episodes", "1",
+                          "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out" / "episodes.jsonl").exists()
+    make_policy(policy, gym.make(envs.env_id("overtaking-noisy")))  # the paper's road under noise: planned on
+
+
 def test_config_validation_and_unknown_overrides():
     for bad in ({"problem": {"horizon": 0}}, {"problem": {"nu": 0.0}}, {"max_iter": -1}, {"hessian": "bfgs"},
                 {"keep_out_power": 3}, {"problem": {"barrier": {"bound_margin": 1.0}}}, {"max_cpu_time": 0.0},
