@@ -95,9 +95,11 @@ def one_thread() -> Iterator[None]:
     machine's two), so a record would depend on ``--workers`` and on the cores of the machine that made it. XLA's
     threads are fixed when JAX starts and stay as they are; they changed no action in the cases measured
     (``docs/scaling.md``)."""
+    import scipy.linalg  # noqa: F401  (its own OpenBLAS, which JAX's CPU LAPACK loads at a planner's first solve)
     import torch
     from threadpoolctl import threadpool_limits
 
+    # threadpoolctl limits the libraries loaded when the limit starts: one loaded later inside would keep its cores.
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

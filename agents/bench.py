@@ -78,11 +78,13 @@ def sampled() -> list[str]:
 
 
 def _threads() -> dict:
-    """The thread counts the timing ran on: torch's and each BLAS / OpenMP library's (threadpoolctl)."""
+    """The thread counts the timing ran on: torch's and each loaded BLAS / OpenMP library's (threadpoolctl)."""
     import torch
     from threadpoolctl import threadpool_info
 
-    return {"torch": torch.get_num_threads(), **{i["internal_api"]: i["num_threads"] for i in threadpool_info()}}
+    # Keyed by file: numpy and scipy each load their own OpenBLAS.
+    return {"torch": torch.get_num_threads(),
+            **{Path(pool["filepath"]).name: pool["num_threads"] for pool in threadpool_info()}}
 
 
 def observations(count: int):

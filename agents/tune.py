@@ -186,7 +186,10 @@ def shipped_params(policy: str, scenario: str, space: dict) -> dict:
     """The values of ``space``'s keys in the config ``policy`` ships with (its shipped tuned config where it has
     one), each that lies in its distribution: a new study's first trial, so that its best is never a config that
     does worse on its training seeds than the one users already run."""
-    shipped = factory_kwargs(make_policy(policy, gym.make(envs.env_id(scenario))))
+    try:
+        shipped = factory_kwargs(make_policy(policy, gym.make(envs.env_id(scenario))))
+    except (ValueError, TypeError, OSError) as err:  # a shipped tuned config that no longer builds, say
+        raise TuneError(f"{policy}'s shipped config does not build on {scenario}: {err}") from None
     values = {key: get_value(shipped, key) for key in space}
     return {key: value for key, value in values.items() if _contains(space[key], value)}
 
@@ -194,7 +197,12 @@ def shipped_params(policy: str, scenario: str, space: dict) -> dict:
 def _contains(distribution, value) -> bool:
     if hasattr(distribution, "choices"):
         return value in distribution.choices
-    return isinstance(value, (int, float)) and distribution.low <= value <= distribution.high
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    if not distribution.low <= value <= distribution.high:
+        return False
+    step = getattr(distribution, "step", None)  # a stepped range samples its own grid rather than take a value off it
+    return step is None or math.isclose((value - distribution.low) / step, round((value - distribution.low) / step))
 
 
 def _suggest(trial, key: str, distribution):
@@ -421,7 +429,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
     held = sum(s.n_trials for s in optuna.get_all_study_summaries(_storage(url)) if s.study_name == spec.name)
     study = spec.load(sampler_seed + held)
     if not study.trials:  # a new study starts from what users run; a resumed one keeps its first trial
-        study.enqueue_trial(shipped_params(policy, scenarios[0], space))
+        study.enqueue_trial(shipped_params(policy, scenarios[0], space), skip_if_exists=True)
     study.set_user_attr("request", {"policy": policy, "scenarios": scenarios, "episodes": episodes, "seed": seed,
                                     "objective": objective})
     remaining = trials - len(study.get_trials(deepcopy=False, states=_finished()))

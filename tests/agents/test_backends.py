@@ -76,6 +76,27 @@ def test_one_thread_limits_numpys_blas_and_restores_the_threads_it_found():
     assert (torch.get_num_threads(), [pool["num_threads"] for pool in threadpool_info()]) == before
 
 
+# JAX's CPU LAPACK loads scipy's own OpenBLAS the first time a planner solves, inside the episode: after
+# one_thread's limit started, unless one_thread loads it first.
+LATE_BLAS = """
+import jax.numpy as jnp
+from threadpoolctl import threadpool_info
+from bimp.agents.backends import one_thread
+with one_thread():
+    jnp.linalg.solve(jnp.eye(3) * 2.0, jnp.ones(3)).block_until_ready()
+    print(max(pool["num_threads"] for pool in threadpool_info()), len(threadpool_info()))
+"""
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: every library runs one thread anyway")
+def test_one_thread_also_limits_the_blas_a_planners_first_solve_loads():
+    own = {k: v for k, v in os.environ.items() if k not in THREADS}  # a fresh interpreter, BLAS at its defaults
+    done = subprocess.run([sys.executable, "-c", LATE_BLAS], env=own, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    most, pools = map(int, done.stdout.split()[-2:])
+    assert most == 1 and pools >= 2, done.stdout  # numpy's OpenBLAS and scipy's, both at one thread
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--backend", "dask"], "unknown backend 'dask'"),
     (["--address", "10.0.0.1:6379"], "not 'local'"),

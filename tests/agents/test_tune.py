@@ -65,6 +65,18 @@ def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_
     assert _run(tmp_path / "tuned", 3).trials[0].params == first[0].params  # resumed: not enqueued again
 
 
+def test_a_shipped_value_is_enqueued_only_where_the_space_could_have_drawn_it():
+    from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
+
+    from bimp.agents.tune import _contains
+
+    assert _contains(IntDistribution(1, 5), 3) and not _contains(IntDistribution(1, 5), True)
+    assert _contains(FloatDistribution(0.0, 1.0, step=0.25), 0.5)
+    assert not _contains(FloatDistribution(0.0, 1.0, step=0.25), 0.3)  # off the grid
+    assert _contains(FloatDistribution(0.1, 1.0, log=True), 0.5) and not _contains(FloatDistribution(0.0, 1.0), 2.0)
+    assert _contains(CategoricalDistribution([2, 4, 6]), 4) and not _contains(CategoricalDistribution([2, 4, 6]), 3)
+
+
 def test_a_trial_whose_episodes_raise_fails_with_its_error_and_the_study_goes_on(tmp_path):
     study = _run(tmp_path, 6, policy="fragile")
     states = {t.state for t in study.trials}
