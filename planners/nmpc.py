@@ -305,6 +305,7 @@ class NMPCPlanner:
         self.config = config
         self.horizon = config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
+        closed_form(self._scene())  # refused at build, where bimp evaluate names it, not in every episode
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
         self.files, self.artifacts = dynamics_files(config.problem.dynamics) if dynamics is None else ({}, {})
@@ -523,7 +524,6 @@ def make_nmpc(env, config: str | None = None, **overrides) -> NMPCPlanner:
     ``problem.barrier.bound_margin =`` :data:`HARD_BOUND_MARGIN`), the YAML ``config`` on top if given (a file of
     overrides: a key it leaves out keeps its default), then ``overrides`` (``problem=`` a mapping merged key by
     key; an unknown key raises naming it)."""
-    closed_form(env.unwrapped.scene)  # refused at build, where bimp evaluate names it, not in every episode
     nu_inf = {"problem": {"nu": math.inf}}
     return NMPCPlanner(lambda: env.unwrapped.scene,
                        load_planner_config(NMPCConfig, HARD_BOUNDS, nu_inf, config, overrides))
@@ -533,7 +533,6 @@ def make_nmpc_t(env, config: str | None = None, **overrides) -> NMPCPlanner:
     """NMPC with the Student's-t log cost of section IV, ``problem.nu`` the shared problem's (EnKTS's); configured
     in layers as :func:`make_nmpc`. ``bimp.agents.make_policy("nmpc-t", ...)`` starts from the shipped tuned config
     (``configs/tuned/nmpc-t.yaml``) instead."""
-    closed_form(env.unwrapped.scene)
     return NMPCPlanner(lambda: env.unwrapped.scene, load_planner_config(NMPCConfig, HARD_BOUNDS, config, overrides))
 
 
