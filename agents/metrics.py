@@ -71,7 +71,7 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
         # the EV ends ahead of OV1, the vehicle it started behind in its lane (overtaking only: else None)
         "overtake_rate": (float(trace["ahead_of_ov1"][-1]) if trace.get("ahead_of_ov1")
                           and trace["ahead_of_ov1"][-1] is not None else None),
-        **closed_loop_score(trace, dt),
+        **closed_loop_score(trace, dt, truncated),
     }
 
 
@@ -160,12 +160,15 @@ def comfort_signals(speed: ArrayLike, heading: ArrayLike, dt: float) -> tuple[np
     return jerk, _savgol(v * yaw_rate, ACCEL_WINDOW, dt, 0)
 
 
-def closed_loop_score(trace: dict, dt: float) -> dict[str, float | None]:
+def closed_loop_score(trace: dict, dt: float, truncated: bool) -> dict[str, float | None]:
     """The closed-loop score of one episode in nuPlan's style (``docs/suite.md``), from its trace (``dt`` [s] per
-    step): ``at_fault_collision_rate`` (:func:`at_fault_collision`), ``score`` and its parts, each in [0, 1]::
+    step) and whether it ran to its time limit (``truncated``): ``at_fault_collision_rate``
+    (:func:`at_fault_collision`), ``score`` and its parts, each in [0, 1]::
 
-        score          = (no at-fault collision) x (never off-road)
+        score          = (no at-fault collision) x (never off-road) x (goal not missed)
                          x (5 progress + 5 ttc + 4 speed + 2 comfort) / 16
+        goal missed    = the env has a goal (``goal`` a bool at some step) and the episode ran to its time limit
+                         without a collision and without reaching it (:func:`missed_goal`)
         score_progress = min(1, max(0, progress_m) / reachable_m),  reachable_m = dt x sum of speed_limit over the
                          steps progress_m covers (the second to the last): driving at the limit throughout
                          (1 where nothing was reachable)
@@ -195,10 +198,31 @@ def closed_loop_score(trace: dict, dt: float) -> dict[str, float | None]:
         "speed": max(0.0, 1.0 - float(np.mean(np.maximum(speed - limit, 0.0))) / OVERSPEED_BOUND),
         "comfort": float(bool(np.all(np.abs(jerk) <= MAX_LON_JERK) and np.all(np.abs(lateral) <= MAX_LAT_ACCEL))),
     }
-    gate = (1.0 - at_fault) * (0.0 if any(trace["offroad"]) else 1.0)
+    goals = [g for g in trace.get("goal") or () if g is not None]
+    missed = missed_goal(truncated=truncated, collision=any(trace["collision"]), has_goal=bool(goals),
+                         reached=any(goals))
+    gate = (1.0 - at_fault) * (0.0 if any(trace["offroad"]) else 1.0) * (0.0 if missed else 1.0)
     weighted = sum(WEIGHTS[k] * parts[k] for k in WEIGHTS) / sum(WEIGHTS.values())
     return {"at_fault_collision_rate": at_fault, "score": gate * weighted,
             **{f"score_{k}": float(v) for k, v in parts.items()}}
+
+
+def missed_goal(*, truncated: bool, collision: bool, has_goal: bool, reached: bool) -> bool:
+    """Whether an episode missed its goal: its env has one (two-way-overtake's pass, exit-v0's exit ...), and the
+    episode ran to its time limit without a collision and without reaching it. The score's third gate, as waiting
+    behind the slow vehicle is no way to complete the route; an episode a collision ended is judged by the collision
+    gate alone (not at fault: the goal was still to come)."""
+    return has_goal and truncated and not collision and not reached
+
+
+def record_missed_goal(record: dict) -> bool:
+    """:func:`missed_goal` of an episode record, from what every record holds: an episode that ran to its time
+    limit (``truncated``) without a collision, on the road, and failed is one whose env has a goal it did not
+    reach (without a goal such an episode succeeds). :mod:`bimp.agents.migrate` gates the scores recorded before
+    the goal gate with it."""
+    m = record.get("metrics") or {}
+    return bool(record.get("truncated")) and m.get("collision_rate") == 0.0 and m.get("offroad_rate") == 0.0 \
+        and m.get("success_rate") == 0.0
 
 
 def summarize(records: list[dict]) -> dict[str, dict]:

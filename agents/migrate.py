@@ -16,6 +16,9 @@ Per arm (the records sharing one config), the old config is brought to today's (
   since before the first record: ``SHIPPED_WEIGHTS``); an arm that named another weights file is left in place;
 - PPO/SAC: the absolute ``model_path`` is dropped (``model_sha256`` names the file), and the shipped file with that
   sha256 goes into the arm's ``artifacts`` as ``bimp:agents/models/NAME``;
+- the score's goal gate (``docs/suite.md``): a record that ran to its time limit without its goal
+  (:func:`bimp.agents.metrics.record_missed_goal`) and was scored before the gate existed gets the score 0, its
+  parts as they were: exact, since the gate multiplies what was recorded. Every record, its arm migrated or not;
 - the hash recomputed with :func:`bimp.agents.provenance.config_hash`, and the config moved into ``arms.json``
   (records keep their labels, seeds, metrics and code version; only ``config``, ``overrides`` and ``seeding`` go, to
   the arm's entry).
@@ -48,6 +51,7 @@ import gymnasium as gym
 
 from bimp import envs
 from bimp.agents.cli import EvaluationError
+from bimp.agents.metrics import record_missed_goal
 from bimp.agents.provenance import REPO_ROOT, config_diff, config_hash, neutral_config, plain, resolved_config
 from bimp.agents.records import (
     EPISODES_FILE,
@@ -220,6 +224,7 @@ class FolderReport:
     folder: Path
     records: int = 0
     changed: int = 0
+    gated: int = 0  # scores the goal gate zeroed
     arms: int = 0
     left: list[str] = field(default_factory=list)  # arms left in place (inline, old hash), and why
     notes: list[str] = field(default_factory=list)  # arms migrated with something to know
@@ -231,6 +236,7 @@ class FolderReport:
         if self.problem:
             return f"{self.folder}: not migrated: {self.problem}"
         what = f"{self.changed} of {self.records} record(s) rewritten" if self.changed else "nothing to change"
+        what += f" ({self.gated} score(s) zeroed by the goal gate)" if self.gated else ""
         left = "".join(f"\n  left in place: {reason}" for reason in self.left)
         left += "".join(f"\n  note: {note}" for note in self.notes)
         return (f"{self.folder}: {what}; {self.arms} arm(s) in arms.json; {self.bytes_before / 1e6:.2f} MB -> "
@@ -272,6 +278,8 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             value = None
         parsed.append(value if value is not None and record_problem(value) is None else None)
     report.records = sum(r is not None for r in parsed)
+    gated = [n for n, r in enumerate(parsed, start=1) if r is not None and gate_goal(r)]
+    report.gated = len(gated)
 
     # The arms: records sharing a policy and an old config (inline, or their arms.json entry).
     arms: dict[tuple[str, str], list[int]] = {}
@@ -321,6 +329,9 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             # A record repeats what differs from its arm's entry (another label's spelling of the same config).
             record.update({k: v for k, v in (("overrides", overrides), ("seeding", seeding)) if entry[k] != v})
             new_lines[number - 1] = json.dumps(finite(record)).encode()
+    for number in gated:  # a record of an arm left in place keeps its config, not its old score
+        if new_lines[number - 1] == lines[number - 1]:
+            new_lines[number - 1] = json.dumps(finite(parsed[number - 1])).encode()
     final = {**{k: v for k, v in old_entries.items() if k in referenced}, **entries}
     new_data = b"".join(line + b"\n" for line in new_lines)
     report.arms = len(final)
@@ -337,6 +348,16 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
         write_atomic(path, new_data.decode())
         write_arms(folder, final)
     return report
+
+
+def gate_goal(record: dict) -> bool:
+    """Zero the score of ``record`` (in place) where it missed its goal and was scored before the goal gate;
+    whether it changed."""
+    metrics = record.get("metrics") or {}
+    if not record_missed_goal(record) or metrics.get("score") in (None, 0.0):
+        return False
+    metrics["score"] = 0.0
+    return True
 
 
 def _arms_text(entries: dict) -> str:
@@ -371,4 +392,4 @@ def main(argv: list[str] | None = None) -> int:
     return 1 if failed else 0
 
 
-__all__ = ["FolderReport", "MigrationError", "migrate_folder", "new_overrides", "new_shape", "rebuild"]
+__all__ = ["FolderReport", "MigrationError", "gate_goal", "migrate_folder", "new_overrides", "new_shape", "rebuild"]

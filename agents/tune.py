@@ -24,10 +24,9 @@ Objective (maximized; ``--objective``): ``success`` (the default), the success r
 safety-first by the collision rate, then the off-road rate, then the share of steps over an input or rate bound:
 ``success - e (collision + e (offroad + e violation))`` with ``e = 1 / (n + 2)`` for ``n`` episodes, small enough
 that no tie-break outweighs one success. ``score``: the mean closed-loop score (``docs/suite.md``: its gates zero an
-at-fault collision or leaving the road; progress, time to collision, speed and comfort grade the rest), for the
-suite's families without a goal, where waiting behind an obstacle succeeds and success no longer tells plans apart.
-The score has no goal gate: on a family with a goal (two-way-overtake: waiting scored 0.75-0.76, passing 0.79 on
-development seeds) tune on success.
+at-fault collision, leaving the road or missing the env's goal; progress, time to collision, speed and comfort grade
+the rest), for the suite's families, where waiting behind an obstacle succeeds and success no longer tells plans
+apart.
 
 Seeds. Tuning uses the training seeds (100-199 by convention, ``docs/evaluation.md``); seeds from 1000 on are the
 safety, results and claims seeds and are refused.

@@ -538,3 +538,34 @@ def test_drop_traces_touches_only_what_is_migrated(tmp_path):
     lines = (tmp_path / EPISODES_FILE).read_text().splitlines()
     assert json.loads(lines[enkts]) == records[enkts]
     assert not set(TRACES) & set(json.loads(lines[ppo]))
+
+
+def missed(record: dict, score: float = 0.72) -> dict:
+    """``record`` as an episode that ran to its time limit without its env's goal (two-way-overtake's waiting
+    behind the slow vehicle), scored before the goal gate existed."""
+    record["truncated"] = True
+    record["metrics"] = {"success_rate": 0.0, "collision_rate": 0.0, "offroad_rate": 0.0, "score": score,
+                         "score_progress": 0.5}
+    return record
+
+
+@pytest.mark.parametrize("make, policy", [(synthetic_records, "enkts"), (old_records, "enks")])
+def test_a_score_that_missed_its_goal_is_zeroed_whether_its_arm_migrates_or_stays(tmp_path, capsys, make, policy):
+    records = make()  # enkts of the synthetic records migrates; enks of the real ones stays in place (the road)
+    number = index(records, policy)
+    missed(records[number])
+    crashed = [r["policy"] for r in records].index("ppo")
+    records[crashed]["truncated"] = True  # a collision at the time limit: judged by the collision gate alone
+    records[crashed]["metrics"] = {"success_rate": 0.0, "collision_rate": 1.0, "offroad_rate": 0.0, "score": 0.6}
+    write(tmp_path, records)
+    assert main(["migrate", str(tmp_path), "--dry-run"]) == 0
+    assert "(1 score(s) zeroed by the goal gate)" in capsys.readouterr().out
+    report = migrate.migrate_folder(tmp_path)
+    assert report.problem is None and report.gated == 1
+    after = {(r["policy"], r["seed"]): r for r in read_records(tmp_path)}
+    gated = after[(policy, records[number]["seed"])]
+    assert gated["metrics"]["score"] == 0.0 and gated["metrics"]["score_progress"] == 0.5  # the parts as they were
+    assert [r["metrics"].get("score") for r in read_records(tmp_path) if r["policy"] == "ppo"].count(0.6) == 1
+    assert (policy in " ".join(report.left)) == (make is old_records)  # the case the parametrization means
+    before = tree(tmp_path)
+    assert migrate.migrate_folder(tmp_path).gated == 0 and tree(tmp_path) == before  # a second run: nothing
