@@ -113,9 +113,23 @@ def _path(key: str) -> list[str | int]:
 def set_value(tree: dict, key: str, value: Any) -> dict:
     """A copy of the nested config ``tree`` (dicts and lists) with ``key`` (``a.b[1]``) set to ``value``;
     :class:`TuneError` naming the key if the config has no such entry."""
-    parts = _path(key)
     root = json.loads(json.dumps(tree))
-    node = root
+    node, part = _entry(root, key)
+    node[part] = value
+    return root
+
+
+def get_value(tree: dict, key: str) -> Any:
+    """The entry ``key`` (``a.b[1]``) of the nested config ``tree``; :class:`TuneError` naming the key if absent."""
+    node, part = _entry(tree, key)
+    return node[part]
+
+
+def _entry(tree: dict, key: str) -> tuple[Any, str | int]:
+    """``(container, last part)`` of the entry ``key`` in ``tree``: the dict or list that holds it and its name or
+    index there; :class:`TuneError` naming the key, and the part where the path first misses, if absent."""
+    parts = _path(key)  # never empty
+    node = tree
     for depth, part in enumerate(parts):
         if isinstance(node, dict):
             has = isinstance(part, str) and part in node
@@ -126,22 +140,9 @@ def set_value(tree: dict, key: str, value: Any) -> dict:
                 else "no entries"
             where = key if depth == 0 else f"{key} (at {parts[depth]!r})"
             raise TuneError(f"no config entry {where}; the config has {known}")
-        if depth == len(parts) - 1:
-            node[part] = value
-        else:
+        if depth < len(parts) - 1:
             node = node[part]
-    return root
-
-
-def get_value(tree: dict, key: str) -> Any:
-    """The entry ``key`` (``a.b[1]``) of the nested config ``tree``; :class:`TuneError` naming the key if absent."""
-    node = tree
-    for part in _path(key):
-        try:
-            node = node[part]
-        except (KeyError, IndexError, TypeError):
-            raise TuneError(f"no config entry {key!r}") from None
-    return node
+    return node, parts[-1]
 
 
 def with_params(base: dict, params: dict) -> dict:

@@ -12,7 +12,7 @@ import tests.agents.faulty  # noqa: F401  (registers the policy "fragile")
 from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents.baselines import LaneKeeping
 from bimp.agents.registry import POLICIES, TUNED_DIR, make_policy
-from bimp.agents.tune import TuneError, check_space, objective_value, search_space, set_value, tune
+from bimp.agents.tune import TuneError, check_space, get_value, objective_value, search_space, set_value, tune
 
 EB = ["emergency-brake"]
 SMALL = dict(scenarios=EB, episodes=2, progress=False)
@@ -148,14 +148,16 @@ def test_bad_requests_fail_before_any_trial(tmp_path, monkeypatch):
     assert not (tmp_path / "study").exists()
 
 
-def test_set_value_edits_nested_entries_and_names_a_missing_one():
+def test_set_value_and_get_value_walk_nested_entries_and_name_a_missing_one():
     tree = {"a": 1, "barrier": {"widths": [1, 2, 3]}, "sigma": [0.1, 0.2]}
     assert set_value(tree, "barrier.widths[2]", 9)["barrier"]["widths"] == [1, 2, 9]
     assert set_value(tree, "sigma[0]", 5)["sigma"] == [5, 0.2] and tree["sigma"] == [0.1, 0.2]
+    assert get_value(tree, "barrier.widths[2]") == 3 and get_value(tree, "barrier") == {"widths": [1, 2, 3]}
     for key, missing in (("barrier.height", "height"), ("sigma[2]", "2"), ("a.b", "b"), ("nope", "nope"),
                          ("sigma.x", "x"), ("barrier[0]", "0")):
-        with pytest.raises(TuneError, match=missing):
-            set_value(tree, key, 0)
+        for walk in (lambda: set_value(tree, key, 0), lambda: get_value(tree, key)):
+            with pytest.raises(TuneError, match=rf"no config entry .*{missing}"):
+                walk()
 
 
 def _summary(success, collision, offroad, violation, n=10):
