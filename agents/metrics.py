@@ -218,8 +218,9 @@ def missed_goal(*, truncated: bool, collision: bool, has_goal: bool, reached: bo
 def record_missed_goal(record: dict) -> bool:
     """:func:`missed_goal` of an episode record, from what every record holds: an episode that ran to its time
     limit (``truncated``) without a collision, on the road, and failed is one whose env has a goal it did not
-    reach (without a goal such an episode succeeds). :mod:`bimp.agents.migrate` gates the scores recorded before
-    the goal gate with it."""
+    reach (without a goal such an episode succeeds). An off-road episode is not counted here, where
+    :func:`missed_goal` may count it: its score is 0 by the off-road gate either way. :mod:`bimp.agents.migrate`
+    gates the scores recorded before the goal gate with it."""
     m = record.get("metrics") or {}
     return bool(record.get("truncated")) and m.get("collision_rate") == 0.0 and m.get("offroad_rate") == 0.0 \
         and m.get("success_rate") == 0.0

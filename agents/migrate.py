@@ -16,12 +16,13 @@ Per arm (the records sharing one config), the old config is brought to today's (
   since before the first record: ``SHIPPED_WEIGHTS``); an arm that named another weights file is left in place;
 - PPO/SAC: the absolute ``model_path`` is dropped (``model_sha256`` names the file), and the shipped file with that
   sha256 goes into the arm's ``artifacts`` as ``bimp:agents/models/NAME``;
-- the score's goal gate (``docs/suite.md``): a record that ran to its time limit without its goal
-  (:func:`bimp.agents.metrics.record_missed_goal`) and was scored before the gate existed gets the score 0, its
-  parts as they were: exact, since the gate multiplies what was recorded. Every record, its arm migrated or not;
 - the hash recomputed with :func:`bimp.agents.provenance.config_hash`, and the config moved into ``arms.json``
-  (records keep their labels, seeds, metrics and code version; only ``config``, ``overrides`` and ``seeding`` go, to
-  the arm's entry).
+  (records keep their labels, seeds, metrics (but a gated score, below) and code version; only ``config``,
+  ``overrides`` and ``seeding`` go, to the arm's entry).
+
+Per record, whatever its arm (migrated or left in place): the score's goal gate (``docs/suite.md``). A record that ran
+to its time limit without its goal (:func:`bimp.agents.metrics.record_missed_goal`) and was scored before the gate
+existed gets the score 0, its parts as they were: exact, since the gate multiplies what was recorded.
 
 Each migrated arm is checked, not assumed: its policy is rebuilt from the migrated config on its scenario's env, and
 its resolved config must be the migrated one (what a resume will compare). A folder where an arm fails (or a record

@@ -25,8 +25,8 @@ safety-first by the collision rate, then the off-road rate, then the share of st
 ``success - e (collision + e (offroad + e violation))`` with ``e = 1 / (n + 2)`` for ``n`` episodes, small enough
 that no tie-break outweighs one success. ``score``: the mean closed-loop score (``docs/suite.md``: its gates zero an
 at-fault collision, leaving the road or missing the env's goal; progress, time to collision, speed and comfort grade
-the rest), for the suite's families, where waiting behind an obstacle succeeds and success no longer tells plans
-apart.
+the rest), for the suite's families: where there is no goal, waiting behind an obstacle succeeds and success no
+longer tells plans apart; where there is one, the goal gate scores waiting 0.
 
 Seeds. Tuning uses the training seeds (100-199 by convention, ``docs/evaluation.md``); seeds from 1000 on are the
 safety, results and claims seeds and are refused.

@@ -17,7 +17,7 @@ from gymnasium.utils.env_checker import check_env
 import bimp  # noqa: F401  (registers bimp/two-way-overtake-v0)
 from bimp import make_policy
 from bimp.agents.idm import _adapter
-from bimp.agents.metrics import episode_metrics
+from bimp.agents.metrics import episode_metrics, record_missed_goal
 from bimp.agents.rollout import rollout
 from bimp.envs.highway.behaviour import OvertakeDriver, pass_time
 from bimp.envs.oracle import NEVER, brake_at_the_bounds
@@ -136,7 +136,9 @@ def test_the_goal_ends_the_episode_and_waiting_never_meets_it():
     assert info["goal"] is True and terminated and not info["collision"]
     episode = rollout(env, BrakeAtTheBounds(env), 0)  # stopped behind the slow vehicle to the time limit
     assert episode.truncated and not any(episode.trace["goal"]) and not any(episode.trace["collision"])
-    assert episode_metrics(episode.trace, 0.1, episode.truncated)["success_rate"] == 0.0
+    metrics = episode_metrics(episode.trace, 0.1, episode.truncated)
+    assert metrics["success_rate"] == 0.0 and metrics["score"] == 0.0  # the score's goal gate
+    assert record_missed_goal({"truncated": episode.truncated, "metrics": metrics})
 
 
 def test_pass_time_against_a_stepped_pass():
