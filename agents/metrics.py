@@ -49,7 +49,7 @@ def episode_metrics(trace: dict, dt: float, truncated: bool) -> dict[str, float 
     input_viol = [max(k["accel_min"], k["accel_max"], k["steer"]) > TOLERANCE for k in c]
     rate_viol = [max(k["accel_rate"], k["steer_rate"]) > TOLERANCE for k in c]
     collision, offroad = any(trace["collision"]), any(trace["offroad"])
-    goals = [g for g in trace.get("goal") or () if g is not None]  # an env with a goal reports a bool every step
+    goals = _goals(trace)
     reached = any(goals) if goals else truncated
     ttc = float(np.min(trace["ttc"])) if trace["ttc"] else math.inf
     jerk = np.abs(np.diff(inputs[:, 0])) / dt if len(inputs) > 1 else np.zeros(1)
@@ -168,7 +168,7 @@ def closed_loop_score(trace: dict, dt: float, truncated: bool) -> dict[str, floa
         score          = (no at-fault collision) x (never off-road) x (goal not missed)
                          x (5 progress + 5 ttc + 4 speed + 2 comfort) / 16
         goal missed    = the env has a goal (``goal`` a bool at some step) and the episode ran to its time limit
-                         without a collision and without reaching it (:func:`missed_goal`)
+                         without a collision and without reaching it
         score_progress = min(1, max(0, progress_m) / reachable_m),  reachable_m = dt x sum of speed_limit over the
                          steps progress_m covers (the second to the last): driving at the limit throughout
                          (1 where nothing was reachable)
@@ -198,28 +198,27 @@ def closed_loop_score(trace: dict, dt: float, truncated: bool) -> dict[str, floa
         "speed": max(0.0, 1.0 - float(np.mean(np.maximum(speed - limit, 0.0))) / OVERSPEED_BOUND),
         "comfort": float(bool(np.all(np.abs(jerk) <= MAX_LON_JERK) and np.all(np.abs(lateral) <= MAX_LAT_ACCEL))),
     }
-    goals = [g for g in trace.get("goal") or () if g is not None]
-    missed = missed_goal(truncated=truncated, collision=any(trace["collision"]), has_goal=bool(goals),
-                         reached=any(goals))
+    # Waiting behind two-way-overtake's slow vehicle is no way to complete the route; an episode a collision ended
+    # is judged by the collision gate alone (not at fault: the goal was still to come).
+    goals = _goals(trace)
+    missed = truncated and bool(goals) and not any(goals) and not any(trace["collision"])
     gate = (1.0 - at_fault) * (0.0 if any(trace["offroad"]) else 1.0) * (0.0 if missed else 1.0)
     weighted = sum(WEIGHTS[k] * parts[k] for k in WEIGHTS) / sum(WEIGHTS.values())
     return {"at_fault_collision_rate": at_fault, "score": gate * weighted,
             **{f"score_{k}": float(v) for k, v in parts.items()}}
 
 
-def missed_goal(*, truncated: bool, collision: bool, has_goal: bool, reached: bool) -> bool:
-    """Whether an episode missed its goal: its env has one (two-way-overtake's pass, exit-v0's exit ...), and the
-    episode ran to its time limit without a collision and without reaching it. The score's third gate, as waiting
-    behind the slow vehicle is no way to complete the route; an episode a collision ended is judged by the collision
-    gate alone (not at fault: the goal was still to come)."""
-    return has_goal and truncated and not collision and not reached
+def _goals(trace: dict) -> list[bool]:
+    """The goal flags of an env with a goal (two-way-overtake's pass, exit-v0's exit ...: a bool every step); empty
+    for an env without one (None every step, or no ``goal`` in the trace)."""
+    return [g for g in trace.get("goal") or () if g is not None]
 
 
 def record_missed_goal(record: dict) -> bool:
-    """:func:`missed_goal` of an episode record, from what every record holds: an episode that ran to its time
-    limit (``truncated``) without a collision, on the road, and failed is one whose env has a goal it did not
-    reach (without a goal such an episode succeeds). An off-road episode is not counted here, where
-    :func:`missed_goal` may count it: its score is 0 by the off-road gate either way. :mod:`bimp.agents.migrate`
+    """The goal gate of :func:`closed_loop_score` read from an episode record, from what every record holds: an
+    episode that ran to its time limit (``truncated``) without a collision, on the road, and failed is one whose env
+    has a goal it did not reach (without a goal such an episode succeeds). An off-road episode is not counted here,
+    where the trace's gate may count it: its score is 0 by the off-road gate either way. :mod:`bimp.agents.migrate`
     gates the scores recorded before the goal gate with it."""
     m = record.get("metrics") or {}
     return bool(record.get("truncated")) and m.get("collision_rate") == 0.0 and m.get("offroad_rate") == 0.0 \
