@@ -279,7 +279,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             value = None
         parsed.append(value if value is not None and record_problem(value) is None else None)
     report.records = sum(r is not None for r in parsed)
-    gated = [n for n, r in enumerate(parsed, start=1) if r is not None and gate_goal(r)]
+    gated = [n for n, r in enumerate(parsed, start=1) if r is not None and _gate_goal(r)]
     report.gated = len(gated)
 
     # The arms: records sharing a policy and an old config (inline, or their arms.json entry).
@@ -351,7 +351,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
     return report
 
 
-def gate_goal(record: dict) -> bool:
+def _gate_goal(record: dict) -> bool:
     """Zero the score of ``record`` (in place) where it missed its goal and was scored before the goal gate;
     whether it changed."""
     metrics = record.get("metrics") or {}
@@ -393,4 +393,4 @@ def main(argv: list[str] | None = None) -> int:
     return 1 if failed else 0
 
 
-__all__ = ["FolderReport", "MigrationError", "gate_goal", "migrate_folder", "new_overrides", "new_shape", "rebuild"]
+__all__ = ["FolderReport", "MigrationError", "migrate_folder", "new_overrides", "new_shape", "rebuild"]
