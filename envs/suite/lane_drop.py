@@ -30,7 +30,7 @@ difficulty  ev_speed  drop_distance  density  aggressive_share  defensive_share
 ==========  ========  =============  =======  ================  ===============
 easy        20 - 25   150 - 230      5 - 10   0 - 0.1           0.2 - 0.5
 medium      22 - 28   110 - 180      12 - 20  0.1 - 0.3         0.1 - 0.3
-hard        25 - 30   90 - 130       20 - 35  0.3 - 0.5         0 - 0.2
+hard        25 - 30   82 - 110       35 - 50  0.4 - 0.6         0 - 0.1
 ==========  ========  =============  =======  ================  ===============
 
 Every instance leaves a safe plan inside the planning bounds: the EV can stop in its lane behind the closure's first
@@ -122,8 +122,8 @@ DIFFICULTIES = MappingProxyType({
                            traffic_speed=(20.0, 28.0), aggressive_share=(0.0, 0.1), defensive_share=(0.2, 0.5)),
     "medium": LaneDropRanges(ev_speed=(22.0, 28.0), drop_distance=(110.0, 180.0), density=(12.0, 20.0),
                              traffic_speed=(20.0, 28.0), aggressive_share=(0.1, 0.3), defensive_share=(0.1, 0.3)),
-    "hard": LaneDropRanges(ev_speed=(25.0, 30.0), drop_distance=(90.0, 130.0), density=(20.0, 35.0),
-                           traffic_speed=(20.0, 28.0), aggressive_share=(0.3, 0.5), defensive_share=(0.0, 0.2)),
+    "hard": LaneDropRanges(ev_speed=(25.0, 30.0), drop_distance=(82.0, 110.0), density=(35.0, 50.0),
+                           traffic_speed=(20.0, 28.0), aggressive_share=(0.4, 0.6), defensive_share=(0.0, 0.1)),
 })
 
 

@@ -52,8 +52,8 @@ def test_the_ev_can_stop_behind_the_closure_on_every_draw_and_corner(difficulty)
 
 
 def test_hard_starts_where_the_oracle_still_stops_clear():
-    """hard's worst corner (30 m/s, 90 m) stops 10 m clear; 10 m nearer it would not stop d_min clear."""
-    assert DIFFICULTIES["hard"].least_gap() > 10.0
+    """hard's worst corner (30 m/s, 82 m) stops 2.35 m clear; 2 m nearer it would not stop d_min clear."""
+    assert DIFFICULTIES["hard"].least_gap() == pytest.approx(2.35)
     assert stop_behind(30.0, 80.0) < B.d_min
 
 
