@@ -21,7 +21,7 @@ difficulty    ev_speed      stall_distance    density           traffic_speed   
 ============  ============  ================  ================  ===============  ================  ===============
 easy          20 - 25       120 - 200         3 - 8             20 - 28          0 - 0.1           0.2 - 0.5
 medium        22 - 28       90 - 150          8 - 16            20 - 28          0.1 - 0.3         0.1 - 0.3
-hard          25 - 30       85 - 120          16 - 30           20 - 28          0.3 - 0.5         0 - 0.2
+hard          25 - 30       85 - 120          25 - 40           20 - 28          0.4 - 0.6         0 - 0.1
 ============  ============  ================  ================  ===============  ================  ===============
 
 The densities are where highway-env's MOBIL finds its gaps or not: it changes lanes only where the new follower
@@ -116,9 +116,9 @@ DIFFICULTIES = MappingProxyType({
     "medium": StalledVehicleRanges(ev_speed=(22.0, 28.0), stall_distance=(90.0, 150.0), density=(8.0, 16.0),
                                    traffic_speed=(20.0, 28.0), aggressive_share=(0.1, 0.3),
                                    defensive_share=(0.1, 0.3)),
-    "hard": StalledVehicleRanges(ev_speed=(25.0, 30.0), stall_distance=(85.0, 120.0), density=(16.0, 30.0),
-                                 traffic_speed=(20.0, 28.0), aggressive_share=(0.3, 0.5),
-                                 defensive_share=(0.0, 0.2)),
+    "hard": StalledVehicleRanges(ev_speed=(25.0, 30.0), stall_distance=(85.0, 120.0), density=(25.0, 40.0),
+                                 traffic_speed=(20.0, 28.0), aggressive_share=(0.4, 0.6),
+                                 defensive_share=(0.0, 0.1)),
 })
 
 
