@@ -20,8 +20,8 @@ lane for it) see. At every ``reset(seed=...)``, from the env's own ``np_random``
 Not a real lane end: highway-env's straight road would need its own network (a lane that ends, as merge-v0's ramp)
 and the adapter's road edges would have to follow it; the closure is a row of standing blocks instead. It differs
 from ``stalled-vehicle``'s stall: the lane is closed for 150 m, not 5 m, so waiting behind it never clears the way
-and the closed lane is no shelter for traffic either; the traffic beside it is denser (up to 35 vehicles/km/lane on
-hard, against 30); and the closed lane is an outer one, so there is one lane to merge into.
+and the closed lane is no shelter for traffic either; the traffic beside it is denser (35 - 50 vehicles/km/lane on
+hard, against 25 - 40); and the closed lane is an outer one, so there is one lane to merge into.
 
 Ranges per ``difficulty`` (:data:`DIFFICULTIES`; ``traffic_speed`` 20 - 28 m/s throughout):
 
@@ -38,9 +38,10 @@ block by braking at the bounds from its first step (:func:`bimp.envs.oracle.stop
 length, so the oracle's footprint gap is the env's), keeping at least ``d_min`` (1 m). Ranges whose worst corner
 (the fastest EV, the nearest closure) fails are refused (:class:`LaneDropRanges`). The oracle assumes no traffic
 enters the EV's lane between the EV and the closure while the EV moves (the tests check it on hard seeds 0-2). It
-does not always hold: MOBIL sends traffic into the closed lane's free stretch (8 of 100 medium seeds, 5 of 100 hard,
-when written), where it stands against the closure ahead of the EV; the braking EV kept clear of it on all of them.
-On hard, aggressive drivers rear-end the standing EV (18 of 100 seeds): never the EV's fault, but success counts it.
+does not always hold: MOBIL sends traffic into the closed lane's free stretch while the EV brakes (8 of 100 medium
+seeds, 3 of 100 hard, when written), where it stands against the closure ahead of the EV; the braking EV kept clear
+of it on all of them. On hard, aggressive drivers rear-end the standing EV (27 of 100 seeds): never the EV's fault,
+but success counts it.
 
 Success: the time limit (20 s) reached without collision or leaving the road (no goal: stopping behind the closure
 where no gap opens is a safe end); the score's progress part tells merging from waiting.
