@@ -38,11 +38,12 @@ by braking at the bounds from its first step (:func:`bimp.envs.oracle.stop_behin
 on the worst corner of the ranges (the fastest EV, the nearest stall), where the least gap is smallest: ranges whose
 worst corner fails are refused (:class:`StalledVehicleRanges`), so a custom range never leaves the oracle's cover.
 The oracle assumes that no traffic vehicle enters the EV's lane between the EV and the stalled vehicle while the EV
-moves, which the tests check on whole episodes driven by the oracle's plan (seeds 0-99 per difficulty, a slow test).
-Once the EV stands, traffic does enter there on hard (2 of 100 seeds: MOBIL's gain sees the free lane beyond the
-stall), and on hard highway-env's aggressive drivers rear-end the standing EV (12 of 100 seeds; none on easy or
-medium): never the EV's fault, so the oracle's plan has no at-fault collision on any draw, but success counts every
-collision, and on hard waiting is not always collision-free.
+moves, which the tests check on whole episodes driven by the oracle's plan (seeds 0-99 per difficulty, a slow test):
+it holds on easy and medium; on hard traffic entered there while the EV braked on 3 of 100 seeds (MOBIL's gain sees
+the free lane before the stall), and the braking EV kept clear of it on each. Once the EV stands, traffic enters there
+on hard more often (13 of 100 seeds), and highway-env's aggressive drivers rear-end the standing EV (26 of 100 seeds;
+none on easy or medium): never the EV's fault, so the oracle's plan has no at-fault collision on any of the draws
+driven, but success counts every collision, and on hard waiting is not always collision-free.
 
 Success: the time limit (20 s) reached without collision or leaving the road (no goal: stopping behind the stalled
 vehicle where no gap opens is a safe end); the score's progress part tells passing from waiting.
