@@ -17,10 +17,11 @@ every ``reset(seed=...)``, from the env's own ``np_random``:
   IDM exponent is randomized as highway-v0 randomizes it; the shares are drawn once per episode.
 
 The EV's target (:attr:`DenseHighwayEnv.TARGET_SPEED`, the behaviour layer's free-road target) is the lanes' limit,
-30 m/s, above every traffic speed: holding it means passing, lane after lane, through traffic denser than any other
-family's at each difficulty, where aggressive drivers (highway-env's ``AggressiveVehicle``: MOBIL with no
-politeness, a linear car-following law that closes to within a car's length of a standing leader at targets above
-23.5 m/s) change lanes in front of it and close up behind it. At these densities highway-env's IDM traffic does
+30 m/s, above every traffic speed: holding it means passing, lane after lane, through traffic in every lane (the
+EV's own included) at least as dense as any other family's lanes at each difficulty (lane-drop's hard reaches the
+same 50 vehicles/km/lane beside its closure), where aggressive drivers (highway-env's ``AggressiveVehicle``: MOBIL
+with no politeness, a linear car-following law that closes to within a car's length of a standing leader at targets
+above 23.5 m/s) change lanes in front of it and close up behind it. At these densities highway-env's IDM traffic does
 not flow at its targets (IDM's desired gap at 20 m/s is 40 m, bumper to bumper; 40 vehicles/km/lane leave 20 m):
 it slows within seconds to 10-15 m/s, in stop-and-go waves on hard, so ``traffic_speed`` is each vehicle's target
 and its speed at reset, not its speed later.

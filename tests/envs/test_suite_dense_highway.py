@@ -157,7 +157,8 @@ def test_denser_than_the_other_families_at_each_difficulty():
     for name in ("stalled-vehicle", "cut-in", "lane-drop"):
         for difficulty, ranges in DIFFICULTIES.items():
             other = FAMILIES[name].DIFFICULTIES[difficulty].density
-            assert ranges.density[0] > other[0] and ranges.density[1] > other[1], (name, difficulty)
+            # lane-drop's hard tops out at the envelope's 50 vehicles/km/lane too, in the one lane beside its closure
+            assert ranges.density[0] > other[0] and ranges.density[1] >= other[1], (name, difficulty)
 
 
 @pytest.mark.parametrize(("config", "match"), [
