@@ -223,7 +223,8 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
             f"the folder already holds {len(rs)} episode(s) of {arm.label!r} on {arm.scenario} made with "
             f"another config (hash {old.get('config_hash')} here, {arm.config_hash} now):\n  "
             + "\n  ".join(diff[:12])
-            + "\ngive --label NAME to add this config as a new row, or choose another --out")
+            + "\ngive --label NAME to add this config as a new row, choose another --out, or take the old records "
+            f"out first: bimp drop {out} --scenario {arm.scenario} --label {arm.label}")
 
 
 # --- running one episode -------------------------------------------------------------------------------

@@ -144,10 +144,10 @@ def write_arms(out: str | Path, arms: dict[str, dict]) -> None:
     write_atomic(Path(out) / ARMS_FILE, json.dumps(finite(arms), indent=1, sort_keys=True) + "\n")
 
 
-def write_atomic(path: Path, text: str) -> None:
+def write_atomic(path: Path, text: str | bytes) -> None:
     """``path`` holds ``text``, replaced in one step (fsynced before the rename)."""
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
+    with open(tmp, "wb" if isinstance(text, bytes) else "w") as f:
         f.write(text)
         f.flush()
         os.fsync(f.fileno())

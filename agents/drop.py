@@ -1,0 +1,104 @@
+"""``bimp drop DIR --scenario S ... --label L ...``: take records out of an evaluation folder, so that it can be rerun
+under the same labels after a config or a scenario's ranges changed.
+
+    bimp drop results/suite --scenario lane-drop-hard --dry-run        # what would go; writes nothing
+    bimp drop results/suite --scenario lane-drop-hard stalled-vehicle-hard
+    bimp drop results/suite-tuned --scenario cut-in-hard --label mppi-tuned
+
+A record goes when its scenario is one of ``--scenario`` and its label one of ``--label`` (either may be left out:
+then every scenario, or every label; not both). ``bimp evaluate`` only ever appends, and refuses to add a label's
+episodes made with another config beside its old ones: this is the one command that removes, and it prints what it
+removed, per scenario and label. In a committed folder git keeps what went. A name that matches no record in the
+folder is refused, listing the folder's names: a typo removes nothing.
+
+Lines that are not records are kept as they are. ``arms.json`` loses the entries that only the removed records named;
+an entry no record named before is kept (a run interrupted before its first episode leaves one). The folder is
+locked for the change (as a run locks it; a dry run only reads), the records are replaced in one step and then
+``arms.json``, so a reader in between finds every config it looks up; the summary files, where there are any, are
+rewritten from the records left. Exit status 0, or 2 on a bad request (then nothing is written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from pathlib import Path
+
+from bimp.agents.cli import EvaluationError
+from bimp.agents.metrics import summarize
+from bimp.agents.records import (
+    EPISODES_FILE,
+    folder_lock,
+    latest_records,
+    numbered_records,
+    read_arms,
+    read_records,
+    write_arms,
+    write_atomic,
+    write_summary,
+)
+
+
+def label_of(record: dict) -> str:
+    return record.get("label", record["policy"])
+
+
+def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] | None = None,
+         dry_run: bool = False) -> Counter:
+    """Remove ``out``'s records of ``scenarios`` x ``labels`` (None: every one) and the ``arms.json`` entries only
+    they named; the counts removed per ``(scenario, label)``. :class:`EvaluationError` for a folder without records,
+    neither filter given, or a name that matches no record (the folder's names listed); then nothing is written."""
+    out = Path(out)
+    if not scenarios and not labels:
+        raise EvaluationError("name what to drop: --scenario, --label or both (dropping everything is rm)")
+    path = out / EPISODES_FILE
+    if not path.is_file():
+        raise EvaluationError(f"{out} is not an evaluation folder (no {EPISODES_FILE})")
+    data = path.read_bytes()
+    records = numbered_records(out)
+    for flag, wanted, have in (("--scenario", scenarios, {r["scenario"] for _, r in records}),
+                               ("--label", labels, {label_of(r) for _, r in records})):
+        unknown = sorted(set(wanted or ()) - have)
+        if unknown:
+            raise EvaluationError(f"{flag} {' '.join(unknown)}: no record in {out} (it holds: "
+                                  f"{', '.join(sorted(have))})")
+    gone = {number: r for number, r in records
+            if (not scenarios or r["scenario"] in scenarios) and (not labels or label_of(r) in labels)}
+    counts = Counter((r["scenario"], label_of(r)) for r in gone.values())
+    if dry_run or not gone:
+        return counts
+    with folder_lock(out):
+        if path.read_bytes() != data:
+            raise EvaluationError(f"{path} changed while it was read (a run writing into it?): try again")
+        lines = data.split(b"\n")  # line n is lines[n - 1], as numbered_records counts them
+        write_atomic(path, b"\n".join(line for n, line in enumerate(lines, start=1) if n not in gone))
+        arms = read_arms(out)
+        kept = {r.get("config_hash") for n, r in records if n not in gone}
+        named_only_by_gone = {r.get("config_hash") for r in gone.values()} - kept
+        if arms:
+            write_arms(out, {key: entry for key, entry in arms.items() if key not in named_only_by_gone})
+        if (out / "summary.json").exists():
+            write_summary(summarize(latest_records(read_records(out))), out)
+    return counts
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp drop", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folder", metavar="DIR", help="an evaluation folder (holding episodes.jsonl)")
+    parser.add_argument("--scenario", nargs="+", default=None, metavar="S", help="the scenarios whose records go")
+    parser.add_argument("--label", nargs="+", default=None, metavar="L", help="the labels whose records go")
+    parser.add_argument("--dry-run", action="store_true", help="print what would go; write nothing")
+    args = parser.parse_args(argv)
+    try:
+        counts = drop(args.folder, args.scenario, args.label, dry_run=args.dry_run)
+    except EvaluationError as err:
+        print(f"bimp drop: error: {err}", file=sys.stderr)
+        return 2
+    verb = "would drop" if args.dry_run else "dropped"
+    for (scenario, label), n in sorted(counts.items()):
+        print(f"{verb} {n:>5} record(s) of {label} on {scenario}")
+    print(f"{args.folder}: {verb} {sum(counts.values())} record(s)"
+          + ("" if counts else " (nothing matched both --scenario and --label)"))
+    return 0
