@@ -35,6 +35,34 @@ class BrakeAtTheBounds:
         return self.env.unwrapped.scene.to_normalized(np.array([self.a, 0.0])).astype(np.float32)
 
 
+def drive_the_oracles_plan(env_id: str, config: dict, standing, seeds=range(100)) -> tuple[list[int], set[int]]:
+    """The oracle's plan (:class:`BrakeAtTheBounds`) driven for whole episodes of ``gym.make(env_id, config=config)``
+    on ``seeds``, asserting no collision at the EV's fault. ``standing(env.unwrapped)``: what stands in the EV's lane
+    ahead, nearest first (the stall, or the closure's blocks). Returns the seeds where the EV was struck (never its
+    fault: rear-ended) and those where other traffic entered the EV's lane between it and the nearest standing
+    vehicle while the EV still moved (the oracle assumes none does)."""
+    from bimp.agents.metrics import contact_at_fault
+
+    env = gym.make(env_id, config=config)
+    rear_ended, entered = [], set()
+    for seed in seeds:
+        obs, _ = env.reset(seed=seed)
+        base = env.unwrapped
+        ev, stand, policy = base.vehicle, list(standing(base)), BrakeAtTheBounds(env)
+        while True:
+            moving = ev.speed > 0.0
+            obs, _, terminated, truncated, info = env.step(policy.act(obs))
+            if moving and any(v is not ev and v not in stand and v.lane_index == ev.lane_index
+                              and ev.position[0] < v.position[0] < stand[0].position[0] for v in base.road.vehicles):
+                entered.add(seed)
+            if info["collision"]:
+                assert info["contact"] is not None and not contact_at_fault(info["contact"]), seed
+                rear_ended.append(seed)
+            if terminated or truncated:
+                break
+    return rear_ended, entered
+
+
 def drawn_params(env_id: str, config: dict | None = None, n: int = 1000) -> list[dict]:
     """The drawn parameters of ``reset(seed=k)``, k < ``n``, of ``gym.make(env_id, config=config)``: a family's own
     draws, in its order, for its oracle tests."""

@@ -19,7 +19,7 @@ from bimp.envs.oracle import stop_behind
 from bimp.envs.scene import VEHICLE_LENGTH, Bounds
 from bimp.envs.suite import FAMILIES
 from bimp.envs.suite.stalled_vehicle import DIFFICULTIES, StalledVehicleEnv
-from tests.envs.test_suite_families import BrakeAtTheBounds, drawn_params
+from tests.envs.test_suite_families import BrakeAtTheBounds, drawn_params, drive_the_oracles_plan
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -175,24 +175,6 @@ def test_the_oracles_plan_in_the_env_on_100_seeds(difficulty):
     On hard, traffic enters there while the EV brakes on a few seeds (3 of 100 when written; the braking EV keeps
     clear of it) and highway-env's aggressive drivers rear-end the standing EV (26 of 100): not the EV's fault, but
     success counts every collision (docs/suite.md)."""
-    from bimp.agents.metrics import contact_at_fault
-
-    env = gym.make(ID, config={"difficulty": difficulty})
-    rear_ended, entered = [], set()
-    for seed in range(100):
-        obs, _ = env.reset(seed=seed)
-        base = env.unwrapped
-        ev, stalled, policy = base.vehicle, base.stalled_vehicle, BrakeAtTheBounds(env)
-        while True:
-            moving = ev.speed > 0.0
-            obs, _, terminated, truncated, info = env.step(policy.act(obs))
-            if moving and [v for v in base.road.vehicles if v not in (ev, stalled) and v.lane_index == ev.lane_index
-                           and ev.position[0] < v.position[0] < stalled.position[0]]:
-                entered.add(seed)
-            if info["collision"]:
-                assert info["contact"] is not None and not contact_at_fault(info["contact"]), seed
-                rear_ended.append(seed)
-            if terminated or truncated:
-                break
+    rear_ended, entered = drive_the_oracles_plan(ID, {"difficulty": difficulty}, lambda env: [env.stalled_vehicle])
     assert not (rear_ended or entered) or difficulty == "hard", (rear_ended, entered)
     assert len(rear_ended) <= 32 and len(entered) <= 6, (rear_ended, entered)
