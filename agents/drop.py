@@ -5,22 +5,26 @@ under the same labels after a config or a scenario's ranges changed.
     bimp drop results/suite --scenario lane-drop-hard stalled-vehicle-hard
     bimp drop results/suite-tuned --scenario cut-in-hard --label mppi-tuned
 
-A record goes when its scenario is one of ``--scenario`` and its label one of ``--label`` (either may be left out:
-then every scenario, or every label; not both). ``bimp evaluate`` only ever appends, and refuses to add a label's
-episodes made with another config beside its old ones: this is the one command that removes, and it prints what it
-removed, per scenario and label. In a committed folder git keeps what went. A name that matches no record in the
-folder is refused, listing the folder's names: a typo removes nothing.
+DIR comes first (``--scenario`` and ``--label`` take every name after them). A record goes when its scenario is one
+of ``--scenario`` and its label one of ``--label`` (either may be left out: then every scenario, or every label; not
+both). ``bimp evaluate`` only ever appends, and refuses to add a label's episodes made with another config beside
+its old ones: this is the one command that removes, and it prints what it removed, per scenario and label. In a
+committed folder git keeps what went. A name that matches no record in the folder is refused, listing the folder's
+names: a typo removes nothing.
 
-Lines that are not records are kept as they are. ``arms.json`` loses the entries that only the removed records named;
-an entry no record named before is kept (a run interrupted before its first episode leaves one). The folder is
-locked for the change (as a run locks it; a dry run only reads), the records are replaced in one step and then
-``arms.json``, so a reader in between finds every config it looks up; the summary files, where there are any, are
-rewritten from the records left. Exit status 0, or 2 on a bad request (then nothing is written).
+Lines that are not records are kept as they are, and so is the file's final newline. ``arms.json`` loses the entries
+that only the removed records named; an entry no record named before is kept (a run interrupted before its first
+episode leaves one). The folder is locked for the change (as a run locks it; a dry run only reads), the records are
+replaced in one step and then ``arms.json``, so a reader in between finds every config it looks up. The summary
+files, where there are any, keep the rows they had but the dropped ones, recomputed from the records left (a summary
+is of the last request, not always the whole folder). Exit status 0, or 2 on a bad request (then nothing is
+written).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections import Counter
 from pathlib import Path
@@ -47,16 +51,16 @@ def label_of(record: dict) -> str:
 def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] | None = None,
          dry_run: bool = False) -> Counter:
     """Remove ``out``'s records of ``scenarios`` x ``labels`` (None: every one) and the ``arms.json`` entries only
-    they named; the counts removed per ``(scenario, label)``. :class:`EvaluationError` for a folder without records,
-    neither filter given, or a name that matches no record (the folder's names listed); then nothing is written."""
+    they named; the counts removed per ``(scenario, label)``. :class:`EvaluationError` for a folder without records
+    or whose ``arms.json`` cannot be read, neither filter given, or a name that matches no record (the folder's names
+    listed); then nothing is written."""
     out = Path(out)
     if not scenarios and not labels:
         raise EvaluationError("name what to drop: --scenario, --label or both (dropping everything is rm)")
     path = out / EPISODES_FILE
     if not path.is_file():
         raise EvaluationError(f"{out} is not an evaluation folder (no {EPISODES_FILE})")
-    data = path.read_bytes()
-    records = numbered_records(out)
+    data, records, arms = path.read_bytes(), numbered_records(out), read_arms(out)
     for flag, wanted, have in (("--scenario", scenarios, {r["scenario"] for _, r in records}),
                                ("--label", labels, {label_of(r) for _, r in records})):
         unknown = sorted(set(wanted or ()) - have)
@@ -68,23 +72,32 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
     counts = Counter((r["scenario"], label_of(r)) for r in gone.values())
     if dry_run or not gone:
         return counts
-    with folder_lock(out):
-        if path.read_bytes() != data:
-            raise EvaluationError(f"{path} changed while it was read (a run writing into it?): try again")
-        lines = data.split(b"\n")  # line n is lines[n - 1], as numbered_records counts them
+    with folder_lock(out, hint="wait for it to end"):
+        if path.read_bytes() != data or read_arms(out) != arms:
+            raise EvaluationError(f"{out} changed while it was read (a run writing into it?): try again")
+        lines = data.split(b"\n")  # line n is lines[n - 1], as numbered_records counts them; a final b"" stays
         write_atomic(path, b"\n".join(line for n, line in enumerate(lines, start=1) if n not in gone))
-        arms = read_arms(out)
         kept = {r.get("config_hash") for n, r in records if n not in gone}
         named_only_by_gone = {r.get("config_hash") for r in gone.values()} - kept
         if arms:
             write_arms(out, {key: entry for key, entry in arms.items() if key not in named_only_by_gone})
-        if (out / "summary.json").exists():
-            write_summary(summarize(latest_records(read_records(out))), out)
+        _rewrite_summary(out)
     return counts
+
+
+def _rewrite_summary(out: Path) -> None:
+    """The summary's rows that still have records, recomputed from them (the rows of dropped arms go)."""
+    try:
+        rows = set(json.loads((out / "summary.json").read_text()))
+    except (OSError, ValueError):  # none, or not ours to read: evaluate writes a fresh one on its next run
+        return
+    summary = summarize([r for r in latest_records(read_records(out)) if f"{label_of(r)}/{r['scenario']}" in rows])
+    write_summary(summary, out)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp drop", description=__doc__,
+                                     usage="bimp drop DIR [--scenario S [S ...]] [--label L [L ...]] [--dry-run]",
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder", metavar="DIR", help="an evaluation folder (holding episodes.jsonl)")
     parser.add_argument("--scenario", nargs="+", default=None, metavar="S", help="the scenarios whose records go")

@@ -32,6 +32,7 @@ import argparse
 import dataclasses
 import json
 import os
+import shlex
 import sys
 import time
 import traceback
@@ -215,7 +216,7 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
             raise EvaluationError(
                 f"{Path(out) / EPISODES_FILE} line {number}: a record of {arm.label!r} on {arm.scenario} carries "
                 f"config hash {arm.config_hash}, but its config hashes otherwise ({'; '.join(diff[:4])}): it was "
-                "not made with that config; choose another --out (the folder's records are never rewritten)")
+                "not made with that config; choose another --out (a run never rewrites a folder's records)")
     for arm, rs in others.items():
         old = rs[-1]
         diff = config_diff(record_config(old, entries) or {}, arm.resolved) or ["(the old records carry no config)"]
@@ -224,7 +225,7 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
             f"another config (hash {old.get('config_hash')} here, {arm.config_hash} now):\n  "
             + "\n  ".join(diff[:12])
             + "\ngive --label NAME to add this config as a new row, choose another --out, or take the old records "
-            f"out first: bimp drop {out} --scenario {arm.scenario} --label {arm.label}")
+            f"out first: bimp drop {shlex.join([str(out), '--scenario', arm.scenario, '--label', arm.label])}")
 
 
 # --- running one episode -------------------------------------------------------------------------------

@@ -165,9 +165,9 @@ def record_config(record: dict, arms: dict[str, dict]) -> dict | None:
 
 # --- the lock ----------------------------------------------------------------------------------------------
 @contextmanager
-def folder_lock(out: Path) -> Iterator[None]:
-    """Hold ``out/.lock`` for the run; a second run into the same folder refuses at once. The lock is an
-    ``flock``, so the kernel releases it when the holder dies: no stale locks."""
+def folder_lock(out: Path, hint: str = "wait for it to end or choose another --out") -> Iterator[None]:
+    """Hold ``out/.lock`` for the run; a second run into the same folder refuses at once, saying ``hint``. The lock
+    is an ``flock``, so the kernel releases it when the holder dies: no stale locks."""
     handle = open(out / LOCK_FILE, "a+")
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -175,8 +175,7 @@ def folder_lock(out: Path) -> Iterator[None]:
         handle.seek(0)
         holder = handle.read().strip() or "another process"
         handle.close()
-        raise EvaluationError(f"{out} is in use by another bimp run ({holder}); wait for it to end or choose "
-                              "another --out") from None
+        raise EvaluationError(f"{out} is in use by another bimp run ({holder}); {hint}") from None
     try:
         handle.seek(0)
         handle.truncate()

@@ -36,13 +36,12 @@ hard        25 - 30   82 - 110       35 - 50  0.4 - 0.6         0 - 0.1
 Every instance leaves a safe plan inside the planning bounds: the EV can stop in its lane behind the closure's first
 block by braking at the bounds from its first step (:func:`bimp.envs.oracle.stop_behind`; the block has a car's
 length, so the oracle's footprint gap is the env's), keeping at least ``d_min`` (1 m). Ranges whose worst corner
-(the fastest EV, the nearest closure) fails are refused (:class:`LaneDropRanges`). The oracle assumes no traffic
-enters the EV's lane between the EV and the closure while the EV moves, which the tests check on whole episodes
-driven by the oracle's plan (seeds 0-99 per difficulty, a slow test). It does not always hold: MOBIL sends traffic
-into the closed lane's free stretch while the EV brakes (1 of 100 easy seeds, 8 medium, 3 hard, when written), where
-it stands against the closure ahead of the EV; the braking EV kept clear of it on all of them. On hard, aggressive
-drivers rear-end the standing EV (27 of 100 seeds; 1 on medium, none on easy): never the EV's fault, but success
-counts it.
+(the fastest EV, the nearest closure) fails are refused (:class:`LaneDropRanges`). The oracle assumes no traffic enters
+the EV's lane between the EV and the closure while the EV moves; a slow test counts and bounds where it breaks, on whole
+episodes driven by the oracle's plan (seeds 0-99 per difficulty). It does not always hold: MOBIL sends traffic into the
+closed lane's free stretch while the EV brakes (1 of 100 easy seeds, 8 medium, 3 hard, when written), where it stands
+against the closure ahead of the EV; the braking EV kept clear of it on all of them. On hard, aggressive drivers
+rear-end the standing EV (27 of 100 seeds; 1 on medium, none on easy): never the EV's fault, but success counts it.
 
 Success: the time limit (20 s) reached without collision or leaving the road (no goal: stopping behind the closure
 where no gap opens is a safe end); the score's progress part tells merging from waiting.

@@ -41,8 +41,15 @@ def test_a_label_dropped_can_be_rerun_with_another_config_and_the_rest_is_untouc
     assert len(new) == 1 and old_hash not in new and summary["lane-keep/emergency-brake"]["episodes"] == 2
 
 
-def test_the_summary_files_are_rewritten_from_what_stays(folder):
-    dr.drop(folder, scenarios=["emergency-brake"], labels=["brake"])
+def test_the_summary_keeps_its_rows_but_the_dropped_ones(folder):
+    """A summary is of the last request: drop takes the dropped rows out and adds none of the folder's others."""
+    evaluate(out=folder, policies=["lane-keep"], overrides={"lane-keep": {"k_lat": 0.01}}, labels={"lane-keep": "k"},
+             **ARGS)
+    assert list(json.loads((folder / "summary.json").read_text())) == ["k/emergency-brake"]
+    dr.drop(folder, labels=["brake"])
+    assert list(json.loads((folder / "summary.json").read_text())) == ["k/emergency-brake"]
+    evaluate(out=folder, policies=["lane-keep"], all_records=True, **ARGS)  # every row of the folder
+    dr.drop(folder, labels=["k"])
     assert list(json.loads((folder / "summary.json").read_text())) == ["lane-keep/emergency-brake"]
     rows = (folder / "summary.csv").read_text().splitlines()[1:]
     assert [row.split(",")[0] for row in rows] == ["lane-keep"]
@@ -96,12 +103,60 @@ def test_lines_that_are_not_records_and_unnamed_arms_entries_are_kept(folder):
 
 def test_records_appended_between_the_read_and_the_lock_are_not_lost(folder, monkeypatch):
     """A run that appends after drop read the folder and before it locked it: drop refuses, the new line stays."""
-    def late_append(out):
+    def late_append(out, **kw):
         with open(out / EPISODES_FILE, "ab") as f:
             f.write(lines_of(out, "brake")[0])
-        return folder_lock(out)
+        return folder_lock(out, **kw)
 
     monkeypatch.setattr(dr, "folder_lock", late_append)
     with pytest.raises(EvaluationError, match="changed while it was read"):
         dr.drop(folder, labels=["lane-keep"])
     assert len(read_records(folder)) == 5
+
+
+def test_an_unreadable_arms_json_is_refused_before_anything_is_written(folder, capsys):
+    (folder / ARMS_FILE).write_text("{bad")
+    before = (folder / EPISODES_FILE).read_bytes()
+    assert main(["drop", str(folder), "--label", "brake"]) == 2
+    assert "arms.json" in capsys.readouterr().err
+    assert (folder / EPISODES_FILE).read_bytes() == before
+
+
+def test_the_usage_puts_the_folder_first(capsys):
+    with pytest.raises(SystemExit):
+        main(["drop", "--help"])
+    assert "usage: bimp drop DIR [--scenario" in capsys.readouterr().out
+
+
+def test_old_records_blank_lines_a_cut_last_line_and_a_shared_hash(folder):
+    """Records from before labels and arms.json (the config inline, no label, no hash) drop by their policy name; a
+    blank line and the final newline stay; a hash that a kept record on another scenario names stays in arms.json;
+    a last line without its newline drops like any other."""
+    arms = read_arms(folder)
+    (lane,) = [r for r in read_records(folder) if r["label"] == "lane-keep"][:1]
+    elsewhere = {**lane, "scenario": "elsewhere"}  # the same arm's hash on another scenario
+    old = {k: v for k, v in lane.items() if k not in ("label", "config_hash")}
+    old.update(policy="zero", config=arms[lane["config_hash"]]["config"])
+    with open(folder / EPISODES_FILE, "ab") as f:
+        f.write(b"\n" + json.dumps(elsewhere).encode() + b"\n" + json.dumps(old).encode() + b"\n")
+    assert dr.drop(folder, labels=["zero"]) == {("emergency-brake", "zero"): 1}
+    data = (folder / EPISODES_FILE).read_bytes()
+    assert data.endswith(b"}\n") and b"\n\n" in data and b'"zero"' not in data
+    assert dr.drop(folder, scenarios=["emergency-brake"], labels=["lane-keep"]) == {("emergency-brake", "lane-keep"): 2}
+    assert lane["config_hash"] in read_arms(folder)  # still named by the record on "elsewhere"
+    with open(folder / EPISODES_FILE, "ab") as f:
+        f.write(json.dumps({**elsewhere, "seed": 99}).encode())  # cut: no newline
+    assert dr.drop(folder, scenarios=["elsewhere"]) == {("elsewhere", "lane-keep"): 2}
+    assert lane["config_hash"] not in read_arms(folder)
+    assert {r["label"] for r in read_records(folder)} == {"brake"}
+
+
+def test_names_that_each_match_but_not_together_drop_nothing(folder, capsys):
+    records = read_records(folder)
+    for r in records:  # move the brake arm to a scenario of its own
+        r["scenario"] = "other" if r["label"] == "brake" else r["scenario"]
+    (folder / EPISODES_FILE).write_text("".join(json.dumps(r) + "\n" for r in records))
+    before = (folder / EPISODES_FILE).read_bytes()
+    assert main(["drop", str(folder), "--scenario", "other", "--label", "lane-keep"]) == 0
+    assert "nothing matched both" in capsys.readouterr().out
+    assert (folder / EPISODES_FILE).read_bytes() == before
