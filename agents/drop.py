@@ -38,14 +38,11 @@ from bimp.agents.records import (
     numbered_records,
     read_arms,
     read_records,
+    record_label,
     write_arms,
     write_atomic,
     write_summary,
 )
-
-
-def label_of(record: dict) -> str:
-    return record.get("label", record["policy"])
 
 
 def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] | None = None,
@@ -62,14 +59,14 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
         raise EvaluationError(f"{out} is not an evaluation folder (no {EPISODES_FILE})")
     data, records, arms = path.read_bytes(), numbered_records(out), read_arms(out)
     for flag, wanted, have in (("--scenario", scenarios, {r["scenario"] for _, r in records}),
-                               ("--label", labels, {label_of(r) for _, r in records})):
+                               ("--label", labels, {record_label(r) for _, r in records})):
         unknown = sorted(set(wanted or ()) - have)
         if unknown:
             raise EvaluationError(f"{flag} {' '.join(unknown)}: no record in {out} (it holds: "
                                   f"{', '.join(sorted(have))})")
     gone = {number: r for number, r in records
-            if (not scenarios or r["scenario"] in scenarios) and (not labels or label_of(r) in labels)}
-    counts = Counter((r["scenario"], label_of(r)) for r in gone.values())
+            if (not scenarios or r["scenario"] in scenarios) and (not labels or record_label(r) in labels)}
+    counts = Counter((r["scenario"], record_label(r)) for r in gone.values())
     if dry_run or not gone:
         return counts
     with folder_lock(out, hint="wait for it to end"):
@@ -91,7 +88,7 @@ def _rewrite_summary(out: Path) -> None:
         rows = set(json.loads((out / "summary.json").read_text()))
     except (OSError, ValueError):  # none, or not ours to read: evaluate writes a fresh one on its next run
         return
-    summary = summarize([r for r in latest_records(read_records(out)) if f"{label_of(r)}/{r['scenario']}" in rows])
+    summary = summarize([r for r in latest_records(read_records(out)) if f"{record_label(r)}/{r['scenario']}" in rows])
     write_summary(summary, out)
 
 

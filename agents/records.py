@@ -31,9 +31,14 @@ ARMS_FILE = "arms.json"
 LOCK_FILE = ".lock"
 
 
+def record_label(record: dict) -> str:
+    """A record's label (records older than labels use the policy name)."""
+    return record.get("label", record["policy"])
+
+
 def record_key(record: dict) -> tuple[str, str, str | None, int]:
-    """``(scenario, label, config_hash, seed)`` of a record (records older than labels use the policy name)."""
-    return record["scenario"], record.get("label", record["policy"]), record.get("config_hash"), record["seed"]
+    """``(scenario, label, config_hash, seed)`` of a record."""
+    return record["scenario"], record_label(record), record.get("config_hash"), record["seed"]
 
 
 # --- reading records ---------------------------------------------------------------------------------------
@@ -261,4 +266,5 @@ def markdown_table(summary: dict) -> str:
 
 __all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "finite", "folder_lock",
            "format_stat", "latest_records", "markdown_table", "numbered_records", "read_arms", "read_records",
-           "record_config", "record_key", "record_problem", "write_arms", "write_atomic", "write_summary"]
+           "record_config", "record_key", "record_label", "record_problem", "write_arms", "write_atomic",
+           "write_summary"]
