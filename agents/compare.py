@@ -17,14 +17,14 @@ import sys
 from pathlib import Path
 
 from bimp.agents.metrics import BINARY, METRICS
-from bimp.agents.records import latest_records, read_records
+from bimp.agents.records import latest_records, read_records, record_label
 from bimp.agents.stats import mcnemar_exact, paired_bootstrap
 
 
 def label_results(folder: Path, label: str) -> dict[tuple[str, int], dict]:
     """``{(scenario, seed): metrics}`` of the successful episodes of ``label`` in ``folder``."""
     rows = [r for r in latest_records(read_records(folder))
-            if r.get("label", r["policy"]) == label and r["status"] == "ok"]
+            if record_label(r) == label and r["status"] == "ok"]
     for scenario in {r["scenario"] for r in rows}:  # one config per scenario (the scenario's ranges are in it)
         hashes = {r.get("config_hash") for r in rows if r["scenario"] == scenario}
         if len(hashes) > 1:

@@ -69,6 +69,7 @@ from bimp.agents.records import (
     read_records,
     record_config,
     record_key,
+    record_label,
     write_arms,
     write_summary,
 )
@@ -201,7 +202,7 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
                 f"hash to its key ({'; '.join(diff[:4])}): it is not that config; choose another --out")
     others: dict[Arm, list[dict]] = {}
     for number, r in records:
-        arm = by_row.get((r["scenario"], r.get("label", r["policy"])))
+        arm = by_row.get((r["scenario"], record_label(r)))
         if arm is None:
             continue
         config = record_config(r, entries)

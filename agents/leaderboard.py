@@ -39,7 +39,7 @@ import numpy as np
 from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.compare import compare
 from bimp.agents.metrics import summarize
-from bimp.agents.records import finite, format_stat, latest_records, read_records
+from bimp.agents.records import finite, format_stat, latest_records, read_records, record_label
 from bimp.agents.registry import policy_color
 from bimp.agents.stats import mcnemar_exact, stratified_bootstrap
 
@@ -118,7 +118,7 @@ def load_arms(folders: list[str | Path]) -> list[Arm]:
             raise EvaluationError(f"no episode records in {folder} (a folder written by bimp evaluate holds "
                                   "episodes.jsonl)")
         for r in records:
-            grouped.setdefault((folder, r["scenario"], r.get("label", r["policy"])), []).append(r)
+            grouped.setdefault((folder, r["scenario"], record_label(r)), []).append(r)
     places: dict[tuple[str, str], set[str]] = {}
     for folder, scenario, label in grouped:
         places.setdefault((scenario, label), set()).add(folder)

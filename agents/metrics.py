@@ -214,6 +214,12 @@ def _goals(trace: dict) -> list[bool]:
     return [g for g in trace.get("goal") or () if g is not None]
 
 
+def record_label(record: dict) -> str:
+    """A record's label (records older than labels use the policy name). Here, below
+    :mod:`bimp.agents.records`, because :func:`summarize` groups by it."""
+    return record.get("label", record["policy"])
+
+
 def record_missed_goal(record: dict) -> bool:
     """The goal gate of :func:`closed_loop_score` read from an episode record, from what every record holds: an
     episode that ran to its time limit (``truncated``) without a collision, on the road, and failed is one whose env
@@ -240,7 +246,7 @@ def summarize(records: list[dict]) -> dict[str, dict]:
     """
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in records:
-        groups.setdefault((r.get("label", r["policy"]), r["scenario"]), []).append(r)
+        groups.setdefault((record_label(r), r["scenario"]), []).append(r)
     out = {}
     for (label, scenario), rs in sorted(groups.items()):
         rs = sorted(rs, key=lambda r: r["seed"])

@@ -52,7 +52,7 @@ import gymnasium as gym
 
 from bimp import envs
 from bimp.agents.cli import EvaluationError
-from bimp.agents.metrics import record_missed_goal
+from bimp.agents.metrics import record_label, record_missed_goal
 from bimp.agents.provenance import REPO_ROOT, config_diff, config_hash, neutral_config, plain, resolved_config
 from bimp.agents.records import (
     EPISODES_FILE,
@@ -289,7 +289,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             continue
         config = record_config(r, old_entries)
         if config is None:
-            report.problem = (f"line {number} ({r.get('label', r['policy'])} on {r['scenario']}) carries no config "
+            report.problem = (f"line {number} ({record_label(r)} on {r['scenario']}) carries no config "
                               "(made before records carried one): nothing to migrate it from")
             return report
         arms.setdefault((r["policy"], json.dumps(config, sort_keys=True)), []).append(number)
@@ -297,7 +297,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
     new_lines, entries, referenced = list(lines), {}, set()
     for (policy, old_json), numbers in arms.items():
         first = parsed[numbers[0] - 1]
-        name = f"{first.get('label', policy)!r} ({policy}) on {first['scenario']}, hash {first.get('config_hash')}"
+        name = f"{record_label(first)!r} ({policy}) on {first['scenario']}, hash {first.get('config_hash')}"
         if policy == "mppi" and not all(made_after_mppi_seeding(parsed[n - 1].get("git_commit")) for n in numbers):
             report.left.append(f"{name}: {len(numbers)} record(s) made before {MPPI_SEEDING} (MPPI's seeding "
                                "changed there): rerun them")

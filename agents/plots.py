@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 
 from bimp import envs  # noqa: E402
 from bimp.agents.cli import EvaluationError, check_out_dir  # noqa: E402
-from bimp.agents.records import read_records  # noqa: E402
+from bimp.agents.records import read_records, record_label  # noqa: E402
 from bimp.agents.registry import make_policy, policy_color, policy_label  # noqa: E402
 from bimp.agents.rollout import rollout  # noqa: E402
 from bimp.envs.road import RoadGeometry  # noqa: E402
@@ -36,7 +36,7 @@ def traced_episodes(records: list[dict]) -> dict[str, dict[str, dict]]:
     by_scenario: dict[str, dict[int, dict[str, dict]]] = {}
     for r in records:
         if r.get("status") == "ok" and "trace" in r:
-            by_scenario.setdefault(r["scenario"], {}).setdefault(r["seed"], {})[r.get("label", r["policy"])] = r
+            by_scenario.setdefault(r["scenario"], {}).setdefault(r["seed"], {})[record_label(r)] = r
     chosen = {}
     for scenario, seeds in by_scenario.items():
         policies = set().union(*seeds.values())

@@ -24,16 +24,11 @@ from pathlib import Path
 from typing import Any
 
 from bimp.agents.cli import EvaluationError
-from bimp.agents.metrics import BINARY, METRICS
+from bimp.agents.metrics import BINARY, METRICS, record_label
 
 EPISODES_FILE = "episodes.jsonl"
 ARMS_FILE = "arms.json"
 LOCK_FILE = ".lock"
-
-
-def record_label(record: dict) -> str:
-    """A record's label (records older than labels use the policy name)."""
-    return record.get("label", record["policy"])
 
 
 def record_key(record: dict) -> tuple[str, str, str | None, int]:
