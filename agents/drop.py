@@ -88,8 +88,8 @@ def _rewrite_summary(out: Path) -> None:
         rows = set(json.loads((out / "summary.json").read_text()))
     except (OSError, ValueError):  # none, or not ours to read: evaluate writes a fresh one on its next run
         return
-    summary = summarize([r for r in latest_records(read_records(out)) if f"{record_label(r)}/{r['scenario']}" in rows])
-    write_summary(summary, out)
+    summary = summarize(latest_records(read_records(out)))
+    write_summary({row: entry for row, entry in summary.items() if row in rows}, out)
 
 
 def main(argv: list[str] | None = None) -> int:
