@@ -28,6 +28,7 @@ COMMANDS = {
     "bench": ("bimp.agents.bench", "plan-step timing of the planners, side by side"),
     "migrate": ("bimp.agents.migrate", "turn evaluation folders of older code into ones the current code resumes"),
     "drop": ("bimp.agents.drop", "take a scenario's or a label's records out of an evaluation folder"),
+    "merge": ("bimp.agents.merge", "copy evaluation folders' records into one (runs made apart, ranked as one)"),
     "train-dynamics": ("bimp.planners.dynamics_train", "train the MLP vehicle model and print its accuracy"),
     "train-rl": ("bimp.agents.rl", "train the stable-baselines3 baseline"),
 }

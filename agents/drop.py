@@ -58,14 +58,7 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
     if not path.is_file():
         raise EvaluationError(f"{out} is not an evaluation folder (no {EPISODES_FILE})")
     data, records, arms = path.read_bytes(), numbered_records(out), read_arms(out)
-    for flag, wanted, have in (("--scenario", scenarios, {r["scenario"] for _, r in records}),
-                               ("--label", labels, {record_label(r) for _, r in records})):
-        unknown = sorted(set(wanted or ()) - have)
-        if unknown:
-            raise EvaluationError(f"{flag} {' '.join(unknown)}: no record in {out} (it holds: "
-                                  f"{', '.join(sorted(have))})")
-    gone = {number: r for number, r in records
-            if (not scenarios or r["scenario"] in scenarios) and (not labels or record_label(r) in labels)}
+    gone = dict(matching(records, scenarios, labels, str(out)))
     counts = Counter((r["scenario"], record_label(r)) for r in gone.values())
     if dry_run or not gone:
         return counts
@@ -80,6 +73,20 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
             write_arms(out, {key: entry for key, entry in arms.items() if key not in named_only_by_gone})
         _rewrite_summary(out)
     return counts
+
+
+def matching(records: list[tuple[int, dict]], scenarios: list[str] | None, labels: list[str] | None,
+             where: str) -> list[tuple[int, dict]]:
+    """The ``(line number, record)`` of ``records`` whose scenario is one of ``scenarios`` and label one of ``labels``
+    (None: any). :class:`EvaluationError` for a name no record has, listing the names ``where`` holds."""
+    for flag, wanted, have in (("--scenario", scenarios, {r["scenario"] for _, r in records}),
+                               ("--label", labels, {record_label(r) for _, r in records})):
+        unknown = sorted(set(wanted or ()) - have)
+        if unknown:
+            raise EvaluationError(f"{flag} {' '.join(unknown)}: no record in {where} (it holds: "
+                                  f"{', '.join(sorted(have))})")
+    return [(number, r) for number, r in records
+            if (not scenarios or r["scenario"] in scenarios) and (not labels or record_label(r) in labels)]
 
 
 def _rewrite_summary(out: Path) -> None:
