@@ -1,9 +1,11 @@
 """Every results command the README and the docs print resumes its committed folder (issue 28, item 3).
 
-A results command is a ``bimp evaluate|sweep|frontier`` with ``--out results/...``, in a code block (fenced or
+A results command is a ``bimp evaluate|sweep|frontier`` with ``--out results/...`` or a ``bimp merge`` with
+``--into results/...``, in a code block (fenced or
 indented) or in inline code. Blocks are read as the shell would, as far as the docs use it: ``\\`` continuation lines,
 ``#`` comments, ``;``, ``VAR=value`` and (nested) ``for VAR in a b c; do ... done`` loops. Each command runs in
-process with ``--dry-run`` from the repository root and must find every episode done. A command that cannot be read
+process with ``--dry-run`` from the repository root and must find every episode done (a merge: every record
+already copied). A command that cannot be read
 (an unbalanced quote, an elided ``...`` in a block that writes ``results/``, an unknown variable) fails naming its
 file and line: the docs must stay runnable. A command that only older code can run is printed as history,
 ``(git switch --detach COMMIT && bimp ...)``: not a command of the current code, so not run here; such a subshell
@@ -25,7 +27,7 @@ from bimp.agents.cli import main
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 HEADLINE = {"results/paper", "results/rl"}
-RESULTS_COMMAND = re.compile(r"\bbimp\s+(evaluate|sweep|frontier)\b")
+RESULTS_COMMAND = re.compile(r"\bbimp\s+(evaluate|sweep|frontier|merge)\b")
 VARIABLE = re.compile(r"\$(?:\{(\w+)\}|(\w+))")
 ASSIGNMENT = re.compile(r"[A-Za-z_]\w*=\S*")
 
@@ -38,11 +40,12 @@ class Command:
 
     @property
     def out(self) -> str:
+        flag = "--into" if self.argv[:1] == ["merge"] else "--out"
         for i, token in enumerate(self.argv):
-            if token == "--out" and i + 1 < len(self.argv):
+            if token == flag and i + 1 < len(self.argv):
                 return self.argv[i + 1]
-            if token.startswith("--out="):
-                return token.removeprefix("--out=")
+            if token.startswith(f"{flag}="):
+                return token.removeprefix(f"{flag}=")
         return ""
 
 
@@ -113,7 +116,7 @@ def statements(start: int, body: list[str]) -> list[tuple[int, str]]:
 
 
 def expand(path: str, stmts: list[tuple[int, str]], env: dict[str, str] | None = None) -> list[Command]:
-    """The commands ``bimp evaluate|sweep|frontier`` that ``stmts`` run, loops unrolled, variables substituted."""
+    """The commands ``bimp evaluate|sweep|frontier|merge`` that ``stmts`` run, loops unrolled, variables substituted."""
     env, commands, i = dict(env or {}), [], 0
     while i < len(stmts):
         line, text = stmts[i]
@@ -227,4 +230,6 @@ def test_the_documented_command_finds_its_episodes_done(cmd, monkeypatch, capsys
     assert _files(ROOT / cmd.out) == before, f"{shown} wrote into {cmd.out}"
     assert status == 0, f"{shown} exited {status}: {err.strip()[-3000:]}"
     last = out.strip().splitlines()[-1] if out.strip() else ""
-    assert re.fullmatch(r"dry run: 0 episode\(s\) would run", last), f"{shown} would run episodes:\n{out[-3000:]}"
+    done = r"\S+: would copy 0 record\(s\), \d+ already there" if cmd.argv[0] == "merge" else \
+        r"dry run: 0 episode\(s\) would run"
+    assert re.fullmatch(done, last), f"{shown} would run episodes or copy records:\n{out[-3000:]}"
