@@ -57,8 +57,10 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
     path = out / EPISODES_FILE
     if not path.is_file():
         raise EvaluationError(f"{out} is not an evaluation folder (no {EPISODES_FILE})")
-    data, records, arms = path.read_bytes(), numbered_records(out), read_arms(out)
-    gone = dict(matching(records, scenarios, labels, str(out)))
+    data = path.read_bytes()
+    records, arms = numbered_records(out, data), read_arms(out)
+    check_names([r for _, r in records], scenarios, labels, str(out))
+    gone = dict(matching(records, scenarios, labels))
     counts = Counter((r["scenario"], record_label(r)) for r in gone.values())
     if dry_run or not gone:
         return counts
@@ -75,16 +77,21 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
     return counts
 
 
-def matching(records: list[tuple[int, dict]], scenarios: list[str] | None, labels: list[str] | None,
-             where: str) -> list[tuple[int, dict]]:
-    """The ``(line number, record)`` of ``records`` whose scenario is one of ``scenarios`` and label one of ``labels``
-    (None: any). :class:`EvaluationError` for a name no record has, listing the names ``where`` holds."""
-    for flag, wanted, have in (("--scenario", scenarios, {r["scenario"] for _, r in records}),
-                               ("--label", labels, {record_label(r) for _, r in records})):
+def check_names(records: list[dict], scenarios: list[str] | None, labels: list[str] | None, where: str) -> None:
+    """:class:`EvaluationError` for a name of ``scenarios`` or ``labels`` that no record of ``records`` has, listing
+    the names ``where`` holds."""
+    for flag, wanted, have in (("--scenario", scenarios, {r["scenario"] for r in records}),
+                               ("--label", labels, {record_label(r) for r in records})):
         unknown = sorted(set(wanted or ()) - have)
         if unknown:
             raise EvaluationError(f"{flag} {' '.join(unknown)}: no record in {where} (it holds: "
                                   f"{', '.join(sorted(have))})")
+
+
+def matching(records: list[tuple[int, dict]], scenarios: list[str] | None,
+             labels: list[str] | None) -> list[tuple[int, dict]]:
+    """The ``(line number, record)`` of ``records`` whose scenario is one of ``scenarios`` and label one of ``labels``
+    (None: any)."""
     return [(number, r) for number, r in records
             if (not scenarios or r["scenario"] in scenarios) and (not labels or record_label(r) in labels)]
 

@@ -65,15 +65,16 @@ def record_problem(value: object) -> str | None:
 _reported: set[tuple[str, tuple[int, ...]]] = set()  # said once per process: evaluate reads a folder three times
 
 
-def numbered_records(out: str | Path) -> list[tuple[int, dict]]:
+def numbered_records(out: str | Path, data: bytes | None = None) -> list[tuple[int, dict]]:
     """``(line number, record)`` of every record in ``out/episodes.jsonl``, in file order. A line that is not a
     record (not JSON, not an object, lacking a key every reader needs: :func:`record_problem`) is skipped and
     reported on stderr with its number; the last line, when no newline ends it, may be a record cut by an
     interruption: kept when it parses as a whole record, else skipped silently. :class:`EvaluationError` when the
-    file cannot be read."""
+    file cannot be read. ``data``: the file's bytes as the caller read them (who then copies or rewrites lines by
+    these numbers: a run appending in between must not shift them)."""
     path = Path(out) / EPISODES_FILE
     try:
-        data = path.read_bytes()
+        data = path.read_bytes() if data is None else data
     except FileNotFoundError:
         return []
     except OSError as err:

@@ -96,7 +96,7 @@ def test_an_edited_config_is_not_let_in(apart, tmp_path):
     key = next(k for k, e in arms.items() if e["policy"] == "lane-keep")
     arms[key]["config"]["config"]["k_lat"] = 0.01
     (a / ARMS_FILE).write_text(json.dumps(arms))
-    with pytest.raises(EvaluationError, match=f"the arms.json entry {key} does not hash to its key"):
+    with pytest.raises(EvaluationError, match=f"the arms.json entry {key}: its config does not hash to {key}"):
         mg.merge([a], tmp_path / "all")
     (a / ARMS_FILE).write_text(json.dumps({k: v for k, v in arms.items() if k != key}))
     with pytest.raises(EvaluationError, match=f"names config {key}, which its arms.json does not hold"):
@@ -168,3 +168,65 @@ def test_the_usage_puts_the_sources_first(capsys):
     with pytest.raises(SystemExit):
         main(["merge", "--help"])
     assert "usage: bimp merge SRC [SRC ...] --into DIR" in capsys.readouterr().out
+
+
+def test_a_name_need_only_be_in_one_source(apart, tmp_path):
+    a, _ = apart
+    other = tmp_path / "other"
+    evaluate(out=other, policies=["lane-keep"], seed=9, **{**ARGS, "scenarios": ["overtaking"], "episodes": 1})
+    copied, _ = mg.merge([a, other], tmp_path / "all", scenarios=["overtaking"])
+    assert copied == {("overtaking", "lane-keep"): 1}
+    with pytest.raises(EvaluationError, match=f"--label nobody: no record in {a} or {other}"):
+        mg.merge([a, other], tmp_path / "all", labels=["nobody"])
+
+
+def test_a_merge_cut_before_its_configs_is_mended_by_the_next(apart, tmp_path, monkeypatch):
+    """arms.json goes first; were it lost after the records (as a cut between two writes would leave it), the next
+    merge finds the records there and writes the entries they name."""
+    a, b = apart
+    into = tmp_path / "all"
+    mg.merge([a], into)
+    (into / ARMS_FILE).unlink()
+    copied, skipped = mg.merge([a], into)
+    assert not copied and sum(skipped.values()) == 4
+    assert read_arms(into) == read_arms(a)
+    assert ev.main(["--policy", "lane-keep", "--scenario", "emergency-brake", "--episodes", "2", "--seed", "5",
+                    "--workers", "1", "--out", str(into), "--dry-run"]) == 0
+
+
+def test_an_entry_held_with_another_seeding_is_refused(apart, tmp_path):
+    """A record leaves its seeding to its arms.json entry: copied beside another entry of the same hash whose seeding
+    differs, it would be read with that one."""
+    a, b = apart
+    arms = read_arms(b)
+    key = next(iter(arms))
+    arms[key]["seeding"] = "something else"
+    (b / ARMS_FILE).write_text(json.dumps(arms))
+    with pytest.raises(EvaluationError, match=f"entry {key} differs from the merged folder's in its seeding"):
+        mg.merge([a], b)
+    assert len(read_records(b)) == 4
+
+
+def test_a_record_without_a_config_hash_is_refused(apart, tmp_path):
+    """Records from before config hashes cannot be told apart by config: two of them under one label could be two
+    arms."""
+    a, _ = apart
+    old = {k: v for k, v in read_records(a)[0].items() if k != "config_hash"}
+    old["config"] = read_arms(a)[read_records(a)[0]["config_hash"]]["config"]
+    with open(a / EPISODES_FILE, "a") as f:
+        f.write(json.dumps(old) + "\n")
+    with pytest.raises(EvaluationError, match="without a config hash .*bimp migrate"):
+        mg.merge([a], tmp_path / "all")
+
+
+def test_a_sources_cut_last_line_is_not_copied_and_a_file_is_no_folder(apart, tmp_path):
+    a, b = apart
+    whole = (a / EPISODES_FILE).read_bytes()
+    last = whole.splitlines(keepends=True)[-1]
+    (a / EPISODES_FILE).write_bytes(whole[: -len(last)] + last[: len(last) // 2])  # a run cut mid-line
+    copied, _ = mg.merge([a], tmp_path / "all")
+    assert sum(copied.values()) == 3
+    assert all(line.endswith(b"}") for line in (tmp_path / "all" / EPISODES_FILE).read_bytes().splitlines())
+    (tmp_path / "file").write_text("")
+    with pytest.raises(EvaluationError, match="is not a folder"):
+        mg.merge([b], tmp_path / "file")
