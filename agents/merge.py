@@ -17,8 +17,9 @@ its result: a second merge copies nothing. Records made by different code stay w
 
 DIR is created if needed and locked for the change (as a run locks it; the sources are only read); its
 ``arms.json`` is written first, as a run writes a config before its first record, then its records in one step,
-then its summary files, for the whole folder. A merge cut between the two is mended by running it again. Exit status
-0, or 2 on a bad request (then nothing is written).
+then its summary files, for the whole folder. A merge cut between ``arms.json`` and the records is mended by running
+it again (the summary is rewritten by the next run that writes there). Exit status 0, or 2 on a bad request (then
+nothing is written).
 """
 
 from __future__ import annotations
@@ -48,20 +49,23 @@ from bimp.agents.records import (
 
 
 def merge(sources: list[str | Path], into: str | Path, scenarios: list[str] | None = None,
-          labels: list[str] | None = None, dry_run: bool = False) -> tuple[Counter, Counter]:
+          labels: list[str] | None = None, dry_run: bool = False) -> tuple[Counter, Counter, list[str]]:
     """Copy the records of ``scenarios`` x ``labels`` (None: every one) from each of ``sources`` into ``into``, with
-    their ``arms.json`` entries; ``(copied, skipped)`` counts per ``(scenario, label)``, skipped being the episodes
-    ``into`` already held. :class:`EvaluationError`, with nothing written, for a source that is not an evaluation
-    folder or is ``into``, a name no source has, a label that would hold two configs on a scenario, a record without
-    a config hash, or a config that is not the one its hash names."""
+    their ``arms.json`` entries; ``(copied, skipped, added)``: counts per ``(scenario, label)``, skipped being the
+    episodes ``into`` already held or an earlier source gave, and the config hashes added to ``arms.json``.
+    :class:`EvaluationError`, with nothing written, for a source that is not an evaluation folder or is ``into``, a
+    name no source has, a label that would hold two configs on a scenario, a record without a config hash, or a
+    config that is not the one its hash names."""
     into = Path(into)
     if not sources:
         raise EvaluationError("name at least one folder to copy from")
     if into.exists() and not into.is_dir():
         raise EvaluationError(f"{into} is not a folder")
     target = into / EPISODES_FILE
-    data = target.read_bytes() if target.is_file() else b""
+    data = _target_bytes(target)
     held, held_arms = numbered_records(into, data), read_arms(into)
+    if any(r.get("config_hash") is None for _, r in held):
+        raise EvaluationError(f"{into} holds records without a config hash (older code): bimp migrate {into} first")
     read = [_read_source(Path(source), into) for source in sources]
     check_names([r for _, _, records, _ in read for _, r in records], scenarios, labels,
                 " or ".join(map(str, sources)))
@@ -85,8 +89,9 @@ def merge(sources: list[str | Path], into: str | Path, scenarios: list[str] | No
             skip = key in done or (r["status"] != "ok" and key in present)
             if "config" in r:
                 _check_hash(f"{source} line {number}", r["policy"], r["config"], key[2])
-            elif (source, key[2]) not in checked and (not skip or key[2] not in arms):
-                # a skipped record's entry only where DIR lacks it: that mends a merge cut before arms.json
+            elif (source, key[2]) not in checked and (not skip or key[2] not in held_arms):
+                # a skipped record's entry only where DIR lacks it: that mends a merge cut before arms.json, and
+                # every source naming the hash is compared with the first
                 arms[key[2]] = _entry(source, source_arms, key[2], arms.get(key[2]))
                 checked.add((source, key[2]))
             if skip:
@@ -97,18 +102,32 @@ def merge(sources: list[str | Path], into: str | Path, scenarios: list[str] | No
             present.add(key)
             if r["status"] == "ok":
                 done.add(key)
-    if dry_run or (not lines and arms == held_arms):
-        return copied, skipped
-    into.mkdir(parents=True, exist_ok=True)
-    with folder_lock(into, hint="wait for it to end"):
-        if (target.read_bytes() if target.is_file() else b"") != data or read_arms(into) != held_arms:
-            raise EvaluationError(f"{into} changed while it was read (a run writing into it?): try again")
-        write_arms(into, arms)  # first, as evaluate does: every record written names a config that is there
-        if lines:
-            head = data if not data or data.endswith(b"\n") else data + b"\n"  # a cut last line stays apart
-            write_atomic(target, head + b"\n".join(lines) + b"\n")
-        write_summary(summarize(latest_records(read_records(into))), into)
-    return copied, skipped
+    added = sorted(set(arms) - set(held_arms))
+    if dry_run or (not lines and not added):
+        return copied, skipped, added
+    try:
+        into.mkdir(parents=True, exist_ok=True)
+        with folder_lock(into, hint="wait for it to end"):
+            if _target_bytes(target) != data or read_arms(into) != held_arms:
+                raise EvaluationError(f"{into} changed while it was read (a run writing into it?): try again")
+            write_arms(into, arms)  # first, as evaluate does: every record written names a config that is there
+            if lines:
+                head = data if not data or data.endswith(b"\n") else data + b"\n"  # a cut last line stays apart
+                write_atomic(target, head + b"\n".join(lines) + b"\n")
+            write_summary(summarize(latest_records(read_records(into))), into)
+    except OSError as err:
+        raise EvaluationError(f"cannot write into {into}: {err}") from None
+    return copied, skipped, added
+
+
+def _target_bytes(target: Path) -> bytes:
+    """The merged folder's records as bytes (none yet: empty); :class:`EvaluationError` when they cannot be read."""
+    if target.exists() and not target.is_file():
+        raise EvaluationError(f"{target} is not a file")
+    try:
+        return target.read_bytes() if target.exists() else b""
+    except OSError as err:
+        raise EvaluationError(f"cannot read {target}: {err.strerror or err}") from None
 
 
 def _read_source(source: Path, into: Path) -> tuple[Path, list[bytes], list[tuple[int, dict]], dict[str, dict]]:
@@ -161,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dry-run", action="store_true", help="print what would be copied; write nothing")
     args = parser.parse_args(argv)
     try:
-        copied, skipped = merge(args.sources, args.into, args.scenario, args.label, dry_run=args.dry_run)
+        copied, skipped, added = merge(args.sources, args.into, args.scenario, args.label, dry_run=args.dry_run)
     except EvaluationError as err:
         print(f"bimp merge: error: {err}", file=sys.stderr)
         return 2
@@ -169,5 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     for scenario, label in sorted(set(copied) | set(skipped)):
         print(f"{verb} {copied[scenario, label]:>5} record(s) of {label} on {scenario}"
               + (f" ({skipped[scenario, label]} already there)" if skipped[scenario, label] else ""))
+    if added and not copied:  # entries only: a merge cut between arms.json and its records, mended
+        print(f"{'would add' if args.dry_run else 'added'} {len(added)} config(s) to arms.json that records there name")
     print(f"{args.into}: {verb} {sum(copied.values())} record(s), {sum(skipped.values())} already there")
     return 0

@@ -54,13 +54,13 @@ def test_two_runs_merged_are_the_run_over_all_their_seeds_and_it_resumes(apart, 
 def test_a_second_merge_copies_nothing_and_filters_pick_what_goes(apart, tmp_path, capsys):
     a, b = apart
     into = tmp_path / "all"
-    copied, skipped = mg.merge([a], into, labels=["brake"])
+    copied, skipped, _ = mg.merge([a], into, labels=["brake"])
     assert copied == {("emergency-brake", "brake"): 2} and not skipped
     assert {r["label"] for r in read_records(into)} == {"brake"} and len(read_arms(into)) == 1
     before = (into / EPISODES_FILE).read_bytes()
-    copied, skipped = mg.merge([a, b], into, labels=["brake"])
+    copied, skipped, _ = mg.merge([a, b], into, labels=["brake"])
     assert copied == {("emergency-brake", "brake"): 2} and skipped == {("emergency-brake", "brake"): 2}
-    copied, skipped = mg.merge([a, b, a], into, scenarios=["emergency-brake"], labels=["brake"])
+    copied, skipped, _ = mg.merge([a, b, a], into, scenarios=["emergency-brake"], labels=["brake"])
     assert not copied and skipped == {("emergency-brake", "brake"): 6}
     assert (into / EPISODES_FILE).read_bytes().startswith(before) and len(read_records(into)) == 4
 
@@ -153,14 +153,14 @@ def test_an_error_record_does_not_hide_a_result_and_a_cut_last_line_stays_apart(
     into.mkdir()
     (into / EPISODES_FILE).write_text(json.dumps(failed) + "\n" + '{"scenario": "cut')
     (into / ARMS_FILE).write_text((a / ARMS_FILE).read_text())
-    copied, skipped = mg.merge([a], into)
+    copied, skipped, _ = mg.merge([a], into)
     assert sum(copied.values()) == 4 and not skipped
     assert [r["status"] for r in latest_records(read_records(into)) if r["seed"] == first["seed"]
             and r["label"] == first["label"]] == ["ok"]
     assert (into / EPISODES_FILE).read_bytes().count(b"\n") == 6
     with open(b / EPISODES_FILE, "a") as f:
         f.write(json.dumps(failed) + "\n")
-    copied, skipped = mg.merge([b], into, labels=[first["label"]])
+    copied, skipped, _ = mg.merge([b], into, labels=[first["label"]])
     assert sum(copied.values()) == 2 and sum(skipped.values()) == 1
 
 
@@ -174,21 +174,23 @@ def test_a_name_need_only_be_in_one_source(apart, tmp_path):
     a, _ = apart
     other = tmp_path / "other"
     evaluate(out=other, policies=["lane-keep"], seed=9, **{**ARGS, "scenarios": ["overtaking"], "episodes": 1})
-    copied, _ = mg.merge([a, other], tmp_path / "all", scenarios=["overtaking"])
+    copied, *_ = mg.merge([a, other], tmp_path / "all", scenarios=["overtaking"])
     assert copied == {("overtaking", "lane-keep"): 1}
     with pytest.raises(EvaluationError, match=f"--label nobody: no record in {a} or {other}"):
         mg.merge([a, other], tmp_path / "all", labels=["nobody"])
 
 
-def test_a_merge_cut_before_its_configs_is_mended_by_the_next(apart, tmp_path, monkeypatch):
+def test_a_merge_cut_before_its_configs_is_mended_by_the_next(apart, tmp_path, capsys):
     """arms.json goes first; were it lost after the records (as a cut between two writes would leave it), the next
     merge finds the records there and writes the entries they name."""
     a, b = apart
     into = tmp_path / "all"
     mg.merge([a], into)
     (into / ARMS_FILE).unlink()
-    copied, skipped = mg.merge([a], into)
-    assert not copied and sum(skipped.values()) == 4
+    assert main(["merge", str(a), "--into", str(into), "--dry-run"]) == 0
+    assert "would add 2 config(s) to arms.json" in capsys.readouterr().out and not (into / ARMS_FILE).exists()
+    copied, skipped, added = mg.merge([a], into)
+    assert not copied and sum(skipped.values()) == 4 and added == sorted(read_arms(a))
     assert read_arms(into) == read_arms(a)
     assert ev.main(["--policy", "lane-keep", "--scenario", "emergency-brake", "--episodes", "2", "--seed", "5",
                     "--workers", "1", "--out", str(into), "--dry-run"]) == 0
@@ -224,9 +226,39 @@ def test_a_sources_cut_last_line_is_not_copied_and_a_file_is_no_folder(apart, tm
     whole = (a / EPISODES_FILE).read_bytes()
     last = whole.splitlines(keepends=True)[-1]
     (a / EPISODES_FILE).write_bytes(whole[: -len(last)] + last[: len(last) // 2])  # a run cut mid-line
-    copied, _ = mg.merge([a], tmp_path / "all")
+    copied, *_ = mg.merge([a], tmp_path / "all")
     assert sum(copied.values()) == 3
     assert all(line.endswith(b"}") for line in (tmp_path / "all" / EPISODES_FILE).read_bytes().splitlines())
     (tmp_path / "file").write_text("")
     with pytest.raises(EvaluationError, match="is not a folder"):
         mg.merge([b], tmp_path / "file")
+
+
+def test_a_mend_from_two_sources_that_disagree_is_refused(apart, tmp_path):
+    """Every source naming a config DIR lacks is compared with the first, skipped records or not."""
+    a, b = apart
+    into = tmp_path / "all"
+    mg.merge([a, b], into)
+    (into / ARMS_FILE).unlink()  # every record of both is there now: all skipped, only the entries to mend
+    arms = read_arms(b)
+    for entry in arms.values():
+        entry["seeding"] = "something else"
+    (b / ARMS_FILE).write_text(json.dumps(arms))
+    with pytest.raises(EvaluationError, match="differs from the merged folder's in its seeding"):
+        mg.merge([a, b], into)
+    assert not (into / ARMS_FILE).exists()
+
+
+def test_a_target_it_cannot_use_is_refused_before_anything_is_written(apart, tmp_path):
+    a, _ = apart
+    odd = tmp_path / "odd"
+    (odd / EPISODES_FILE).mkdir(parents=True)
+    with pytest.raises(EvaluationError, match="is not a file"):
+        mg.merge([a], odd)
+    assert sorted(p.name for p in odd.iterdir()) == [EPISODES_FILE]
+    old = tmp_path / "old"
+    old.mkdir()
+    record = {k: v for k, v in read_records(a)[0].items() if k != "config_hash"}
+    (old / EPISODES_FILE).write_text(json.dumps(record) + "\n")
+    with pytest.raises(EvaluationError, match=f"{old} holds records without a config hash .*bimp migrate {old}"):
+        mg.merge([a], old)
