@@ -33,12 +33,13 @@ from bimp.agents.cli import EvaluationError
 from bimp.agents.metrics import summarize
 from bimp.agents.records import (
     EPISODES_FILE,
-    folder_lock,
+    episode_bytes,
     latest_records,
     numbered_records,
     read_arms,
     read_records,
     record_label,
+    unchanged_lock,
     write_arms,
     write_atomic,
     write_summary,
@@ -57,16 +58,14 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
     path = out / EPISODES_FILE
     if not path.is_file():
         raise EvaluationError(f"{out} is not an evaluation folder (no {EPISODES_FILE})")
-    data = path.read_bytes()
+    data = episode_bytes(out)
     records, arms = numbered_records(out, data), read_arms(out)
     check_names([r for _, r in records], scenarios, labels, str(out))
     gone = dict(matching(records, scenarios, labels))
     counts = Counter((r["scenario"], record_label(r)) for r in gone.values())
     if dry_run or not gone:
         return counts
-    with folder_lock(out, hint="wait for it to end"):
-        if path.read_bytes() != data or read_arms(out) != arms:
-            raise EvaluationError(f"{out} changed while it was read (a run writing into it?): try again")
+    with unchanged_lock(out, data, arms):
         lines = data.split(b"\n")  # line n is lines[n - 1], as numbered_records counts them; a final b"" stays
         write_atomic(path, b"\n".join(line for n, line in enumerate(lines, start=1) if n not in gone))
         kept = {r.get("config_hash") for n, r in records if n not in gone}

@@ -35,13 +35,14 @@ from bimp.agents.metrics import summarize
 from bimp.agents.provenance import config_hash
 from bimp.agents.records import (
     EPISODES_FILE,
-    folder_lock,
+    episode_bytes,
     latest_records,
     numbered_records,
     read_arms,
     read_records,
     record_key,
     record_label,
+    unchanged_lock,
     write_arms,
     write_atomic,
     write_summary,
@@ -62,7 +63,7 @@ def merge(sources: list[str | Path], into: str | Path, scenarios: list[str] | No
     if into.exists() and not into.is_dir():
         raise EvaluationError(f"{into} is not a folder")
     target = into / EPISODES_FILE
-    data = _target_bytes(target)
+    data = episode_bytes(into)
     held, held_arms = numbered_records(into, data), read_arms(into)
     if any(r.get("config_hash") is None for _, r in held):
         raise EvaluationError(f"{into} holds records without a config hash (older code): bimp migrate {into} first")
@@ -107,9 +108,7 @@ def merge(sources: list[str | Path], into: str | Path, scenarios: list[str] | No
         return copied, skipped, added
     try:
         into.mkdir(parents=True, exist_ok=True)
-        with folder_lock(into, hint="wait for it to end"):
-            if _target_bytes(target) != data or read_arms(into) != held_arms:
-                raise EvaluationError(f"{into} changed while it was read (a run writing into it?): try again")
+        with unchanged_lock(into, data, held_arms):
             write_arms(into, arms)  # first, as evaluate does: every record written names a config that is there
             if lines:
                 head = data if not data or data.endswith(b"\n") else data + b"\n"  # a cut last line stays apart
@@ -120,16 +119,6 @@ def merge(sources: list[str | Path], into: str | Path, scenarios: list[str] | No
     return copied, skipped, added
 
 
-def _target_bytes(target: Path) -> bytes:
-    """The merged folder's records as bytes (none yet: empty); :class:`EvaluationError` when they cannot be read."""
-    if target.exists() and not target.is_file():
-        raise EvaluationError(f"{target} is not a file")
-    try:
-        return target.read_bytes() if target.exists() else b""
-    except OSError as err:
-        raise EvaluationError(f"cannot read {target}: {err.strerror or err}") from None
-
-
 def _read_source(source: Path, into: Path) -> tuple[Path, list[bytes], list[tuple[int, dict]], dict[str, dict]]:
     """``(source, its lines, its numbered records, its arms)``, the records parsed from the lines read (a run
     appending meanwhile cannot shift a number)."""
@@ -138,10 +127,7 @@ def _read_source(source: Path, into: Path) -> tuple[Path, list[bytes], list[tupl
         raise EvaluationError(f"{source} is not an evaluation folder (no {EPISODES_FILE})")
     if source.resolve() == into.resolve():
         raise EvaluationError(f"{source} is the folder merged into")
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
+    data = episode_bytes(source)
     return source, data.split(b"\n"), numbered_records(source, data), read_arms(source)
 
 

@@ -188,6 +188,29 @@ def folder_lock(out: Path, hint: str = "wait for it to end or choose another --o
         handle.close()
 
 
+
+def episode_bytes(out: str | Path) -> bytes:
+    """The bytes of ``out/episodes.jsonl`` (none yet: ``b""``), for a command that rewrites or copies its lines by
+    number; :class:`EvaluationError` when it is not a file or cannot be read."""
+    path = Path(out) / EPISODES_FILE
+    if path.exists() and not path.is_file():
+        raise EvaluationError(f"{path} is not a file")
+    try:
+        return path.read_bytes() if path.exists() else b""
+    except OSError as err:
+        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
+
+
+@contextmanager
+def unchanged_lock(out: Path, data: bytes, arms: dict[str, dict]) -> Iterator[None]:
+    """Hold ``out``'s lock for a change planned on its records read as ``data`` and its ``arms``:
+    :class:`EvaluationError` when either changed since (a run wrote in between), so nothing is written from a stale
+    reading."""
+    with folder_lock(out, hint="wait for it to end"):
+        if episode_bytes(out) != data or read_arms(out) != arms:
+            raise EvaluationError(f"{out} changed while it was read (a run writing into it?): try again")
+        yield
+
 # --- writing records and summaries ------------------------------------------------------------------------
 def finite(value: Any) -> Any:
     """JSON has no inf: infinities and NaN become None."""
@@ -260,7 +283,7 @@ def markdown_table(summary: dict) -> str:
     return "\n".join(lines) + "\n" + notes
 
 
-__all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "finite", "folder_lock",
-           "format_stat", "latest_records", "markdown_table", "numbered_records", "read_arms", "read_records",
-           "record_config", "record_key", "record_label", "record_problem", "write_arms", "write_atomic",
-           "write_summary"]
+__all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "episode_bytes", "finite",
+           "folder_lock", "format_stat", "latest_records", "markdown_table", "numbered_records", "read_arms",
+           "read_records", "record_config", "record_key", "record_label", "record_problem", "unchanged_lock",
+           "write_arms", "write_atomic", "write_summary"]

@@ -7,6 +7,7 @@ import pytest
 
 from bimp.agents import drop as dr
 from bimp.agents import evaluate as ev
+from bimp.agents import records
 from bimp.agents.cli import EvaluationError, main
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import ARMS_FILE, EPISODES_FILE, folder_lock, read_arms, read_records
@@ -108,7 +109,7 @@ def test_records_appended_between_the_read_and_the_lock_are_not_lost(folder, mon
             f.write(lines_of(out, "brake")[0])
         return folder_lock(out, **kw)
 
-    monkeypatch.setattr(dr, "folder_lock", late_append)
+    monkeypatch.setattr(records, "folder_lock", late_append)  # the lock taken before the reread
     with pytest.raises(EvaluationError, match="changed while it was read"):
         dr.drop(folder, labels=["lane-keep"])
     assert len(read_records(folder)) == 5

@@ -7,6 +7,7 @@ import pytest
 
 from bimp.agents import evaluate as ev
 from bimp.agents import merge as mg
+from bimp.agents import records
 from bimp.agents.cli import EvaluationError, main
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import ARMS_FILE, EPISODES_FILE, folder_lock, latest_records, read_arms, read_records
@@ -136,7 +137,7 @@ def test_records_appended_between_the_read_and_the_lock_are_not_lost(apart, monk
             f.write(extra)
         return folder_lock(out, **kw)
 
-    monkeypatch.setattr(mg, "folder_lock", late_append)
+    monkeypatch.setattr(records, "folder_lock", late_append)  # the lock taken before the reread
     with pytest.raises(EvaluationError, match="changed while it was read"):
         mg.merge([a], b)
     assert len(read_records(b)) == 5

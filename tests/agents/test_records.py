@@ -12,7 +12,18 @@ from bimp.agents import aggregate, compare, plots
 from bimp.agents import evaluate as ev
 from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate, resolve_arms
-from bimp.agents.records import ARMS_FILE, EPISODES_FILE, finite, read_arms, read_records, record_config
+from bimp.agents.records import (
+    ARMS_FILE,
+    EPISODES_FILE,
+    episode_bytes,
+    finite,
+    folder_lock,
+    read_arms,
+    read_records,
+    record_config,
+    unchanged_lock,
+    write_arms,
+)
 
 ARGS = dict(scenarios=["emergency-brake"], episodes=2, seed=5, workers=1, traces=1, progress=False)
 CLI = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5", "--workers", "1"]
@@ -118,3 +129,36 @@ def test_a_list_override_in_a_folder_holding_another_config_is_refused_not_a_tra
     other = {**ev._base_record(ev.Job(arm, 5)), "status": "ok", "config_hash": "0" * 16}
     with pytest.raises(EvaluationError, match="another config"):
         ev.check_conflicts([arm], [(1, other)])
+
+
+def test_episode_bytes_reads_the_records_as_bytes_and_refuses_a_folder_in_their_place(tmp_path):
+    assert episode_bytes(tmp_path) == b""  # nothing yet
+    (tmp_path / EPISODES_FILE).write_bytes(b'{"a": 1}\n{"cut')
+    assert episode_bytes(tmp_path) == b'{"a": 1}\n{"cut'  # as they are, a cut last line included
+    other = tmp_path / "other"
+    (other / EPISODES_FILE).mkdir(parents=True)
+    with pytest.raises(EvaluationError, match="is not a file"):
+        episode_bytes(other)
+
+
+@pytest.mark.parametrize("change", ["records", "arms"])
+def test_unchanged_lock_refuses_a_change_planned_on_a_stale_reading_and_holds_the_lock(tmp_path, change):
+    (tmp_path / EPISODES_FILE).write_bytes(b"line 1\n")
+    arms = {"abc": {"policy": "idm", "config": {}}}
+    write_arms(tmp_path, arms)
+    data = episode_bytes(tmp_path)
+    with unchanged_lock(tmp_path, data, arms):  # nothing changed: the block runs under the lock
+        with pytest.raises(EvaluationError, match="in use by another bimp run"):
+            with folder_lock(tmp_path):
+                pass
+    if change == "records":
+        (tmp_path / EPISODES_FILE).write_bytes(data + b"line 2\n")
+    else:
+        write_arms(tmp_path, {**arms, "def": {"policy": "idm", "config": {"a": 1}}})
+    ran = []
+    with pytest.raises(EvaluationError, match="changed while it was read"):
+        with unchanged_lock(tmp_path, data, arms):
+            ran.append(True)
+    assert not ran
+    with folder_lock(tmp_path):  # released after the refusal
+        pass
