@@ -10,6 +10,15 @@ return vs timesteps), ``config.json`` and ``eval.json`` (a quick check against t
 checkpoint. Copy the model to ``agents/models/{algo}_{scenario}_s{seed}.zip`` to ship it; the shipped ones and
 how they were made: ``docs/rl.md``.
 
+Several runs at once, the grid of ``--scenario`` x ``--seed``, each in ``--runs-dir`` (default ``runs/rl``) under
+its default name, on a pool of ``--workers`` processes or a Ray cluster (the backends of ``bimp evaluate``)::
+
+    bimp train-rl --scenario cut-in-hard stalled-vehicle-hard --seed 1 2 3 --workers 2
+    bimp train-rl --scenario cut-in-hard stalled-vehicle-hard --seed 1 2 3 --backend ray --address HEAD:6379
+
+Every run's settings and folder are checked before the first trains; a run that fails is reported and the others
+go on; the same command again resumes each unfinished run from its checkpoints and skips the finished ones.
+
 Inference: ``make_policy("ppo", env)`` loads the default training seed's model of the env's scenario
 (``agents/models/{algo}_{scenario}_s{seed}.zip``, the default in ``agents/models/defaults.json``), the scenario
 taken from ``env.spec.id``; ``training_seed=S`` picks another shipped seed, ``model=PATH`` any file. A model
@@ -40,7 +49,7 @@ import time
 import zipfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, Callable, NoReturn
 
 import gymnasium as gym
 import numpy as np
@@ -48,8 +57,9 @@ from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.sac.policies import SACPolicy
 
 from bimp import envs
+from bimp.agents.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.baselines import ZeroAction
-from bimp.agents.cli import EvaluationError, check_out_dir
+from bimp.agents.cli import EvaluationError, add_backend_arguments, check_out_dir
 from bimp.agents.rollout import rollout
 from bimp.configs import check_fields, file_sha256, read_yaml
 from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
@@ -658,18 +668,70 @@ def compare_with_zero(env: gym.Env, policy, seeds) -> dict[str, dict[str, float]
     return result
 
 
+def check_model(cfg: RLConfig, path: Path, out: Path, seeds: int) -> dict[str, dict[str, float]]:
+    """:func:`compare_with_zero` of the model ``path`` on ``seeds`` training seeds (100 on), written to
+    ``out/eval.json``: a quick check that training learned something, not an evaluation."""
+    env = gym.make(cfg.env_id)
+    result = compare_with_zero(env, SB3Policy(env, path, cfg.algo), range(100, 100 + seeds))
+    env.close()
+    (out / "eval.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def run_name(cfg: RLConfig) -> str:
+    """A run's default folder name: ``{algo}_{scenario}_s{seed}``."""
+    return f"{cfg.algo}_{cfg.scenario}_s{cfg.seed}"
+
+
+def train_job(job: tuple[dict[str, Any], str, int]) -> list[dict[str, Any]]:
+    """One run of a grid, ``(RLConfig values, out, check seeds)``, in a backend's worker: :func:`train` (resuming
+    from ``out``) and :func:`check_model`. Its report in a one-item list (a backend's records): the model, the
+    training wall time and the check, or the error that stopped it."""
+    values, out, seeds = job
+    try:
+        cfg = RLConfig.from_mapping(values)
+        path = train(cfg, Path(out), progress=False)
+        report: dict[str, Any] = {"run": out, "model": str(path),
+                                  "wall_s": json.loads((Path(out) / "train_time.json").read_text())["wall_s"]}
+        if seeds:
+            report["check"] = check_model(cfg, path, Path(out), seeds)
+    except Exception as err:  # noqa: BLE001 -- one run's failure is its report: hours of the others go on
+        return [{"run": out, "error": f"{type(err).__name__}: {err}"}]
+    return [report]
+
+
+def _job_crashed(job: tuple[dict[str, Any], str, int], why: str) -> list[dict[str, Any]]:
+    return [{"run": job[1], "error": f"its worker died twice ({why})"}]
+
+
+def report_line(report: dict[str, Any]) -> str:
+    """One line of a run's report as ``bimp train-rl`` prints it."""
+    if "error" in report:
+        return f"FAILED {report['run']}: {report['error']}"
+    line = f"trained {report['run']}: {report['model']}, {report['wall_s']} s"
+    if "check" in report:
+        mine, zero = report["check"]["policy"], report["check"]["zero"]
+        line += (f"; progress {mine['progress']:.1f} m (zero action {zero['progress']:.1f} m), "
+                 f"collisions {mine['collision']:.2f}")
+    return line
+
+
 # --- command line --------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp train-rl", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenario", required=True, help=f"one of {sorted(envs.SCENARIOS)}")
+    parser.add_argument("--scenario", nargs="+", required=True, help=f"one or more of {sorted(envs.SCENARIOS)}")
     parser.add_argument("--algo", choices=ALGOS, default="ppo")
     parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: RLConfig's)")
-    parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument("--seed", type=int, nargs="+", default=None, help="training seed(s) (default: RLConfig's)")
     parser.add_argument("--n-envs", type=int, default=None)
     parser.add_argument("--vec-env", choices=("dummy", "subproc"), default=None,
                         help="step the envs in this process (dummy, one core) or one process each (subproc)")
     parser.add_argument("--config", type=Path, help="YAML file of RLConfig overrides (unknown keys are errors)")
-    parser.add_argument("--out", type=Path, help="output folder (default runs/rl/{algo}_{scenario}_s{seed})")
+    parser.add_argument("--out", type=Path, help="one run's output folder (default RUNS_DIR/{algo}_{scenario}_s{seed})")
+    parser.add_argument("--runs-dir", type=Path, default=Path("runs/rl"), help="where the runs' folders go "
+                        "(default runs/rl)")
+    parser.add_argument("--workers", type=int, default=1, help="runs trained at once on this machine (default 1)")
+    add_backend_arguments(parser)
     parser.add_argument("--eval-seeds", type=int, default=5, help="episodes of the final check against the zero "
                         "action (0: skip)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -687,28 +749,73 @@ def main(argv: list[str] | None = None) -> int:
         if data is not None and not isinstance(data, dict):
             fail(f"{args.config}: expected a mapping of RLConfig overrides, got {type(data).__name__}")
         values.update(data or {})
-    values.update(scenario=args.scenario, algo=args.algo)
-    for key in ("timesteps", "seed", "n_envs", "vec_env"):
+    values["algo"] = args.algo
+    for key in ("timesteps", "n_envs", "vec_env"):
         if getattr(args, key) is not None:
             values[key] = getattr(args, key)
+    runs: list[tuple[RLConfig, Path]] = []
     try:
-        cfg = RLConfig.from_mapping(values)
-    except (TypeError, ValueError) as err:
+        if args.workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        check_backend(args.backend, args.address, args.ray_cpus)
+        for scenario in args.scenario:
+            for seed in args.seed or [values.get("seed")]:
+                cfg = RLConfig.from_mapping({**values, "scenario": scenario,
+                                             **({"seed": seed} if seed is not None else {})})
+                runs.append((cfg, args.out or args.runs_dir / run_name(cfg)))
+        if len(runs) > 1 and args.out:
+            raise ValueError("--out names one run's folder; several runs each go to --runs-dir/"
+                             "{algo}_{scenario}_s{seed}")
+        names = [run_name(cfg) for cfg, _ in runs]
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice:
+            raise ValueError(f"run(s) {twice} named twice: give each scenario and seed once")
+        for cfg, out in runs:  # every run's folder before the first trains: no refusal hours in
+            check_out_dir(out, create=False)
+            _check_same_run(cfg, out)
+    except (BackendError, EvaluationError, TypeError, ValueError) as err:
         fail(err)
-    out = args.out or Path("runs/rl") / f"{cfg.algo}_{cfg.scenario}_s{cfg.seed}"
+    if len(runs) == 1 and args.backend == "local":
+        return _train_one(*runs[0], args, fail)
+    return _train_many(runs, args, fail)
+
+
+def _train_one(cfg: RLConfig, out: Path, args: argparse.Namespace, fail: Callable[[object], NoReturn]) -> int:
+    """One run in this process, with a progress bar over its timesteps."""
     try:
-        check_out_dir(out, create=False)
         path = train(cfg, out, progress=not args.no_progress)
-    except (EvaluationError, ValueError) as err:  # a bad --out, another run's folder, a checkpoint that does not fit
+    except (EvaluationError, ValueError) as err:  # a checkpoint that does not fit
         fail(err)
     print(f"model: {path}\ncurve: {out / 'curve.png'}\n"
           f"train wall time: {json.loads((out / 'train_time.json').read_text())['wall_s']} s")
     if args.eval_seeds:
-        env = gym.make(cfg.env_id)
-        policy = SB3Policy(env, path, cfg.algo)
-        result = compare_with_zero(env, policy, range(100, 100 + args.eval_seeds))  # training seeds
-        (out / "eval.json").write_text(json.dumps(result, indent=2) + "\n")
-        for who, r in result.items():
+        for who, r in check_model(cfg, path, out, args.eval_seeds).items():
             print(f"{who:>6}: progress {r['progress']:.1f} m, collisions {r['collision']:.2f}, "
                   f"off-road {r['offroad']:.2f}, return {r['return']:.1f}")
+    return 0
+
+
+def _train_many(runs: list[tuple[RLConfig, Path]], args: argparse.Namespace,
+                fail: Callable[[object], NoReturn]) -> int:
+    """The runs on the backend, a progress bar over runs and a line per run as it ends; 1 when any failed."""
+    from tqdm import tqdm
+
+    try:
+        start_backend(args.backend, args.address, args.ray_cpus)
+    except BackendError as err:
+        fail(err)
+    jobs = [(asdict(cfg), str(out), args.eval_seeds) for cfg, out in runs]
+    failed = []
+    with tqdm(total=len(jobs), desc="runs", unit="run", disable=args.no_progress) as bar:
+        def write(report: dict[str, Any]) -> None:
+            failed.extend([report] if "error" in report else [])
+            bar.update()
+            tqdm.write(report_line(report))
+
+        run_groups(jobs, train_job, _job_crashed, write, backend=args.backend, workers=args.workers,
+                   address=args.address, cpus=args.ray_cpus)
+    if failed:
+        print(f"{len(failed)} of {len(jobs)} runs failed; the same command trains them again, each from its last "
+              f"checkpoint")
+        return 1
     return 0

@@ -193,3 +193,84 @@ def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_p
     assert _logged_steps(out) <= 1024
     with pytest.raises(ValueError, match="gamma: 0.99 there, 0.9 here"):
         rl.train(dataclasses.replace(cfg, gamma=0.9), out, progress=False)
+
+
+def _fake_train(calls: list, fails: str = "never"):
+    """A stand-in for :func:`rl.train` that writes what a finished run leaves, and raises for scenario ``fails``."""
+    def train(cfg, out, progress=True):
+        calls.append((cfg.scenario, cfg.seed, out.name))
+        if cfg.scenario == fails:
+            raise RuntimeError("diverged")
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "train_time.json").write_text('{"wall_s": 1.5}')
+        return out / cfg.model_name
+    return train
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--out", "one"], "--out names one run's folder"),
+    (["--seed", "1", "1"], "named twice"),
+    (["--workers", "0"], "--workers must be >= 1"),
+    (["--backend", "spark"], "unknown backend 'spark'"),
+    (["--timesteps", "0"], "timesteps must be > 0"),
+])
+def test_a_grid_is_refused_before_any_run_trains(tmp_path, monkeypatch, capsys, extra, message):
+    calls = []
+    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    argv = ["--scenario", "emergency-brake", "overtaking", "--runs-dir", str(tmp_path), "--no-progress"]
+    with pytest.raises(SystemExit) as exit_:
+        rl.main(argv + extra)
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
+    assert calls == []
+
+
+def test_a_grid_refuses_a_folder_of_another_run_before_the_first_trains(tmp_path, monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    other = rl.RLConfig(scenario="overtaking", seed=2, timesteps=999)
+    (tmp_path / rl.run_name(other)).mkdir()
+    (tmp_path / rl.run_name(other) / "config.json").write_text(json.dumps(dataclasses.asdict(other)))
+    with pytest.raises(SystemExit):  # the second scenario's second seed: after three runs that would have trained
+        rl.main(["--scenario", "emergency-brake", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path)])
+    assert "timesteps: 999 there, 150000 here" in capsys.readouterr().err
+    assert calls == []
+
+
+def test_a_grid_trains_every_scenario_and_seed_and_a_failed_run_stops_no_other(tmp_path, monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(rl, "train", _fake_train(calls, fails="overtaking"))
+    code = rl.main(["--scenario", "overtaking", "emergency-brake", "--seed", "1", "2", "--runs-dir", str(tmp_path),
+                    "--eval-seeds", "0", "--no-progress"])
+    assert code == 1  # a failed run is not a success
+    assert calls == [("overtaking", 1, "ppo_overtaking_s1"), ("overtaking", 2, "ppo_overtaking_s2"),
+                     ("emergency-brake", 1, "ppo_emergency-brake_s1"), ("emergency-brake", 2, "ppo_emergency-brake_s2")]
+    out = capsys.readouterr().out
+    assert out.count("FAILED") == 2 and "RuntimeError: diverged" in out
+    assert f"trained {tmp_path / 'ppo_emergency-brake_s2'}" in out and "2 of 4 runs failed" in out
+
+
+def test_a_grid_of_real_runs_resumes_to_nothing(tmp_path, capsys):
+    """Two short runs in this process; the same command again trains nothing (each folder holds its model)."""
+    (tmp_path / "short.yaml").write_text("n_steps: 64\ncheckpoint_every: 0\n")
+    argv = ["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
+            str(tmp_path / "short.yaml"), "--runs-dir", str(tmp_path), "--eval-seeds", "1", "--no-progress"]
+    assert rl.main(argv) == 0
+    first = {s: (tmp_path / f"ppo_emergency-brake_s{s}" / "train_time.json").read_text() for s in (1, 2)}
+    assert capsys.readouterr().out.count("trained") == 2
+    for s in (1, 2):
+        model = tmp_path / f"ppo_emergency-brake_s{s}" / rl.model_name("ppo", "emergency-brake")
+        assert rl.read_model_file(model)[0]["num_timesteps"] == 128
+        assert (model.parent / "eval.json").is_file()
+    assert rl.main(argv) == 0
+    assert {s: (tmp_path / f"ppo_emergency-brake_s{s}" / "train_time.json").read_text() for s in (1, 2)} == first
+
+
+@pytest.mark.slow
+def test_a_grid_on_two_workers_trains_both_runs(tmp_path):
+    (tmp_path / "short.yaml").write_text("n_steps: 64\ncheckpoint_every: 0\n")
+    assert rl.main(["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
+                    str(tmp_path / "short.yaml"), "--runs-dir", str(tmp_path), "--workers", "2", "--eval-seeds",
+                    "0", "--no-progress"]) == 0
+    for s in (1, 2):
+        model = tmp_path / f"ppo_emergency-brake_s{s}" / rl.model_name("ppo", "emergency-brake")
+        assert rl.read_model_file(model)[0]["num_timesteps"] == 128
