@@ -65,14 +65,17 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
     counts = Counter((r["scenario"], record_label(r)) for r in gone.values())
     if dry_run or not gone:
         return counts
-    with unchanged_lock(out, data, arms):
-        lines = data.split(b"\n")  # line n is lines[n - 1], as numbered_records counts them; a final b"" stays
-        write_atomic(path, b"\n".join(line for n, line in enumerate(lines, start=1) if n not in gone))
-        kept = {r.get("config_hash") for n, r in records if n not in gone}
-        named_only_by_gone = {r.get("config_hash") for r in gone.values()} - kept
-        if arms:
-            write_arms(out, {key: entry for key, entry in arms.items() if key not in named_only_by_gone})
-        _rewrite_summary(out)
+    try:
+        with unchanged_lock(out, data, arms):
+            lines = data.split(b"\n")  # line n is lines[n - 1], as numbered_records counts them; a final b"" stays
+            write_atomic(path, b"\n".join(line for n, line in enumerate(lines, start=1) if n not in gone))
+            kept = {r.get("config_hash") for n, r in records if n not in gone}
+            named_only_by_gone = {r.get("config_hash") for r in gone.values()} - kept
+            if arms:
+                write_arms(out, {key: entry for key, entry in arms.items() if key not in named_only_by_gone})
+            _rewrite_summary(out)
+    except OSError as err:
+        raise EvaluationError(f"cannot write into {out}: {err}") from None
     return counts
 
 

@@ -188,14 +188,13 @@ def folder_lock(out: Path, hint: str = "wait for it to end or choose another --o
         handle.close()
 
 
-
 def episode_bytes(out: str | Path) -> bytes:
     """The bytes of ``out/episodes.jsonl`` (none yet: ``b""``), for a command that rewrites or copies its lines by
     number; :class:`EvaluationError` when it is not a file or cannot be read."""
     path = Path(out) / EPISODES_FILE
-    if path.exists() and not path.is_file():
-        raise EvaluationError(f"{path} is not a file")
     try:
+        if path.exists() and not path.is_file():
+            raise EvaluationError(f"{path} is not a file")
         return path.read_bytes() if path.exists() else b""
     except OSError as err:
         raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
@@ -210,6 +209,7 @@ def unchanged_lock(out: Path, data: bytes, arms: dict[str, dict]) -> Iterator[No
         if episode_bytes(out) != data or read_arms(out) != arms:
             raise EvaluationError(f"{out} changed while it was read (a run writing into it?): try again")
         yield
+
 
 # --- writing records and summaries ------------------------------------------------------------------------
 def finite(value: Any) -> Any:

@@ -161,3 +161,14 @@ def test_names_that_each_match_but_not_together_drop_nothing(folder, capsys):
     assert main(["drop", str(folder), "--scenario", "other", "--label", "lane-keep"]) == 0
     assert "nothing matched both" in capsys.readouterr().out
     assert (folder / EPISODES_FILE).read_bytes() == before
+
+
+def test_a_folder_that_cannot_be_written_is_named_not_a_traceback(folder, monkeypatch):
+    def denied(path, text):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    before = (folder / EPISODES_FILE).read_bytes()
+    monkeypatch.setattr(dr, "write_atomic", denied)  # chmod would not stop root
+    with pytest.raises(EvaluationError, match=f"cannot write into {folder}"):
+        dr.drop(folder, labels=["lane-keep"])
+    assert (folder / EPISODES_FILE).read_bytes() == before  # nothing dropped

@@ -5,6 +5,7 @@ skipped by every reader, never a traceback, and nothing already recorded is lost
 import json
 import math
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -162,3 +163,14 @@ def test_unchanged_lock_refuses_a_change_planned_on_a_stale_reading_and_holds_th
     assert not ran
     with folder_lock(tmp_path):  # released after the refusal
         pass
+
+
+def test_episode_bytes_names_a_file_it_cannot_read(tmp_path, monkeypatch):
+    (tmp_path / EPISODES_FILE).write_bytes(b"x\n")
+
+    def denied(self):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(Path, "read_bytes", denied)  # chmod would not stop root
+    with pytest.raises(EvaluationError, match=f"cannot read {tmp_path / EPISODES_FILE}: Permission denied"):
+        episode_bytes(tmp_path)
