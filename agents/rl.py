@@ -17,7 +17,8 @@ its default name, on a pool of ``--workers`` processes or a Ray cluster (the bac
     bimp train-rl --scenario cut-in-hard stalled-vehicle-hard --seed 1 2 3 --backend ray --address HEAD:6379
 
 Every run's settings and folder are checked before the first trains; a run that fails is reported and the others
-go on; the same command again resumes each unfinished run from its checkpoints and skips the finished ones.
+go on; the same command again resumes each unfinished run from its checkpoints and trains no finished one again.
+Ray's workers write the runs' folders: on several machines ``--runs-dir`` must be a disk every node mounts.
 
 Inference: ``make_policy("ppo", env)`` loads the default training seed's model of the env's scenario
 (``agents/models/{algo}_{scenario}_s{seed}.zip``, the default in ``agents/models/defaults.json``), the scenario
@@ -443,7 +444,7 @@ def _check_same_run(cfg: RLConfig, out: Path) -> None:
                     if before.get(k) != now.get(k) and k not in _RESUMABLE_CHANGES)
     if differ:
         changes = ", ".join(f"{k}: {before.get(k)!r} there, {now.get(k)!r} here" for k in differ)
-        raise ValueError(f"{out} holds a run with other settings ({changes}); choose another --out")
+        raise ValueError(f"{out} holds a run with other settings ({changes}); choose another folder")
 
 
 def _monitor_files(out: Path) -> list[Path]:
@@ -686,12 +687,13 @@ def run_name(cfg: RLConfig) -> str:
 def train_job(job: tuple[dict[str, Any], str, int]) -> list[dict[str, Any]]:
     """One run of a grid, ``(RLConfig values, out, check seeds)``, in a backend's worker: :func:`train` (resuming
     from ``out``) and :func:`check_model`. Its report in a one-item list (a backend's records): the model, the
-    training wall time and the check, or the error that stopped it."""
+    training wall time, whether it was trained by an earlier command, and the check; or the error that stopped it."""
     values, out, seeds = job
     try:
         cfg = RLConfig.from_mapping(values)
+        finished = (Path(out) / cfg.model_name).is_file() and (Path(out) / "train_time.json").is_file()
         path = train(cfg, Path(out), progress=False)
-        report: dict[str, Any] = {"run": out, "model": str(path),
+        report: dict[str, Any] = {"run": out, "model": str(path), "earlier": finished,
                                   "wall_s": json.loads((Path(out) / "train_time.json").read_text())["wall_s"]}
         if seeds:
             report["check"] = check_model(cfg, path, Path(out), seeds)
@@ -701,14 +703,15 @@ def train_job(job: tuple[dict[str, Any], str, int]) -> list[dict[str, Any]]:
 
 
 def _job_crashed(job: tuple[dict[str, Any], str, int], why: str) -> list[dict[str, Any]]:
-    return [{"run": job[1], "error": f"its worker died twice ({why})"}]
+    return [{"run": job[1], "error": f"WorkerDied: {why}"}]
 
 
 def report_line(report: dict[str, Any]) -> str:
     """One line of a run's report as ``bimp train-rl`` prints it."""
     if "error" in report:
         return f"FAILED {report['run']}: {report['error']}"
-    line = f"trained {report['run']}: {report['model']}, {report['wall_s']} s"
+    done = "trained earlier" if report.get("earlier") else "trained"
+    line = f"{done} {report['run']}: {report['model']}, {report['wall_s']} s"
     if "check" in report:
         mine, zero = report["check"]["policy"], report["check"]["zero"]
         line += (f"; progress {mine['progress']:.1f} m (zero action {zero['progress']:.1f} m), "
@@ -719,17 +722,20 @@ def report_line(report: dict[str, Any]) -> str:
 # --- command line --------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp train-rl", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scenario", nargs="+", required=True, help=f"one or more of {sorted(envs.SCENARIOS)}")
+    parser.add_argument("--scenario", nargs="+", action="extend", required=True,
+                        help=f"one or more of {sorted(envs.SCENARIOS)}")
     parser.add_argument("--algo", choices=ALGOS, default="ppo")
     parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: RLConfig's)")
-    parser.add_argument("--seed", type=int, nargs="+", default=None, help="training seed(s) (default: RLConfig's)")
+    parser.add_argument("--seed", type=int, nargs="+", action="extend", default=None,
+                        help="training seed(s) (default: RLConfig's)")
     parser.add_argument("--n-envs", type=int, default=None)
     parser.add_argument("--vec-env", choices=("dummy", "subproc"), default=None,
                         help="step the envs in this process (dummy, one core) or one process each (subproc)")
     parser.add_argument("--config", type=Path, help="YAML file of RLConfig overrides (unknown keys are errors)")
     parser.add_argument("--out", type=Path, help="one run's output folder (default RUNS_DIR/{algo}_{scenario}_s{seed})")
-    parser.add_argument("--runs-dir", type=Path, default=Path("runs/rl"), help="where the runs' folders go "
-                        "(default runs/rl)")
+    parser.add_argument("--runs-dir", type=Path, default=None, help="where the runs' folders go, each under its "
+                        "default name (default runs/rl); on a Ray cluster of several machines, a disk every node "
+                        "mounts at the same path")
     parser.add_argument("--workers", type=int, default=1, help="runs trained at once on this machine (default 1)")
     add_backend_arguments(parser)
     parser.add_argument("--eval-seeds", type=int, default=5, help="episodes of the final check against the zero "
@@ -755,14 +761,19 @@ def main(argv: list[str] | None = None) -> int:
             values[key] = getattr(args, key)
     runs: list[tuple[RLConfig, Path]] = []
     try:
-        if args.workers < 1:
-            raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        if args.workers < 1 or args.eval_seeds < 0:
+            raise ValueError(f"--workers must be >= 1 and --eval-seeds >= 0, got {args.workers} and "
+                             f"{args.eval_seeds}")
+        if args.out and args.runs_dir:
+            raise ValueError("--out names one run's folder, --runs-dir the folder of the runs' folders: give one")
         check_backend(args.backend, args.address, args.ray_cpus)
+        runs_dir = check_out_dir(args.runs_dir, create=False, flag="--runs-dir") if args.runs_dir else Path("runs/rl")
         for scenario in args.scenario:
+            scenario = envs.scenario_name(envs.env_id(scenario)) or scenario  # one name per scenario, one folder
             for seed in args.seed or [values.get("seed")]:
                 cfg = RLConfig.from_mapping({**values, "scenario": scenario,
                                              **({"seed": seed} if seed is not None else {})})
-                runs.append((cfg, args.out or args.runs_dir / run_name(cfg)))
+                runs.append((cfg, args.out or runs_dir / run_name(cfg)))
         if len(runs) > 1 and args.out:
             raise ValueError("--out names one run's folder; several runs each go to --runs-dir/"
                              "{algo}_{scenario}_s{seed}")
@@ -771,7 +782,7 @@ def main(argv: list[str] | None = None) -> int:
         if twice:
             raise ValueError(f"run(s) {twice} named twice: give each scenario and seed once")
         for cfg, out in runs:  # every run's folder before the first trains: no refusal hours in
-            check_out_dir(out, create=False)
+            check_out_dir(out, create=False, flag="--out" if args.out else "--runs-dir")
             _check_same_run(cfg, out)
     except (BackendError, EvaluationError, TypeError, ValueError) as err:
         fail(err)
@@ -804,7 +815,8 @@ def _train_many(runs: list[tuple[RLConfig, Path]], args: argparse.Namespace,
         start_backend(args.backend, args.address, args.ray_cpus)
     except BackendError as err:
         fail(err)
-    jobs = [(asdict(cfg), str(out), args.eval_seeds) for cfg, out in runs]
+    # Absolute: a Ray worker's working folder is not this one (on a cluster the folder must be on a shared disk).
+    jobs = [(asdict(cfg), str(out.resolve()), args.eval_seeds) for cfg, out in runs]
     failed = []
     with tqdm(total=len(jobs), desc="runs", unit="run", disable=args.no_progress) as bar:
         def write(report: dict[str, Any]) -> None:

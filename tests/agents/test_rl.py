@@ -213,6 +213,9 @@ def _fake_train(calls: list, fails: str = "never"):
     (["--workers", "0"], "--workers must be >= 1"),
     (["--backend", "spark"], "unknown backend 'spark'"),
     (["--timesteps", "0"], "timesteps must be > 0"),
+    (["--eval-seeds", "-1"], "--eval-seeds >= 0"),
+    (["--runs-dir", "a", "--out", "b"], "give one"),
+    (["--scenario", "bimp/Overtaking-v0"], "['ppo_overtaking_s0'] named twice"),  # one scenario by two names
 ])
 def test_a_grid_is_refused_before_any_run_trains(tmp_path, monkeypatch, capsys, extra, message):
     calls = []
@@ -263,6 +266,7 @@ def test_a_grid_of_real_runs_resumes_to_nothing(tmp_path, capsys):
         assert (model.parent / "eval.json").is_file()
     assert rl.main(argv) == 0
     assert {s: (tmp_path / f"ppo_emergency-brake_s{s}" / "train_time.json").read_text() for s in (1, 2)} == first
+    assert capsys.readouterr().out.count("trained earlier") == 2
 
 
 @pytest.mark.slow
@@ -274,3 +278,43 @@ def test_a_grid_on_two_workers_trains_both_runs(tmp_path):
     for s in (1, 2):
         model = tmp_path / f"ppo_emergency-brake_s{s}" / rl.model_name("ppo", "emergency-brake")
         assert rl.read_model_file(model)[0]["num_timesteps"] == 128
+
+
+def test_one_run_trains_in_this_process_into_its_default_folder(tmp_path, monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "seeded.yaml").write_text("seed: 7\n")  # a seed from the file, none on the command line
+    assert rl.main(["--scenario", "overtaking", "--config", "seeded.yaml", "--eval-seeds", "0"]) == 0
+    assert calls == [("overtaking", 7, "ppo_overtaking_s7")]
+    assert (tmp_path / "runs/rl/ppo_overtaking_s7/train_time.json").is_file()
+    assert "train wall time: 1.5 s" in capsys.readouterr().out
+    monkeypatch.setattr(rl, "train", _fake_train(calls, fails="overtaking"))
+    with pytest.raises(RuntimeError):  # not a refusal: a bug in training is a traceback, as before
+        rl.main(["--scenario", "overtaking", "--eval-seeds", "0"])
+
+
+def test_a_runs_dir_under_a_file_is_named_as_such(tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SystemExit):
+        rl.main(["--scenario", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path / "file" / "runs")])
+    assert f"--runs-dir {tmp_path / 'file' / 'runs'} lies under" in capsys.readouterr().err
+
+
+def test_ray_gets_absolute_run_folders_and_a_dead_worker_fails_the_command(tmp_path, monkeypatch, capsys):
+    seen = {}
+
+    def fake_run_groups(jobs, run, crashed, write, **options):
+        seen.update(jobs=jobs, options=options)
+        for job in jobs:
+            for report in crashed(job, "the worker process running it died twice"):
+                write(report)
+
+    monkeypatch.setattr(rl, "start_backend", lambda *a: None)
+    monkeypatch.setattr(rl, "run_groups", fake_run_groups)
+    monkeypatch.chdir(tmp_path)
+    code = rl.main(["--scenario", "overtaking", "--runs-dir", "rel", "--backend", "ray", "--address", "auto",
+                    "--no-progress"])
+    assert code == 1 and "WorkerDied: the worker process running it died twice" in capsys.readouterr().out
+    assert [job[1] for job in seen["jobs"]] == [str(tmp_path / "rel" / "ppo_overtaking_s0")]
+    assert seen["options"] == {"backend": "ray", "workers": 1, "address": "auto", "cpus": None}
