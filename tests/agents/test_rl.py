@@ -318,3 +318,15 @@ def test_ray_gets_absolute_run_folders_and_a_dead_worker_fails_the_command(tmp_p
     assert code == 1 and "WorkerDied: the worker process running it died twice" in capsys.readouterr().out
     assert [job[1] for job in seen["jobs"]] == [str(tmp_path / "rel" / "ppo_overtaking_s0")]
     assert seen["options"] == {"backend": "ray", "workers": 1, "address": "auto", "cpus": None}
+
+
+def test_every_default_training_seed_names_a_shipped_model_that_loads_on_its_scenario():
+    """defaults.json's keys are ``{algo}_{scenario}`` (a suite family's scenarios too, as paper-noisy's)."""
+    for key, seed in rl.default_training_seeds().items():
+        algo, scenario = key.split("_", 1)
+        env = gym.make(envs.env_id(scenario))
+        policy = make_policy(algo, env)
+        assert policy.model_path.name == rl.shipped_name(algo, scenario, seed)
+        obs, _ = env.reset(seed=0)
+        assert env.action_space.contains(policy.act(obs))
+        env.close()
