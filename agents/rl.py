@@ -484,7 +484,7 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
 
     path = out / cfg.model_name
     _check_same_run(cfg, out)
-    if path.is_file() and (out / "train_time.json").is_file():
+    if _finished(cfg, out):
         return path
     # The nets are tiny: more threads only fight the env processes (and other users) for the cores.
     torch.set_num_threads(1)
@@ -526,6 +526,16 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
                                                      "resumed_at": done or None}) + "\n")
     plot_curve(out, out / "curve.png", title=f"{cfg.algo.upper()} {cfg.scenario} (seed {cfg.seed})")
     return path
+
+
+def _finished(cfg: RLConfig, out: Path) -> bool:
+    """Whether ``out`` holds ``cfg``'s finished run: its model and ``train_time.json``, written last."""
+    return (out / cfg.model_name).is_file() and (out / "train_time.json").is_file()
+
+
+def _wall_s(out: Path) -> float:
+    """The training wall time [s] a finished run recorded."""
+    return json.loads((out / "train_time.json").read_text())["wall_s"]
 
 
 def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
@@ -691,10 +701,9 @@ def train_job(job: tuple[dict[str, Any], str, int]) -> list[dict[str, Any]]:
     values, out, seeds = job
     try:
         cfg = RLConfig.from_mapping(values)
-        finished = (Path(out) / cfg.model_name).is_file() and (Path(out) / "train_time.json").is_file()
+        finished = _finished(cfg, Path(out))
         path = train(cfg, Path(out), progress=False)
-        report: dict[str, Any] = {"run": out, "model": str(path), "earlier": finished,
-                                  "wall_s": json.loads((Path(out) / "train_time.json").read_text())["wall_s"]}
+        report: dict[str, Any] = {"run": out, "model": str(path), "earlier": finished, "wall_s": _wall_s(Path(out))}
         if seeds:
             report["check"] = check_model(cfg, path, Path(out), seeds)
     except Exception as err:  # noqa: BLE001 -- one run's failure is its report: hours of the others go on
@@ -798,7 +807,7 @@ def _train_one(cfg: RLConfig, out: Path, args: argparse.Namespace, fail: Callabl
     except (EvaluationError, ValueError) as err:  # a checkpoint that does not fit
         fail(err)
     print(f"model: {path}\ncurve: {out / 'curve.png'}\n"
-          f"train wall time: {json.loads((out / 'train_time.json').read_text())['wall_s']} s")
+          f"train wall time: {_wall_s(out)} s")
     if args.eval_seeds:
         for who, r in check_model(cfg, path, out, args.eval_seeds).items():
             print(f"{who:>6}: progress {r['progress']:.1f} m, collisions {r['collision']:.2f}, "
