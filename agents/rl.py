@@ -741,8 +741,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--vec-env", choices=("dummy", "subproc"), default=None,
                         help="step the envs in this process (dummy, one core) or one process each (subproc)")
     parser.add_argument("--config", type=Path, help="YAML file of RLConfig overrides (unknown keys are errors)")
-    parser.add_argument("--out", type=Path, help="one run's output folder (default RUNS_DIR/{algo}_{scenario}_s{seed})")
-    parser.add_argument("--runs-dir", type=Path, default=None, help="where the runs' folders go, each under its "
+    # str, not Path: Path("") is "." and would pass the empty-name check as the current folder.
+    parser.add_argument("--out", help="one run's output folder (default RUNS_DIR/{algo}_{scenario}_s{seed})")
+    parser.add_argument("--runs-dir", default=None, help="where the runs' folders go, each under its "
                         "default name (default runs/rl); on a Ray cluster of several machines, a disk every node "
                         "mounts at the same path")
     parser.add_argument("--workers", type=int, default=1, help="runs trained at once on this machine (default 1)")
@@ -773,17 +774,19 @@ def main(argv: list[str] | None = None) -> int:
         if args.workers < 1 or args.eval_seeds < 0:
             raise ValueError(f"--workers must be >= 1 and --eval-seeds >= 0, got {args.workers} and "
                              f"{args.eval_seeds}")
-        if args.out and args.runs_dir:
+        if args.out is not None and args.runs_dir is not None:
             raise ValueError("--out names one run's folder, --runs-dir the folder of the runs' folders: give one")
         check_backend(args.backend, args.address, args.ray_cpus)
-        runs_dir = check_out_dir(args.runs_dir, create=False, flag="--runs-dir") if args.runs_dir else Path("runs/rl")
+        runs_dir = (check_out_dir(args.runs_dir, create=False, flag="--runs-dir") if args.runs_dir is not None
+                    else Path("runs/rl"))
+        one_out = check_out_dir(args.out, create=False) if args.out is not None else None
         for scenario in args.scenario:
             scenario = envs.scenario_name(envs.env_id(scenario)) or scenario  # one name per scenario, one folder
             for seed in args.seed or [values.get("seed")]:
                 cfg = RLConfig.from_mapping({**values, "scenario": scenario,
                                              **({"seed": seed} if seed is not None else {})})
-                runs.append((cfg, args.out or runs_dir / run_name(cfg)))
-        if len(runs) > 1 and args.out:
+                runs.append((cfg, one_out or runs_dir / run_name(cfg)))
+        if len(runs) > 1 and one_out:
             raise ValueError("--out names one run's folder; several runs each go to --runs-dir/"
                              "{algo}_{scenario}_s{seed}")
         names = [run_name(cfg) for cfg, _ in runs]
@@ -791,7 +794,7 @@ def main(argv: list[str] | None = None) -> int:
         if twice:
             raise ValueError(f"run(s) {twice} named twice: give each scenario and seed once")
         for cfg, out in runs:  # every run's folder before the first trains: no refusal hours in
-            check_out_dir(out, create=False, flag="--out" if args.out else "--runs-dir")
+            check_out_dir(out, create=False, flag="--out" if one_out else "--runs-dir")
             _check_same_run(cfg, out)
     except (BackendError, EvaluationError, TypeError, ValueError) as err:
         fail(err)

@@ -215,6 +215,7 @@ def _fake_train(calls: list, fails: str = "never"):
     (["--timesteps", "0"], "timesteps must be > 0"),
     (["--eval-seeds", "-1"], "--eval-seeds >= 0"),
     (["--runs-dir", "a", "--out", "b"], "give one"),
+    (["--runs-dir", ""], "--runs-dir is empty"),  # not the current folder
     (["--scenario", "bimp/Overtaking-v0"], "['ppo_overtaking_s0'] named twice"),  # one scenario by two names
 ])
 def test_a_grid_is_refused_before_any_run_trains(tmp_path, monkeypatch, capsys, extra, message):
@@ -225,6 +226,16 @@ def test_a_grid_is_refused_before_any_run_trains(tmp_path, monkeypatch, capsys, 
         rl.main(argv + extra)
     assert exit_.value.code == 2 and message in capsys.readouterr().err
     assert calls == []
+
+
+def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        rl.main(["--scenario", "overtaking", "--out", "", "--no-progress"])
+    assert exit_.value.code == 2 and "--out is empty" in capsys.readouterr().err
+    assert calls == [] and list(tmp_path.iterdir()) == []
 
 
 def test_a_grid_refuses_a_folder_of_another_run_before_the_first_trains(tmp_path, monkeypatch, capsys):
