@@ -690,8 +690,8 @@ def check_model(cfg: RLConfig, path: Path, out: Path, seeds: int) -> dict[str, d
 
 
 def run_name(cfg: RLConfig) -> str:
-    """A run's default folder name: ``{algo}_{scenario}_s{seed}``."""
-    return f"{cfg.algo}_{cfg.scenario}_s{cfg.seed}"
+    """A run's default folder name, ``{algo}_{scenario}_s{seed}``: the name its model ships under, less ``.zip``."""
+    return shipped_name(cfg.algo, cfg.scenario, cfg.seed).removesuffix(".zip")
 
 
 def train_job(job: tuple[dict[str, Any], str, int]) -> list[dict[str, Any]]:
