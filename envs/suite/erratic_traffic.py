@@ -47,7 +47,13 @@ difficulty  ev_speed  leader_gap  density  brake_rate   brake_scale  brake_durat
 easy        20 - 25   60 - 100    5 - 10   0.01 - 0.03  0.5 - 1.5    0.5 - 1.5       4 - 6      0 - 0.2
 medium      22 - 28   50 - 80     10 - 16  0.03 - 0.06  1 - 2.5      1 - 2           2.5 - 4    0.1 - 0.5
 hard        25 - 30   56 - 70     16 - 20  0.15 - 0.3   3 - 6        1.5 - 3         1.2 - 2    2 - 4
+extreme     25 - 30   56 - 70     18 - 20  0.3 - 0.5    5 - 8        2 - 4           1 - 1.5    3 - 5
 ==========  ========  ==========  =======  ===========  ===========  ==============  =========  ==========
+
+``extreme`` came after the suite's leaderboard had saturated ``hard`` (its best policy met 0.96 of the seeds): the same
+road, EV and leader as ``hard`` (so the same oracle corner), with the noise at the top of its envelope (brakes twice
+as often, mostly at the cap, held longer, Cauchy-like tails, nearly any safe gap taken). ``hard`` keeps its ranges, so
+that its recorded results stay what they were.
 
 Every instance leaves a safe plan inside the planning bounds (:func:`least_gap`): the EV brakes at the bounds from its
 first step (:func:`bimp.envs.oracle.brake_at_the_bounds`: -1 m/s^2 more per step down to -7 m/s^2, to a stop) and
@@ -258,6 +264,9 @@ DIFFICULTIES = MappingProxyType({
     "hard": ErraticTrafficRanges(ev_speed=(25.0, 30.0), leader_gap=(56.0, 70.0), density=(16.0, 20.0),
                                  traffic_speed=(20.0, 28.0), brake_rate=(0.15, 0.3), brake_scale=(3.0, 6.0),
                                  brake_duration=(1.5, 3.0), nu=(1.2, 2.0), lane_noise=(2.0, 4.0)),
+    "extreme": ErraticTrafficRanges(ev_speed=(25.0, 30.0), leader_gap=(56.0, 70.0), density=(18.0, 20.0),
+                                    traffic_speed=(20.0, 28.0), brake_rate=(0.3, 0.5), brake_scale=(5.0, 8.0),
+                                    brake_duration=(2.0, 4.0), nu=(1.0, 1.5), lane_noise=(3.0, 5.0)),
 })
 
 

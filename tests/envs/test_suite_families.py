@@ -141,7 +141,7 @@ def test_what_every_family_refuses_naming_the_key(name):
     is a valid ranges object of its own."""
     cls = FAMILIES[name]
     env_id = f"bimp/{cls.ID}"
-    rows = [({"difficulty": "extreme"}, "difficulty"), ({"difficulty": 2}, "difficulty"),
+    rows = [({"difficulty": "no-such-level"}, "difficulty"), ({"difficulty": 2}, "difficulty"),
             ({"no_such_key": 1}, "no_such_key"), ({"duration": cls.DURATION + 10}, "duration"),
             *(({key: 1}, key) for key in sorted(cls.REMOVED_KEYS))]
     if issubclass(cls, HighwayFamily):
