@@ -413,7 +413,8 @@ def plot(board: dict, path: str | Path) -> Path:
     cols = min(3, len(panels))
     nrows = math.ceil(len(panels) / cols)
     height = max(len(rows) for _, rows in panels) * 0.35 + 1.2
-    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, height * nrows), squeeze=False)
+    # Constrained layout leaves the suptitle its own room (tight_layout drew it over the top row's titles).
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, height * nrows), squeeze=False, layout="constrained")
     for ax, (title, rows) in zip(axes.flat, panels):
         for y, row in enumerate(rows):
             stat = row[metric]
@@ -430,7 +431,6 @@ def plot(board: dict, path: str | Path) -> Path:
         ax.set_axis_off()
     hollow = "; hollow: a mixed row (--allow-mixed)" if board["mixed"] else ""
     fig.suptitle(f"{', '.join(board['folders'])}: ranked by {metric}, best on top{hollow}", fontsize=10)
-    fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
