@@ -21,6 +21,7 @@ from bimp.envs.suite import FAMILIES
 from bimp.envs.suite.erratic_traffic import (
     BRAKE_CAP,
     DIFFICULTIES,
+    ENVELOPE,
     ErraticTrafficEnv,
     ErraticVehicle,
     gap_is_safe,
@@ -224,8 +225,6 @@ def test_difficulty_sets_the_ranges_and_a_range_overrides_one():
 def test_extreme_is_hard_with_the_noise_at_the_top_of_its_envelope():
     """extreme keeps hard's road, EV and leader (the same oracle corner) and moves only the traffic: denser, with every
     noise range starting harder than hard's and reaching its envelope's edge (brake_duration: 4 s of the 5 s edge)."""
-    from bimp.envs.suite.erratic_traffic import ENVELOPE
-
     hard, extreme = DIFFICULTIES["hard"], DIFFICULTIES["extreme"]
     for key in ("ev_speed", "leader_gap", "traffic_speed"):
         assert getattr(extreme, key) == getattr(hard, key), key
