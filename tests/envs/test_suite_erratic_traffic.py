@@ -35,6 +35,10 @@ ID = "bimp/erratic-traffic-v0"
 DRAWS = 1000
 B = Bounds()
 ORACLE_KEYS = ("ev_speed", "leader_gap", "leader_speed")
+# The traffic's ranges and which way is harder (+1: higher, -1: lower): denser, more, heavier and longer brakes,
+# heavier tails, noisier lane changes.
+TRAFFIC_HARDER = (("density", 1), ("brake_rate", 1), ("brake_scale", 1), ("brake_duration", 1), ("nu", -1),
+                  ("lane_noise", 1))
 
 
 def draws(difficulty: str, n: int = DRAWS) -> list[dict]:
@@ -216,8 +220,7 @@ def test_difficulty_sets_the_ranges_and_a_range_overrides_one():
     assert base.leader.next_brake == np.inf and base.config["nu"] == DIFFICULTIES["hard"].nu
     # Harder: a faster EV, denser traffic, more, heavier and longer brakes, heavier tails, noisier lane changes.
     easy, medium, hard = (DIFFICULTIES[k] for k in ("easy", "medium", "hard"))
-    for key, sign in (("ev_speed", 1), ("density", 1), ("brake_rate", 1), ("brake_scale", 1),
-                      ("brake_duration", 1), ("nu", -1), ("lane_noise", 1)):
+    for key, sign in (("ev_speed", 1), *TRAFFIC_HARDER):
         assert sign * getattr(easy, key)[0] <= sign * getattr(medium, key)[0] <= sign * getattr(hard, key)[0] and \
             sign * getattr(easy, key)[1] < sign * getattr(medium, key)[1] < sign * getattr(hard, key)[1], key
 
@@ -229,8 +232,7 @@ def test_extreme_is_hard_with_the_noise_at_the_top_of_its_envelope():
     for key in ("ev_speed", "leader_gap", "traffic_speed"):
         assert getattr(extreme, key) == getattr(hard, key), key
     assert extreme.least_gap() == hard.least_gap()
-    for key, sign in (("density", 1), ("brake_rate", 1), ("brake_scale", 1), ("brake_duration", 1), ("nu", -1),
-                      ("lane_noise", 1)):
+    for key, sign in TRAFFIC_HARDER:
         assert sign * getattr(extreme, key)[0] > sign * getattr(hard, key)[0], key
         assert sign * getattr(extreme, key)[1] >= sign * getattr(hard, key)[1], key  # density: both at 20
     for key, edge in (("density", 1), ("brake_rate", 1), ("brake_scale", 1), ("nu", 0), ("lane_noise", 1)):
