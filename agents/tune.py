@@ -34,7 +34,8 @@ safety, results and claims seeds and are refused.
 Storage and resume. ``--storage`` is any Optuna RDB URL (default ``sqlite:///OUT/study.db``); several machines can
 share one study through PostgreSQL or MySQL. The study's name holds the policy, scenarios, seeds and episodes, so a
 different budget never mixes into it. ``--trials`` is the study's total: a rerun continues where it stopped;
-a trial left running by a killed process is failed after its heartbeat lapses and retried with the same values.
+a trial left running by a killed process is failed after its heartbeat lapses and retried with the same values,
+the retry counting in its place.
 
 Parallel trials. ``--backend ray [--address ADDR] [--parallel N]`` runs N trial workers on a Ray cluster, each
 loading the study from the one storage and running its share of the remaining trials (their episodes in that
@@ -308,6 +309,28 @@ def _finished():
     return tuple(getattr(optuna.trial.TrialState, state) for state in FINISHED)
 
 
+def _spent(study) -> int:
+    """How many of the study's trials count against ``--trials``: the finished ones, less each trial that the
+    heartbeat failed and retried with the same values (its retry, named by the ``failed_trial`` system attribute,
+    is the one that counts). A killed process's trial must not cost the study one of its trials."""
+    trials = study.get_trials(deepcopy=False)
+    retried = {t.system_attrs.get("failed_trial") for t in trials} - {None}
+    finished = _finished()
+    return sum(t.state in finished and t.number not in retried for t in trials)
+
+
+class _Budget:
+    """A study callback that stops the study once :func:`_spent` reaches ``trials`` (optuna's ``MaxTrialsCallback``
+    counts a retried trial's failure too, and ended a resumed study a trial short)."""
+
+    def __init__(self, trials: int) -> None:
+        self.trials = trials
+
+    def __call__(self, study, trial) -> None:
+        if _spent(study) >= self.trials:
+            study.stop()
+
+
 def objective(spec: Study, trial) -> float:
     """One trial: the sampled config evaluated on the study's seeds, in rungs (see the module docstring)."""
     import optuna
@@ -345,7 +368,7 @@ def run_trials(spec: Study, n_trials: int, sampler_seed: int, progress: bool = F
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     spec.load(sampler_seed).optimize(
         functools.partial(objective, spec), n_trials=n_trials, catch=(TrialError,), show_progress_bar=progress,
-        callbacks=[optuna.study.MaxTrialsCallback(spec.trials, states=_finished())])
+        callbacks=[_Budget(spec.trials)])
 
 
 def run_trials_on_ray(spec: Study, n_trials: int, sampler_seed: int, parallel: int | None = None,
@@ -353,7 +376,7 @@ def run_trials_on_ray(spec: Study, n_trials: int, sampler_seed: int, parallel: i
     """``n_trials`` trials over a Ray cluster: ``parallel`` tasks (default: the cluster's CPUs // ``workers``),
     each a :func:`run_trials` on its share of the trials against the one storage, with its own sampler seed.
     A task whose worker dies is rerun once by Ray; its trial left running is failed and retried by the
-    heartbeat, and :class:`optuna.study.MaxTrialsCallback` keeps the study's total."""
+    heartbeat, and :class:`_Budget` keeps the study's total."""
     ray = connect_ray(address, ray_cpus)
     n = parallel or max(1, int(ray.cluster_resources().get("CPU", 1)) // spec.workers)
     n = min(n, n_trials)
@@ -432,7 +455,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
         study.enqueue_trial(shipped_params(policy, scenarios[0], space), skip_if_exists=True)
     study.set_user_attr("request", {"policy": policy, "scenarios": scenarios, "episodes": episodes, "seed": seed,
                                     "objective": objective})
-    remaining = trials - len(study.get_trials(deepcopy=False, states=_finished()))
+    remaining = trials - _spent(study)
     if remaining > 0 and backend == "ray":
         run_trials_on_ray(spec, remaining, sampler_seed + held, parallel, address, ray_cpus)
     elif remaining > 0:

@@ -48,6 +48,23 @@ def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
     assert len(_run(tmp_path, 3).trials) == 3  # a finished study runs nothing more
 
 
+def test_a_trial_retried_after_its_process_died_does_not_cost_the_study_a_trial(tmp_path):
+    """What the heartbeat leaves after a killed run: the dead trial FAIL and its retry WAITING with the same values
+    (optuna's RetryHeartbeatStaleTrialCallback). Resumed with --trials 4, the study runs the retry and one new trial:
+    four trials that ran to the end, not three."""
+    first = _run(tmp_path, 2)
+    dead = first.trials[1]
+    for state, attrs in ((optuna.trial.TrialState.FAIL, {}),
+                         (optuna.trial.TrialState.WAITING, {"failed_trial": 2, "retry_history": [2]})):
+        first.add_trial(optuna.trial.create_trial(state=state, params=dead.params, distributions=dead.distributions,
+                                                  system_attrs=attrs))
+    study = _run(tmp_path, 4)
+    states = [t.state.name for t in study.trials]
+    assert states == ["COMPLETE", "COMPLETE", "FAIL", "COMPLETE", "COMPLETE"]
+    assert study.trials[3].params == dead.params and study.trials[4].params != dead.params
+    assert len(_run(tmp_path, 4).trials) == 5  # done: a rerun runs nothing more
+
+
 def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_its_first(tmp_path, monkeypatch):
     import bimp.agents.registry
 
