@@ -311,10 +311,11 @@ def _finished():
 
 def _spent(study) -> int:
     """How many of the study's trials count against ``--trials``: the finished ones, less each trial that the
-    heartbeat failed and retried with the same values (its retry, named by the ``failed_trial`` system attribute,
-    is the one that counts). A killed process's trial must not cost the study one of its trials."""
+    heartbeat failed and retried with the same values (its retry, which lists it in the ``retry_history`` system
+    attribute, a retried retry too, is the one that counts). A killed process's trial must not cost the study one of
+    its trials."""
     trials = study.get_trials(deepcopy=False)
-    retried = {t.system_attrs.get("failed_trial") for t in trials} - {None}
+    retried = set().union(*(t.system_attrs.get("retry_history", ()) for t in trials))
     finished = _finished()
     return sum(t.state in finished and t.number not in retried for t in trials)
 

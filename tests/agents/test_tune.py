@@ -49,20 +49,21 @@ def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
 
 
 def test_a_trial_retried_after_its_process_died_does_not_cost_the_study_a_trial(tmp_path):
-    """What the heartbeat leaves after a killed run: the dead trial FAIL and its retry WAITING with the same values
-    (optuna's RetryHeartbeatStaleTrialCallback). Resumed with --trials 4, the study runs the retry and one new trial:
-    four trials that ran to the end, not three."""
+    """What the heartbeat leaves after two killed runs: the dead trial FAIL, its first retry FAIL too, and the
+    retry's retry WAITING with the same values (as optuna's RetryHeartbeatStaleTrialCallback writes them). Resumed
+    with --trials 4, the study runs the last retry and one new trial: four trials that ran to the end, not two."""
     first = _run(tmp_path, 2)
     dead = first.trials[1]
-    for state, attrs in ((optuna.trial.TrialState.FAIL, {}),
-                         (optuna.trial.TrialState.WAITING, {"failed_trial": 2, "retry_history": [2]})):
+    fail, waiting = optuna.trial.TrialState.FAIL, optuna.trial.TrialState.WAITING
+    for state, attrs in ((fail, {}), (fail, {"failed_trial": 2, "retry_history": [2]}),
+                         (waiting, {"failed_trial": 2, "retry_history": [2, 3]})):
         first.add_trial(optuna.trial.create_trial(state=state, params=dead.params, distributions=dead.distributions,
                                                   system_attrs=attrs))
     study = _run(tmp_path, 4)
     states = [t.state.name for t in study.trials]
-    assert states == ["COMPLETE", "COMPLETE", "FAIL", "COMPLETE", "COMPLETE"]
-    assert study.trials[3].params == dead.params and study.trials[4].params != dead.params
-    assert len(_run(tmp_path, 4).trials) == 5  # done: a rerun runs nothing more
+    assert states == ["COMPLETE", "COMPLETE", "FAIL", "FAIL", "COMPLETE", "COMPLETE"]
+    assert study.trials[4].params == dead.params and study.trials[5].params != dead.params
+    assert len(_run(tmp_path, 4).trials) == 6  # done: a rerun runs nothing more
 
 
 def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_its_first(tmp_path, monkeypatch):
