@@ -312,8 +312,8 @@ def _finished():
 def _spent(study) -> int:
     """How many of the study's trials count against ``--trials``: the finished ones, less each trial that the
     heartbeat failed and retried with the same values (its retry, which lists it in the ``retry_history`` system
-    attribute, a retried retry too, is the one that counts). A killed process's trial must not cost the study one of
-    its trials."""
+    attribute, is the one that counts). A killed process's trial must not cost the study one of its trials; a retry
+    that dies too is not retried again (``RetryHeartbeatStaleTrialCallback(1)``), and the pair costs one."""
     trials = study.get_trials(deepcopy=False)
     retried = set().union(*(t.system_attrs.get("retry_history", ()) for t in trials))
     finished = _finished()
@@ -363,7 +363,7 @@ def objective(spec: Study, trial) -> float:
 
 
 def run_trials(spec: Study, n_trials: int, sampler_seed: int, progress: bool = False) -> None:
-    """Run up to ``n_trials`` trials of the study in this process; none once it holds ``spec.trials`` finished."""
+    """Run up to ``n_trials`` trials of the study in this process; none once :func:`_spent` reaches ``spec.trials``."""
     import optuna
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -400,8 +400,9 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
          rung: int | None = None, batch: int = 1, workers: int = 1, sampler_seed: int = 0,
          startup_trials: int = 5, progress: bool = True, backend: str = "local", address: str | None = None,
          ray_cpus: int | None = None, parallel: int | None = None, objective: str = "success"):
-    """Run the study until it holds ``trials`` finished trials; write the best config to ``yaml_path`` (default
-    ``OUT/best.yaml``; ``configs/tuned/<policy>.yaml`` ships it as the policy's default) and return the study.
+    """Run the study until ``trials`` of its trials are finished (:func:`_spent`); write the best config to
+    ``yaml_path`` (default ``OUT/best.yaml``; ``configs/tuned/<policy>.yaml`` ships it as the policy's default) and
+    return the study.
     ``backend="ray"``: the trials run in parallel on the Ray cluster at ``address`` (default: a new local instance
     of ``ray_cpus`` CPUs), ``parallel`` at a time (default: its CPUs // ``workers``), against the one storage
     (a real cluster needs a PostgreSQL or MySQL URL and ``out`` on a shared disk: ``docs/scaling.md``).

@@ -1,6 +1,7 @@
 """``bimp tune``: Optuna studies over a policy's declared search space, on training seeds only."""
 
 import dataclasses
+import time
 
 import gymnasium as gym
 import optuna
@@ -48,22 +49,30 @@ def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
     assert len(_run(tmp_path, 3).trials) == 3  # a finished study runs nothing more
 
 
-def test_a_trial_retried_after_its_process_died_does_not_cost_the_study_a_trial(tmp_path):
-    """What the heartbeat leaves after two killed runs: the dead trial FAIL, its first retry FAIL too, and the
-    retry's retry WAITING with the same values (as optuna's RetryHeartbeatStaleTrialCallback writes them). Resumed
-    with --trials 4, the study runs the last retry and one new trial: four trials that ran to the end, not two."""
+def test_a_trial_retried_after_its_process_died_does_not_cost_the_study_a_trial(tmp_path, monkeypatch):
+    """A process killed mid-trial leaves it RUNNING, its heartbeat stopped; the resumed run fails it and retries its
+    values (optuna's RetryHeartbeatStaleTrialCallback). Resumed with --trials 4 after two trials and a dead third,
+    the study runs the retry and one new trial: four trials that ran to the end, not three. The heartbeat's grace
+    shortened from 90 s to 2 s so that the test need not wait."""
+    from optuna.storages import RetryHeartbeatStaleTrialCallback
+
+    import bimp.agents.tune as tune_module
+
+    def storage(url):
+        return optuna.storages.RDBStorage(url, heartbeat_interval=1, grace_period=2,
+                                          heartbeat_stale_trial_callback=RetryHeartbeatStaleTrialCallback(1))
+
+    monkeypatch.setattr(tune_module, "_storage", storage)
     first = _run(tmp_path, 2)
-    dead = first.trials[1]
-    fail, waiting = optuna.trial.TrialState.FAIL, optuna.trial.TrialState.WAITING
-    for state, attrs in ((fail, {}), (fail, {"failed_trial": 2, "retry_history": [2]}),
-                         (waiting, {"failed_trial": 2, "retry_history": [2, 3]})):
-        first.add_trial(optuna.trial.create_trial(state=state, params=dead.params, distributions=dead.distributions,
-                                                  system_attrs=attrs))
+    dead = first.ask()  # the killed process's trial: values drawn, a heartbeat recorded, never told
+    for key, distribution in search_space("lane-keep").items():
+        tune_module._suggest(dead, key, distribution)
+    first._storage.record_heartbeat(dead._trial_id)
+    time.sleep(3)  # past the grace
     study = _run(tmp_path, 4)
-    states = [t.state.name for t in study.trials]
-    assert states == ["COMPLETE", "COMPLETE", "FAIL", "FAIL", "COMPLETE", "COMPLETE"]
-    assert study.trials[4].params == dead.params and study.trials[5].params != dead.params
-    assert len(_run(tmp_path, 4).trials) == 6  # done: a rerun runs nothing more
+    assert [t.state.name for t in study.trials] == ["COMPLETE", "COMPLETE", "FAIL", "COMPLETE", "COMPLETE"]
+    assert study.trials[3].params == study.trials[2].params != study.trials[4].params  # the retry, then a new one
+    assert len(_run(tmp_path, 4).trials) == 5  # done: a rerun runs nothing more
 
 
 def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_its_first(tmp_path, monkeypatch):
