@@ -49,6 +49,8 @@ def test_a_resumed_study_continues_its_trial_count_with_fresh_values(tmp_path):
     assert len(_run(tmp_path, 3).trials) == 3  # a finished study runs nothing more
 
 
+# optuna flags the heartbeat experimental, and a trial asked outside optimize, as the killed one is here
+@pytest.mark.filterwarnings("ignore::optuna.exceptions.ExperimentalWarning", "ignore:Heartbeat of storage")
 def test_a_trial_retried_after_its_process_died_does_not_cost_the_study_a_trial(tmp_path, monkeypatch):
     """A process killed mid-trial leaves it RUNNING, its heartbeat stopped; the resumed run fails it and retries its
     values (optuna's RetryHeartbeatStaleTrialCallback). Resumed with --trials 4 after two trials and a dead third,
