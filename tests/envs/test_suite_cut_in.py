@@ -18,6 +18,7 @@ from bimp.envs.scene import DT, VEHICLE_LENGTH, Bounds
 from bimp.envs.suite import FAMILIES
 from bimp.envs.suite.cut_in import (
     DIFFICULTIES,
+    ENVELOPE,
     LANE_CHANGE,
     CutInEnv,
     cutter_speed,
@@ -78,7 +79,8 @@ class OraclePlan:
         return self.env.unwrapped.scene.to_normalized(np.array([self.a, 0.0])).astype(np.float32)
 
 
-@pytest.mark.parametrize(("difficulty", "seed"), [("hard", 0), ("hard", 3), ("medium", 1)])
+@pytest.mark.parametrize(("difficulty", "seed"),
+                         [("hard", 0), ("hard", 3), ("medium", 1), ("extreme", 0), ("extreme", 2)])
 def test_the_oracle_is_the_env(difficulty, seed):
     """Driven by the oracle's plan, the env's least footprint gap to the cutter from its cut on is the oracle's, the
     cutter keeps to its script (never braked for traffic), and no vehicle comes within d_min of the EV."""
@@ -154,6 +156,24 @@ def test_difficulty_sets_the_ranges_and_a_range_overrides_one():
             sign * getattr(easy, key)[1] < sign * getattr(medium, key)[1] < sign * getattr(hard, key)[1], key
 
 
+def test_extreme_is_hard_with_the_cutter_at_the_edge_of_its_envelope():
+    """extreme keeps hard's road, EV and traffic and moves only the cutter: the envelope's shortest time gap and
+    hardest braking, long enough to stop any cutter it draws; nearer the oracle's edge than hard, and a slower EV
+    (more room to close on the cutter before its cut) falls outside the oracle's cover."""
+    hard, extreme = DIFFICULTIES["hard"], DIFFICULTIES["extreme"]
+    for key in ("ev_speed", "cutter_start", "cut_time", "density", "traffic_speed", "aggressive_share",
+                "defensive_share"):
+        assert getattr(extreme, key) == getattr(hard, key), key
+    assert extreme.time_gap[0] == ENVELOPE["time_gap"].low and extreme.time_gap[1] < hard.time_gap[0]
+    assert extreme.cutter_decel[1] == ENVELOPE["cutter_decel"].high and extreme.cutter_decel[0] > hard.cutter_decel[0]
+    corners = extreme.corners()
+    fastest = float(cutter_speed(*(corners[k] for k in ("ev_speed", "cutter_start", "cut_time", "time_gap"))).max())
+    assert fastest / extreme.cutter_decel[0] <= extreme.brake_duration[0]  # every cutter brakes to a stop
+    assert B.d_min <= extreme.least_gap() < hard.least_gap()
+    with pytest.raises(ValueError, match="time_gap must be .*oracle"):
+        dataclasses.replace(extreme, ev_speed=(22.0, 30.0))
+
+
 @pytest.mark.parametrize(("config", "match"), [
     ({"ev_speed": [20, 35]}, "ev_speed"),
     ({"time_gap": [1.0, 0.8]}, "time_gap"),
@@ -164,6 +184,7 @@ def test_difficulty_sets_the_ranges_and_a_range_overrides_one():
     ({"difficulty": "hard", "cutter_start": [5, 40]}, "time_gap must be .*worst corner .*cutter_start 40"),
     ({"difficulty": "hard", "density": [40, 50]}, "density"),
     ({"difficulty": "hard", "cut_time": [1.0, 5.0]}, "cut_time"),
+    ({"difficulty": "extreme", "ev_speed": [22, 30]}, "time_gap must be .*worst corner .*ev_speed 22"),
 ])
 def test_what_the_oracle_does_not_cover_is_refused(config, match):
     with pytest.raises(ValueError, match=match):
