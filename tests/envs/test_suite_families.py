@@ -1,10 +1,13 @@
 """What every scenario family of the suite must do alike, tested on each entry of the suite's table: the same seed
-gives the same episode and another seed another; idm and enkts drive a short seeded hard episode. Also the oracle's
+gives the same episode and another seed another; idm and enkts drive a short seeded hard episode; the ranges table of
+its module docstring is its ``DIFFICULTIES``. Also the oracle's
 plan as a policy, which each family's own tests drive through its env."""
 
 from __future__ import annotations
 
 import dataclasses
+import re
+import sys
 
 import gymnasium as gym
 import numpy as np
@@ -132,6 +135,24 @@ def test_every_difficulty_is_a_scenario_of_its_own(name):
     with pytest.raises(ValueError, match="difficulty must be 'hard'"):  # nor at a reset: never another's episodes
         env.reset(seed=0, options={"config": {"difficulty": "easy"}})
     assert env.unwrapped.config["difficulty"] == "hard"
+
+
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_the_docstrings_table_is_the_difficulties(name):
+    """The ranges table in each family's module docstring (what a user reads first) says what ``DIFFICULTIES``
+    holds: one row per difficulty, each column a range key (its name or the start of it), each cell ``lo - hi``."""
+    cls = FAMILIES[name]
+    doc = sys.modules[cls.__module__].__doc__
+    rule, header, body = re.search(r"\n(=+(?:  +=+)+)\n(.*?)\n\1\n(.*?)\n\1\n", doc, re.S).groups()
+    columns = header.split()[1:]
+    keys = [next(k for k in cls.range_keys() if k.startswith(c)) for c in columns]
+    rows = {}
+    for line in body.splitlines():
+        difficulty, *cells = re.split(r"\s{2,}", line.strip())
+        rows[difficulty] = {k: tuple(float(x) for x in cell.split(" - ")) for k, cell in zip(keys, cells, strict=True)}
+    assert list(rows) == list(cls.DIFFICULTIES)
+    for difficulty, preset in cls.DIFFICULTIES.items():
+        assert rows[difficulty] == {k: tuple(getattr(preset, k)) for k in keys}, difficulty
 
 
 @pytest.mark.parametrize("name", list(FAMILIES))
