@@ -209,6 +209,9 @@ class CutInRanges:
         return float(least_gap(**self.corners()).min())
 
 
+_HARD = CutInRanges(ev_speed=(25.0, 30.0), cutter_start=(5.0, 25.0), cut_time=(3.0, 5.0), time_gap=(0.3, 0.6),
+                    cutter_decel=(5.0, 8.0), brake_duration=(2.0, 6.0), density=(14.0, 20.0),
+                    traffic_speed=(20.0, 28.0), aggressive_share=(0.3, 0.5), defensive_share=(0.0, 0.2))
 DIFFICULTIES = MappingProxyType({
     "easy": CutInRanges(ev_speed=(20.0, 25.0), cutter_start=(0.0, 15.0), cut_time=(3.0, 5.0), time_gap=(1.0, 1.5),
                         cutter_decel=(2.0, 4.0), brake_duration=(1.0, 2.0), density=(5.0, 10.0),
@@ -217,13 +220,9 @@ DIFFICULTIES = MappingProxyType({
                           time_gap=(0.6, 1.0), cutter_decel=(3.0, 6.0), brake_duration=(1.0, 3.0),
                           density=(10.0, 16.0), traffic_speed=(20.0, 28.0), aggressive_share=(0.1, 0.3),
                           defensive_share=(0.1, 0.3)),
-    "hard": CutInRanges(ev_speed=(25.0, 30.0), cutter_start=(5.0, 25.0), cut_time=(3.0, 5.0), time_gap=(0.3, 0.6),
-                        cutter_decel=(5.0, 8.0), brake_duration=(2.0, 6.0), density=(14.0, 20.0),
-                        traffic_speed=(20.0, 28.0), aggressive_share=(0.3, 0.5), defensive_share=(0.0, 0.2)),
-    "extreme": CutInRanges(ev_speed=(25.0, 30.0), cutter_start=(5.0, 25.0), cut_time=(3.0, 5.0),
-                           time_gap=(0.2, 0.25), cutter_decel=(7.5, 8.0), brake_duration=(6.0, 10.0),
-                           density=(14.0, 20.0), traffic_speed=(20.0, 28.0), aggressive_share=(0.3, 0.5),
-                           defensive_share=(0.0, 0.2)),
+    "hard": _HARD,
+    # hard's road, EV and traffic; the cutter at its envelope's edge (module docstring)
+    "extreme": dataclasses.replace(_HARD, time_gap=(0.2, 0.25), cutter_decel=(7.5, 8.0), brake_duration=(6.0, 10.0)),
 })
 
 
