@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from bimp.agents.compare import label_results
+from bimp.agents.records import write_atomic
 from bimp.agents.stats import stratified_bootstrap
 
 METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "at_fault_collision_rate", "score",
@@ -119,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     text = markdown(result, args.name, args.runs)
     try:
-        (folder / f"aggregate_{args.name}.json").write_text(json.dumps(result, indent=2) + "\n")
-        (folder / f"aggregate_{args.name}.md").write_text(text)
+        write_atomic(folder / f"aggregate_{args.name}.json", json.dumps(result, indent=2) + "\n")
+        write_atomic(folder / f"aggregate_{args.name}.md", text)
     except OSError as err:
         print(f"bimp aggregate: error: cannot write into {folder}: {err.strerror or err}", file=sys.stderr)
         return 2

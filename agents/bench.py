@@ -53,6 +53,7 @@ import gymnasium as gym
 from bimp import envs
 from bimp.agents.backends import one_thread
 from bimp.agents.cli import EvaluationError, check_out_dir
+from bimp.agents.records import write_atomic
 from bimp.agents.registry import POLICIES, make_policy
 from bimp.agents.rollout import rollout
 from bimp.envs.highway.adapter import SUPPORTED as HIGHWAY_IDS
@@ -466,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=2))
+        write_atomic(args.out, json.dumps(result, indent=2))
         print(f"wrote {args.out}")
     return 0
 

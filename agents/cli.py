@@ -53,7 +53,13 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         return 0
     module, _, function = COMMANDS[argv[0]][0].partition(":")
-    return int(getattr(importlib.import_module(module), function or "main")(argv[1:]) or 0)
+    try:
+        return int(getattr(importlib.import_module(module), function or "main")(argv[1:]) or 0)
+    except (EvaluationError, OSError) as err:  # the net under every command: a full disk is a line, not a traceback
+        where = f"{err.filename}: " if isinstance(err, OSError) and err.filename else ""
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else err
+        print(f"bimp {argv[0]}: error: {where}{reason}", file=sys.stderr)
+        return 2
 
 
 # --- argument helpers shared by the commands ------------------------------------------------------------------

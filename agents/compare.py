@@ -6,7 +6,9 @@
 For every scenario both arms ran, on the seeds where both have a result: the exact McNemar test of each episode
 outcome (success, collision, off-road) with the seeds where the two disagree, and a paired bootstrap 95% interval
 of the mean per-seed difference A - B of every continuous metric. Pairing removes the scenario-to-scenario
-variation that unpaired intervals carry, so it detects differences the summary's intervals cannot.
+variation that unpaired intervals carry, so it detects differences the summary's intervals cannot. Where the paired
+records come from more than one code version (two folders made by different commits, an arm resumed after a code
+change), a note first names them: a difference may then be the code's.
 """
 
 from __future__ import annotations
@@ -16,13 +18,13 @@ import json
 import sys
 from pathlib import Path
 
-from bimp.agents.metrics import BINARY, METRICS
+from bimp.agents.metrics import BINARY, METRICS, code_version
 from bimp.agents.records import latest_records, read_records, record_label
 from bimp.agents.stats import mcnemar_exact, paired_bootstrap
 
 
-def label_results(folder: Path, label: str) -> dict[tuple[str, int], dict]:
-    """``{(scenario, seed): metrics}`` of the successful episodes of ``label`` in ``folder``."""
+def label_records(folder: Path, label: str) -> dict[tuple[str, int], dict]:
+    """``{(scenario, seed): record}`` of the successful episodes of ``label`` in ``folder``."""
     rows = [r for r in latest_records(read_records(folder))
             if record_label(r) == label and r["status"] == "ok"]
     for scenario in {r["scenario"] for r in rows}:  # one config per scenario (the scenario's ranges are in it)
@@ -30,7 +32,40 @@ def label_results(folder: Path, label: str) -> dict[tuple[str, int], dict]:
         if len(hashes) > 1:
             raise ValueError(f"{folder} holds {label!r} on {scenario} under {len(hashes)} configs; give each its "
                              "own --label")
-    return {(r["scenario"], r["seed"]): r["metrics"] for r in rows}
+    return {(r["scenario"], r["seed"]): r for r in rows}
+
+
+def label_results(folder: Path, label: str) -> dict[tuple[str, int], dict]:
+    """``{(scenario, seed): metrics}`` of the successful episodes of ``label`` in ``folder``."""
+    return {key: r["metrics"] for key, r in label_records(folder, label).items()}
+
+
+def paired_code_versions(result: dict, a: dict, b: dict) -> dict[str, dict[str, int]]:
+    """``{"A": {version: episodes}, "B": ...}``: the code versions (:func:`code_version`) of the records ``result``
+    paired, ``a`` and ``b`` the arms' ``{(scenario, seed): record}``."""
+    versions: dict[str, dict[str, int]] = {"A": {}, "B": {}}
+    for scenario, entry in result.items():
+        for seed in entry["seeds"]:
+            for arm, records in (("A", a), ("B", b)):
+                version = code_version(records[scenario, seed])
+                versions[arm][version] = versions[arm].get(version, 0) + 1
+    return versions
+
+
+def code_version_note(versions: dict[str, dict[str, int]], label_a: str, label_b: str) -> str | None:
+    """One line saying the compared records come from more than one code version, naming them per arm (None when
+    they come from one): a difference may then be the code's, not the arms'."""
+    every = set(versions["A"]) | set(versions["B"])
+    if len(every) < 2:
+        return None
+    arms = "; ".join(f"{arm} ({label}) " + ", ".join(f"{_short(v)} ({n} episode{'s' if n != 1 else ''})"
+                                                  for v, n in sorted(counts.items()))
+                     for (arm, counts), label in zip(versions.items(), (label_a, label_b)))
+    return f"note: the paired records come from {len(every)} code versions: {arms}; a difference may be the code's"
+
+
+def _short(version: str) -> str:
+    return version[:7] + version[40:] if len(version) >= 40 else version  # a commit's 7 digits, +dirty kept
 
 
 def compare(a: dict, b: dict) -> dict[str, dict]:
@@ -60,8 +95,9 @@ def compare(a: dict, b: dict) -> dict[str, dict]:
     return out
 
 
-def report(result: dict, label_a: str, label_b: str) -> str:
-    lines = []
+def report(result: dict, label_a: str, label_b: str, note: str | None = None) -> str:
+    """The comparison as markdown, ``note`` (:func:`code_version_note`) first where there is one."""
+    lines = [note, ""] if note and result else []
     for scenario, e in result.items():
         lines.append(f"## {scenario}: {label_a} (A) vs {label_b} (B), {e['pairs']} paired seeds\n")
         lines.append("| outcome | A | B | only A | only B | McNemar exact p | seeds where they disagree |")
@@ -102,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     if folder_a == folder_b and label_a == label_b:
         parser.error("comparing an arm with itself: name two labels, or two folders")
     try:
-        a, b = label_results(folder_a, label_a), label_results(folder_b, label_b)
+        a, b = label_records(folder_a, label_a), label_records(folder_b, label_b)
     except ValueError as err:
         print(f"bimp compare: error: {err}", file=sys.stderr)
         return 2
@@ -110,15 +146,20 @@ def main(argv: list[str] | None = None) -> int:
         if not got:
             print(f"bimp compare: error: no results of {label!r} in {folder}", file=sys.stderr)
             return 2
-    result = compare(a, b)
-    print(report(result, label_a, label_b))
+    result = compare({k: r["metrics"] for k, r in a.items()}, {k: r["metrics"] for k, r in b.items()})
+    versions = paired_code_versions(result, a, b)
+    note = code_version_note(versions, label_a, label_b)
+    print(report(result, label_a, label_b, note))
     if args.json:
+        # Beside the scenarios: the code versions of the paired records per arm, and the note when they are mixed.
+        kept = {**result, "code_versions": {**versions, "note": note}}
         try:
-            Path(args.json).write_text(json.dumps(result, indent=2))
+            Path(args.json).write_text(json.dumps(kept, indent=2))
         except OSError as err:
             print(f"bimp compare: error: cannot write --json {args.json}: {err.strerror or err}", file=sys.stderr)
             return 2
     return 0 if result else 1
 
 
-__all__ = ["compare", "label_results", "report"]
+__all__ = ["code_version_note", "compare", "label_records", "label_results", "paired_code_versions",
+           "report"]

@@ -24,7 +24,6 @@ written).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import Counter
 from pathlib import Path
@@ -37,7 +36,7 @@ from bimp.agents.records import (
     latest_records,
     numbered_records,
     read_arms,
-    read_records,
+    read_json,
     record_label,
     unchanged_lock,
     write_arms,
@@ -65,15 +64,18 @@ def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] 
     counts = Counter((r["scenario"], record_label(r)) for r in gone.values())
     if dry_run or not gone:
         return counts
+    # Everything computed before the first write: what cannot be computed leaves the folder as it was.
+    kept = [r for n, r in records if n not in gone]
+    named_only_by_gone = {r.get("config_hash") for r in gone.values()} - {r.get("config_hash") for r in kept}
+    summary = _summary(out, kept)
     try:
         with unchanged_lock(out, data, arms):
             lines = data.split(b"\n")  # line n is lines[n - 1], as numbered_records counts them; a final b"" stays
             write_atomic(path, b"\n".join(line for n, line in enumerate(lines, start=1) if n not in gone))
-            kept = {r.get("config_hash") for n, r in records if n not in gone}
-            named_only_by_gone = {r.get("config_hash") for r in gone.values()} - kept
             if arms:
                 write_arms(out, {key: entry for key, entry in arms.items() if key not in named_only_by_gone})
-            _rewrite_summary(out)
+            if summary is not None:
+                write_summary(summary, out)
     except OSError as err:
         raise EvaluationError(f"cannot write into {out}: {err}") from None
     return counts
@@ -98,14 +100,16 @@ def matching(records: list[tuple[int, dict]], scenarios: list[str] | None,
             if (not scenarios or r["scenario"] in scenarios) and (not labels or record_label(r) in labels)]
 
 
-def _rewrite_summary(out: Path) -> None:
-    """The summary's rows that still have records, recomputed from them (the rows of dropped arms go)."""
+def _summary(out: Path, kept: list[dict]) -> dict | None:
+    """The summary's rows that still have records, recomputed from ``kept`` (the rows of dropped arms go); None
+    where the folder has no summary bimp can read (evaluate writes a fresh one on its next run)."""
     try:
-        rows = set(json.loads((out / "summary.json").read_text()))
-    except (OSError, ValueError):  # none, or not ours to read: evaluate writes a fresh one on its next run
-        return
-    summary = summarize(latest_records(read_records(out)))
-    write_summary({row: entry for row, entry in summary.items() if row in rows}, out)
+        rows = read_json(out / "summary.json")
+    except (FileNotFoundError, EvaluationError):
+        return None
+    if not isinstance(rows, dict):
+        return None
+    return {row: entry for row, entry in summarize(latest_records(kept)).items() if row in rows}
 
 
 def main(argv: list[str] | None = None) -> int:

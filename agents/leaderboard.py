@@ -38,8 +38,8 @@ import numpy as np
 
 from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.compare import compare
-from bimp.agents.metrics import summarize
-from bimp.agents.records import finite, format_stat, latest_records, read_records, record_label
+from bimp.agents.metrics import code_version, summarize
+from bimp.agents.records import finite, format_stat, latest_records, read_records, record_label, write_atomic
 from bimp.agents.registry import policy_color
 from bimp.agents.stats import mcnemar_exact, stratified_bootstrap
 
@@ -76,16 +76,6 @@ class Arm:
     @property
     def seeds(self) -> list[int]:
         return [r["seed"] for r in self.results]
-
-
-def code_version(record: dict) -> str:
-    """The code that made a record: its ``git_commit`` (``+dirty`` when the tree had uncommitted changes), as the
-    summaries' ``code_versions`` name it; ``bimp VERSION`` for a record made outside a git checkout (no commit), where
-    the package version is all there is. Two dirty records of one commit cannot be told apart: the same version."""
-    commit = record.get("git_commit")
-    if commit:
-        return f"{commit}{'+dirty' if record.get('git_dirty') else ''}"
-    return f"bimp {record.get('bimp_version') or '?'} (no git commit)"
 
 
 def _short(version: str) -> str:
@@ -472,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
     for path, flag in outputs:
         try:
             if flag == "--json":
-                path.write_text(json.dumps(finite(board), indent=1) + "\n")
+                write_atomic(path, json.dumps(finite(board), indent=1) + "\n")
             else:
                 plot(board, path)
         except OSError as err:

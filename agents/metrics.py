@@ -220,6 +220,16 @@ def record_label(record: dict) -> str:
     return record.get("label", record["policy"])
 
 
+def code_version(record: dict) -> str:
+    """The code that made a record: its ``git_commit`` (``+dirty`` when the tree had uncommitted changes), as the
+    summaries' ``code_versions`` name it; ``bimp VERSION`` for a record made outside a git checkout (no commit), where
+    the package version is all there is. Two dirty records of one commit cannot be told apart: the same version."""
+    commit = record.get("git_commit")
+    if commit:
+        return f"{commit}{'+dirty' if record.get('git_dirty') else ''}"
+    return f"bimp {record.get('bimp_version') or '?'} (no git commit)"
+
+
 def record_missed_goal(record: dict) -> bool:
     """The goal gate of :func:`closed_loop_score` read from an episode record, from what every record holds: an
     episode that ran to its time limit (``truncated``) without a collision, on the road, and failed is one whose env

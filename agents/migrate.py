@@ -45,6 +45,7 @@ import math
 import re
 import subprocess
 import sys
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -56,15 +57,16 @@ from bimp.agents.metrics import record_label, record_missed_goal
 from bimp.agents.provenance import REPO_ROOT, config_diff, config_hash, neutral_config, plain, resolved_config
 from bimp.agents.records import (
     EPISODES_FILE,
+    episode_bytes,
     finite,
     folder_lock,
+    parse_record,
     read_arms,
     record_config,
-    record_problem,
     write_arms,
     write_atomic,
 )
-from bimp.agents.registry import load, make_policy, policy_spec
+from bimp.agents.registry import POLICIES, load, make_policy, policy_spec
 from bimp.configs import file_sha256
 from bimp.planners.problem import ProblemConfig
 
@@ -184,7 +186,9 @@ def rebuild(policy: str, scenario: str, config: dict, given: str | None = None) 
                 raise MigrationError(f"no shipped {own.get('algo')} model to check its config against")
             note = (f"its model (sha256 {own['model_sha256'][:12]}...) is no shipped file: config checked on "
                     f"{name}; artifacts name the file it was made with")
-        kwargs = {"model": str(MODEL_DIR / name), **{k: v for k, v in own.items() if k == "trust_model"}}
+        if own.get("trust_model"):  # a trust switch comes from the command line or the call, never from a file
+            raise MigrationError("its config sets trust_model, which no file may switch on (docs/security.md)")
+        kwargs = {"model": str(MODEL_DIR / name)}
     try:
         built = make_policy(policy, _env(scenario), **kwargs)
         resolved = plain(resolved_config(built))
@@ -254,17 +258,22 @@ def made_after_mppi_seeding(commit: str | None) -> bool:
     return run.returncode == 0
 
 
-def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool = False) -> FolderReport:
+def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool = False,
+                   trusted: Iterable[str] = ()) -> FolderReport:
     """Migrate ``folder`` (the module doc); with ``dry_run`` only report; ``drop_traces``: the migrated records lose
     their per-step traces too (a folder no figure is drawn from). Never raises for a folder that cannot be
-    migrated: the report's ``problem`` says why, and the folder is untouched."""
+    migrated: the report's ``problem`` says why, and the folder is untouched.
+
+    A folder is data: an arm is rebuilt only from the policy table, never from a ``module:factory`` name a record or
+    ``arms.json`` gives (that would import and call whatever the file names), unless the caller names that policy in
+    ``trusted`` (``--trust-policy``); nor does a config in the folder switch on ``trust_model``."""
     folder = Path(folder)
     path = folder / EPISODES_FILE
     report = FolderReport(folder)
     try:
-        data = path.read_bytes()
+        data = episode_bytes(folder)
         old_entries = read_arms(folder)
-    except (OSError, EvaluationError) as err:
+    except EvaluationError as err:
         report.problem = str(err)
         return report
     report.bytes_before = report.bytes_after = len(data) + _size(folder / "arms.json")
@@ -273,11 +282,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
         lines.pop()
     parsed: list[dict | None] = []
     for line in lines:  # a line that is not a record is kept as it is (every reader skips it)
-        try:
-            value = json.loads(line)
-        except ValueError:
-            value = None
-        parsed.append(value if value is not None and record_problem(value) is None else None)
+        parsed.append(parse_record(line)[0])
     report.records = sum(r is not None for r in parsed)
     gated = [n for n, r in enumerate(parsed, start=1) if r is not None and _gate_goal(r)]
     report.gated = len(gated)
@@ -298,6 +303,10 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
     for (policy, old_json), numbers in arms.items():
         first = parsed[numbers[0] - 1]
         name = f"{record_label(first)!r} ({policy}) on {first['scenario']}, hash {first.get('config_hash')}"
+        if policy not in POLICIES and policy not in trusted:
+            report.problem = (f"arm {name}: its policy is not in the policy table, and a folder never names code for "
+                              f"bimp to import; if you trust it, name it yourself: --trust-policy {policy}")
+            return report
         if policy == "mppi" and not all(made_after_mppi_seeding(parsed[n - 1].get("git_commit")) for n in numbers):
             report.left.append(f"{name}: {len(numbers)} record(s) made before {MPPI_SEEDING} (MPPI's seeding "
                                "changed there): rerun them")
@@ -340,14 +349,17 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
     report.bytes_after = len(new_data) + len(_arms_text(final))
     if dry_run or (new_data == data and final == old_entries):
         return report
-    with folder_lock(folder):
-        if path.read_bytes() != data:
-            report.problem = "the folder changed while it was migrated (a run writing into it?): try again"
-            return report
-        # arms.json first, the old entries kept: a reader between the two renames finds every hash it looks up.
-        write_arms(folder, {**old_entries, **final})
-        write_atomic(path, new_data.decode())
-        write_arms(folder, final)
+    try:
+        with folder_lock(folder, hint="wait for it to end"):
+            if episode_bytes(folder) != data:
+                report.problem = "the folder changed while it was migrated (a run writing into it?): try again"
+                return report
+            # arms.json first, the old entries kept: a reader between the two renames finds every hash it looks up.
+            write_arms(folder, {**old_entries, **final})
+            write_atomic(path, new_data)
+            write_arms(folder, final)
+    except EvaluationError as err:  # locked by a run, or a write refused (a full disk): one line, not a traceback
+        report.problem = str(err)
     return report
 
 
@@ -375,6 +387,9 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", nargs="+", metavar="DIR", help="evaluation folders (each holding episodes.jsonl)")
     parser.add_argument("--dry-run", action="store_true", help="report what would change; write nothing")
+    parser.add_argument("--trust-policy", action="append", default=[], metavar="MODULE:FACTORY",
+                        help="rebuild arms of this policy, not in the policy table, by importing and calling it "
+                             "(code: only one you trust; a folder alone never names code to run)")
     parser.add_argument("--drop-traces", action="store_true",
                         help="drop the per-step traces of the migrated records (folders no figure is drawn from)")
     args = parser.parse_args(argv)
@@ -382,7 +397,7 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         print(f"bimp migrate: error: no {EPISODES_FILE} in {', '.join(missing)}", file=sys.stderr)
         return 2
-    reports = [migrate_folder(d, dry_run=args.dry_run, drop_traces=args.drop_traces)
+    reports = [migrate_folder(d, dry_run=args.dry_run, drop_traces=args.drop_traces, trusted=args.trust_policy)
                for d in dict.fromkeys(args.folders)]
     for report in reports:
         print(report.line())

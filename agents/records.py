@@ -11,11 +11,15 @@ written before ``arms.json`` existed carry their config inline and are read as t
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
 import fcntl
+import io
 import json
 import math
 import os
+import stat
 import sys
 import time
 from collections.abc import Iterator
@@ -24,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from bimp.agents.cli import EvaluationError
-from bimp.agents.metrics import BINARY, METRICS, record_label
+from bimp.agents.metrics import BINARY, METRICS, SCORE_METRICS, record_label
 
 EPISODES_FILE = "episodes.jsonl"
 ARMS_FILE = "arms.json"
@@ -40,26 +44,152 @@ def record_key(record: dict) -> tuple[str, str, str | None, int]:
 # What every reader relies on; a JSON line without them is not a record (and never a traceback).
 REQUIRED = {"scenario": str, "policy": str, "seed": int, "status": str}
 OUTCOMES = ("success_rate", "collision_rate", "offroad_rate")  # what every reader takes from an ok record's metrics
+# Bounds on what a reader takes in: a shared folder is input from anyone (docs/security.md). The largest record bimp
+# writes is a long per-step trace (about 0.1 MB over 300 steps); the deepest is 4 levels (trace, constraints, step).
+MAX_FILE_BYTES = 1 << 30
+MAX_LINE_BYTES = 16 << 20
+MAX_DEPTH = 16
+MAX_MAGNITUDE = 1e9  # no metric comes near it; 1e308 would average to inf
+# The metrics each reader takes as they are: an episode's outcome is 0 or 1, a share of steps or a score in [0, 1].
+_UNIT = {"input_violation_rate", "rate_violation_rate", *SCORE_METRICS} - set(BINARY)
+_NON_NEGATIVE = {"min_ttc_s", "rms_lateral_error_m", "rms_speed_error_mps", "max_abs_jerk", "plan_time_ms_p50",
+                 "plan_time_ms_p95"}
 _JSON_TYPES = {dict: "an object", list: "an array", str: "a string", int: "a number", float: "a number",
                bool: "a bool", type(None): "null"}
 
 
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _metric_problem(name: str, value: object) -> str | None:
+    """Why ``value`` cannot be the metric ``name`` (None when it can; null is a metric that does not apply)."""
+    if value is None:
+        return None
+    if not _is_number(value) or not math.isfinite(value) or abs(value) > MAX_MAGNITUDE:
+        return f"metrics.{name} is {_shown(value)}, not a finite number"
+    if name in BINARY and value not in (0, 1):
+        return f"metrics.{name} is {value!r}, not 0 or 1"
+    if name in _UNIT and not 0 <= value <= 1:
+        return f"metrics.{name} is {value!r}, not in [0, 1]"
+    if name in _NON_NEGATIVE and value < 0:
+        return f"metrics.{name} is {value!r}, below 0"
+    return None
+
+
+def _shown(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _too_deep(value: object, limit: int = MAX_DEPTH) -> bool:
+    """Whether ``value`` nests containers deeper than ``limit`` (walked without recursion: the walk of a crafted
+    record must not be what overflows)."""
+    stack = [(value, 1)]
+    while stack:
+        node, depth = stack.pop()
+        children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
+        for child in children:
+            if isinstance(child, (dict, list)):
+                if depth + 1 > limit:
+                    return True
+                stack.append((child, depth + 1))
+    return False
+
+
+# Optional fields a reader uses, by their types: (type, None allowed).
+_OPTIONAL = {"label": (str, False), "config_hash": (str, False), "config": (dict, False), "steps": (int, False),
+             "truncated": (bool, False), "git_commit": (str, True), "git_dirty": (bool, False),
+             "policy_info": (dict, True), "metrics": (dict, True)}
+
+
+def _typed(value: object, kind: type, nullable: bool) -> bool:
+    if value is None:
+        return nullable
+    return isinstance(value, kind) and (kind is bool or not isinstance(value, bool))  # JSON's true is no count
+
+
 def record_problem(value: object) -> str | None:
-    """Why a parsed JSON line is not an episode record (``None`` when it is one)."""
+    """Why a parsed JSON line is not an episode record (``None`` when it is one), naming the field: every field a
+    reader uses is checked for its type, finiteness and range (docs/evaluation.md), so no reader meets a value it
+    cannot take."""
     if not isinstance(value, dict):
         return f"{_JSON_TYPES.get(type(value), type(value).__name__)}, not a record"
     missing = [k for k in REQUIRED if k not in value]
     if missing:
         return f"a record without {', '.join(missing)}"
     wrong = [k for k, kind in REQUIRED.items() if not isinstance(value[k], kind) or isinstance(value[k], bool)]
-    wrong += [k for k in ("label", "config_hash") if not isinstance(value.get(k, ""), str)]
-    wrong += [k for k in ("config",) if not isinstance(value.get(k, {}), dict)]
+    wrong += [k for k, (kind, nullable) in _OPTIONAL.items() if k in value and not _typed(value[k], kind, nullable)]
     if wrong:
         return f"a record whose {', '.join(wrong)} {'is' if len(wrong) == 1 else 'are'} of the wrong type"
-    if value["status"] == "ok" and not (isinstance(value.get("metrics"), dict)
-                                        and all(k in value["metrics"] for k in OUTCOMES)):
+    if value["seed"] < 0 or value.get("steps", 0) < 0:
+        return f"a record whose {'seed' if value['seed'] < 0 else 'steps'} is below 0"
+    if not isinstance((value.get("policy_info") or {}).get("fallback_steps", []), list):
+        return "a record whose policy_info.fallback_steps is not a list"
+    if _too_deep(value):
+        return f"a record nested deeper than {MAX_DEPTH} levels"
+    metrics = value.get("metrics") or {}
+    if value["status"] == "ok" and not all(k in metrics for k in OUTCOMES):
         return f"an ok record without metrics ({', '.join(OUTCOMES)})"
+    for name in METRICS:
+        problem = _metric_problem(name, metrics.get(name))
+        if problem is not None:
+            return f"a record whose {problem}"
     return None
+
+
+def read_bounded(path: str | Path, limit: int | None = None) -> bytes:
+    """The bytes of the regular file ``path``, at most ``limit`` of them; :class:`EvaluationError` naming the file
+    for anything else (a device such as ``/dev/zero`` behind a symlink, a FIFO, a folder, a file over the limit, a
+    read that fails); ``FileNotFoundError`` where there is none, for the caller to take as empty. ``limit``:
+    :data:`MAX_FILE_BYTES` by default."""
+    limit = MAX_FILE_BYTES if limit is None else limit
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # NONBLOCK: opening a FIFO must not wait for a writer
+    except FileNotFoundError:
+        raise
+    except OSError as err:
+        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # of what was opened, not of what a name pointed to before
+            raise EvaluationError(f"{path} is not a regular file: bimp reads only regular files")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(limit + 1)
+    except OSError as err:
+        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
+    finally:
+        os.close(fd)
+    if len(data) > limit:
+        raise EvaluationError(f"{path} is over bimp's limit of {limit} bytes per file (MAX_FILE_BYTES)")
+    return data
+
+
+def read_json(path: str | Path, limit: int | None = None) -> Any:
+    """The JSON document in the regular file ``path`` (:func:`read_bounded`), nested at most :data:`MAX_DEPTH`
+    deep; :class:`EvaluationError` naming the file for one that is not such a document, ``FileNotFoundError`` where
+    there is none."""
+    data = read_bounded(path, limit)
+    try:
+        value = json.loads(data)
+    except (ValueError, RecursionError) as err:  # RecursionError: nested past what the parser takes
+        raise EvaluationError(f"{path} is not JSON: {type(err).__name__}: {_shown(str(err))}") from None
+    if _too_deep(value):
+        raise EvaluationError(f"{path}: nested deeper than {MAX_DEPTH} levels")
+    return value
+
+
+def parse_record(line: bytes) -> tuple[dict | None, str | None]:
+    """``(record, None)`` for a line that is an episode record, else ``(None, why not)``."""
+    if len(line) > MAX_LINE_BYTES:
+        return None, f"over {MAX_LINE_BYTES} bytes, the limit per line"
+    try:
+        value = json.loads(line)
+    except ValueError:  # bad JSON or not UTF-8
+        return None, "not JSON"
+    except RecursionError:
+        return None, f"nested deeper than {MAX_DEPTH} levels"
+    problem = record_problem(value)
+    return (value, None) if problem is None else (None, problem)
 
 
 _reported: set[tuple[str, tuple[int, ...]]] = set()  # said once per process: evaluate reads a folder three times
@@ -74,23 +204,16 @@ def numbered_records(out: str | Path, data: bytes | None = None) -> list[tuple[i
     these numbers: a run appending in between must not shift them)."""
     path = Path(out) / EPISODES_FILE
     try:
-        data = path.read_bytes() if data is None else data
+        data = read_bounded(path) if data is None else data
     except FileNotFoundError:
         return []
-    except OSError as err:
-        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
     lines = data.split(b"\n")
     cut = lines.pop()  # b"" after a final newline, else the line an interruption cut
     records, skipped = [], []
     for number, line in enumerate(lines + [cut], start=1):
         if not line.strip():
             continue
-        try:
-            value = json.loads(line)
-        except ValueError:  # bad JSON or not UTF-8
-            value, problem = None, "not JSON"
-        else:
-            problem = record_problem(value)
+        value, problem = parse_record(line)
         if problem is None:
             records.append((number, value))
         elif number <= len(lines):
@@ -126,11 +249,9 @@ def read_arms(out: str | Path) -> dict[str, dict]:
     folder whose configs cannot be read cannot be resumed."""
     path = Path(out) / ARMS_FILE
     try:
-        arms = json.loads(path.read_text())
+        arms = read_json(path)
     except FileNotFoundError:
         return {}
-    except (OSError, ValueError) as err:
-        raise EvaluationError(f"cannot read {path}: {err}") from None
     bad = ["(the file)"] if not isinstance(arms, dict) else [
         key for key, entry in arms.items() if not (isinstance(entry, dict) and isinstance(entry.get("policy"), str)
                                                    and isinstance(entry.get("config"), dict))]
@@ -145,14 +266,28 @@ def write_arms(out: str | Path, arms: dict[str, dict]) -> None:
     write_atomic(Path(out) / ARMS_FILE, json.dumps(finite(arms), indent=1, sort_keys=True) + "\n")
 
 
-def write_atomic(path: Path, text: str | bytes) -> None:
-    """``path`` holds ``text``, replaced in one step (fsynced before the rename)."""
+def write_atomic(path: str | Path, text: str | bytes) -> None:
+    """``path`` holds ``text``, replaced in one step (fsynced before the rename): a reader, an interruption or a full
+    disk leaves the old file or the new one, never part of one. :class:`EvaluationError` in one line naming the file
+    when it cannot be written (``ENOSPC`` and every other OS error), the temporary file removed."""
+    path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb" if isinstance(text, bytes) else "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(text.encode() if isinstance(text, str) else text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise EvaluationError(f"cannot write {path}: {os_reason(err)}") from None
+
+
+def os_reason(err: OSError) -> str:
+    """An OS error in a few words: ``No space left on device (ENOSPC)``."""
+    code = errno.errorcode.get(err.errno or 0)
+    return f"{err.strerror or err}" + (f" ({code})" if code else "")
 
 
 def record_config(record: dict, arms: dict[str, dict]) -> dict | None:
@@ -191,13 +326,10 @@ def folder_lock(out: Path, hint: str = "wait for it to end or choose another --o
 def episode_bytes(out: str | Path) -> bytes:
     """The bytes of ``out/episodes.jsonl`` (none yet: ``b""``), for a command that rewrites or copies its lines by
     number; :class:`EvaluationError` when it is not a file or cannot be read."""
-    path = Path(out) / EPISODES_FILE
     try:
-        if path.exists() and not path.is_file():
-            raise EvaluationError(f"{path} is not a file")
-        return path.read_bytes() if path.exists() else b""
-    except OSError as err:
-        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
+        return read_bounded(Path(out) / EPISODES_FILE)
+    except FileNotFoundError:
+        return b""
 
 
 @contextmanager
@@ -227,10 +359,11 @@ STATS = ("mean", "ci_low", "ci_high")  # the columns of every metric in summary.
 
 
 def write_summary(summary: dict, out: Path) -> None:
-    """``summary.json`` (every statistic), ``summary.csv`` (mean and interval columns), ``summary.md``."""
-    (out / "summary.json").write_text(json.dumps(finite(summary), indent=2))
+    """``summary.json`` (every statistic), ``summary.csv`` (mean and interval columns), ``summary.md``, each written
+    atomically (:func:`write_atomic`)."""
+    write_atomic(out / "summary.json", json.dumps(finite(summary), indent=2))
     columns = ["policy", "scenario", "episodes", "errors"]
-    with open(out / "summary.csv", "w", newline="") as f:
+    with io.StringIO(newline="") as f:
         w = csv.writer(f)
         w.writerow(columns + ["error_seeds", "failed_seeds"] + [f"{m}_{s}" for m in METRICS for s in STATS]
                    + ["fallback_seeds", "fallback_steps"])
@@ -239,7 +372,8 @@ def write_summary(summary: dict, out: Path) -> None:
                                                   " ".join(map(str, e["failed_seeds"]["success"]))]
                        + [e[m][s] for m in METRICS for s in STATS]
                        + [" ".join(map(str, e["fallback_seeds"])), e["fallback_steps"]])
-    (out / "summary.md").write_text(markdown_table(summary))
+        write_atomic(out / "summary.csv", f.getvalue())
+    write_atomic(out / "summary.md", markdown_table(summary))
 
 
 def format_stat(stat: dict | None) -> str:
@@ -283,7 +417,8 @@ def markdown_table(summary: dict) -> str:
     return "\n".join(lines) + "\n" + notes
 
 
-__all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "OUTCOMES", "REQUIRED", "episode_bytes", "finite",
-           "folder_lock", "format_stat", "latest_records", "markdown_table", "numbered_records", "read_arms",
-           "read_records", "record_config", "record_key", "record_label", "record_problem", "unchanged_lock",
-           "write_arms", "write_atomic", "write_summary"]
+__all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "MAX_DEPTH", "MAX_FILE_BYTES", "MAX_LINE_BYTES", "OUTCOMES",
+           "REQUIRED", "episode_bytes", "finite", "folder_lock", "format_stat", "latest_records", "markdown_table",
+           "numbered_records", "os_reason", "parse_record", "read_arms", "read_bounded", "read_json", "read_records",
+           "record_config", "record_key", "record_label", "record_problem", "unchanged_lock", "write_arms",
+           "write_atomic", "write_summary"]

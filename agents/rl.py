@@ -61,6 +61,7 @@ from bimp import envs
 from bimp.agents.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.baselines import ZeroAction
 from bimp.agents.cli import EvaluationError, add_backend_arguments, check_out_dir
+from bimp.agents.records import read_json, write_atomic
 from bimp.agents.rollout import rollout
 from bimp.configs import check_fields, file_sha256, read_yaml
 from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
@@ -438,7 +439,7 @@ def _check_same_run(cfg: RLConfig, out: Path) -> None:
     path = out / "config.json"
     if not path.is_file():
         return
-    before = json.loads(path.read_text())
+    before = read_json(path)
     now = json.loads(json.dumps(asdict(cfg)))  # tuples as lists, as they were written
     differ = sorted(k for k in set(before) | set(now)
                     if before.get(k) != now.get(k) and k not in _RESUMABLE_CHANGES)
@@ -464,7 +465,7 @@ def _drop_replayed_episodes(out: Path, n_envs: int, segment_start: int, resume_a
             if steps > budget:
                 break
             kept.append(row)
-        log.write_text("".join(kept))
+        write_atomic(log, "".join(kept))
 
 
 def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
@@ -489,14 +490,14 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     # The nets are tiny: more threads only fight the env processes (and other users) for the cores.
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
+    write_atomic(out / "config.json", json.dumps(asdict(cfg), indent=2) + "\n")
     segments_file = out / "segments.json"  # the timesteps each segment (run, or resume) started from
-    segments = json.loads(segments_file.read_text()) if segments_file.is_file() else [0]
+    segments = read_json(segments_file) if segments_file.is_file() else [0]
     resume_at, checkpoint = _latest_checkpoint(out)
     if _monitor_files(out):
         _drop_replayed_episodes(out, cfg.n_envs, segments[-1], resume_at)
         segments.append(resume_at)
-    segments_file.write_text(json.dumps(segments) + "\n")
+    write_atomic(segments_file, json.dumps(segments) + "\n")
     segment = len(_monitor_files(out)) // cfg.n_envs
     venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, start_index=segment * cfg.n_envs,
                         monitor_dir=str(out), wrapper_class=PlanningWrapper,
@@ -522,8 +523,8 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     wall = time.perf_counter() - start
     venv.close()
     model.save(path)
-    (out / "train_time.json").write_text(json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps,
-                                                     "resumed_at": done or None}) + "\n")
+    write_atomic(out / "train_time.json", json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps,
+                                                      "resumed_at": done or None}) + "\n")
     plot_curve(out, out / "curve.png", title=f"{cfg.algo.upper()} {cfg.scenario} (seed {cfg.seed})")
     return path
 
@@ -685,7 +686,7 @@ def check_model(cfg: RLConfig, path: Path, out: Path, seeds: int) -> dict[str, d
     env = gym.make(cfg.env_id)
     result = compare_with_zero(env, SB3Policy(env, path, cfg.algo), range(100, 100 + seeds))
     env.close()
-    (out / "eval.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_atomic(out / "eval.json", json.dumps(result, indent=2) + "\n")
     return result
 
 

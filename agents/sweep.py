@@ -48,7 +48,7 @@ from bimp.agents.cli import (
     parse_overrides,
 )
 from bimp.agents.evaluate import DryRun, check_conflicts, evaluate, resolve_arms
-from bimp.agents.records import format_stat, numbered_records, write_summary
+from bimp.agents.records import format_stat, numbered_records, write_atomic, write_summary
 from bimp.agents.registry import is_policy_name, make_policy, policy_color, policy_label, policy_spec
 from bimp.agents.tune import TuneError, factory_kwargs, overrides_for
 
@@ -215,8 +215,8 @@ def plot(rows: list[dict], path: Path, frontier: bool) -> Path:
 
 def write(rows: list[dict], out: Path, name: str) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(rows, indent=2, default=str))
-    (out / f"{name}.md").write_text(table(rows))
+    write_atomic(out / f"{name}.json", json.dumps(rows, indent=2, default=str))
+    write_atomic(out / f"{name}.md", table(rows))
     return [out / f"{name}.json", out / f"{name}.md", plot(rows, out / f"{name}.png", frontier=name == "frontier")]
 
 

@@ -67,7 +67,7 @@ from bimp.agents.backends import BackendError, connect_ray, in_worker, ray_optio
 from bimp.agents.cli import EvaluationError, add_backend_arguments, backend_options, check_out_dir
 from bimp.agents.evaluate import evaluate
 from bimp.agents.provenance import config_hash, resolved_config
-from bimp.agents.records import read_records
+from bimp.agents.records import read_records, write_atomic
 from bimp.agents.registry import make_policy, policy_factory
 
 # optuna (a second or so to load) is imported inside the functions that run a study: `bimp sweep` imports this module
@@ -489,8 +489,8 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
         "config": config,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"# Written by `bimp tune`; load with make_policy({policy!r}, env, config=<this file>).\n"
-                    + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))
+    write_atomic(path, f"# Written by `bimp tune`; load with make_policy({policy!r}, env, config=<this file>).\n"
+                 + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))
     return path
 
 

@@ -17,6 +17,8 @@ import dataclasses
 import hashlib
 import math
 import numbers
+import os
+import stat
 import types
 import typing
 from collections.abc import Iterable, Mapping, Sequence
@@ -29,6 +31,9 @@ CONFIG_DIR = Path(__file__).resolve().parent
 # Tuned configs written by `bimp tune` (configs/tuned/NAME.yaml): where one ships, it is policy NAME's default.
 TUNED_DIR = CONFIG_DIR / "tuned"
 T = TypeVar("T")
+# Keys that make bimp run code from a file it loads (trust_model: an RL model unpickled by SB3's own load). They come
+# from the command line or the Python call only: a config file that sets one is refused (docs/security.md).
+TRUST_SWITCHES = frozenset({"trust_model"})
 
 
 class ConfigError(ValueError):
@@ -55,9 +60,43 @@ def _plain(value: Any) -> Any:
 def read_yaml(path: str | Path) -> Any:
     """The YAML document in the file ``path``, read with ``safe_load`` (no tag builds an object). A file that cannot
     be read, is not UTF-8 text or not YAML raises ``ValueError`` in one line naming the file and, for bad YAML, the
-    line and column (yaml's own message names a ``"<unicode string>"``)."""
+    line and column (yaml's own message names a ``"<unicode string>"``); so does one that sets a key of
+    :data:`TRUST_SWITCHES`, at any depth."""
+    doc = _parse_yaml(path)
+    switch = _trust_switch(doc)
+    if switch is not None:
+        raise ValueError(f"{path} sets {switch}, a trust switch, which no file may set: give it on the command line "
+                         f"(--set POLICY.{switch.rpartition('.')[2]}=true) or in the Python call (docs/security.md)")
+    return doc
+
+
+def _trust_switch(doc: Any) -> str | None:
+    """The dotted key of a :data:`TRUST_SWITCHES` key set in ``doc`` (None when none is)."""
+    stack = [(doc, "")]
+    while stack:  # no recursion: a crafted file may nest as deep as the parser lets it
+        node, where = stack.pop()
+        children = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+        for key, value in children:
+            path = f"{where}.{key}" if where else str(key)
+            if isinstance(key, str) and key in TRUST_SWITCHES:
+                return path
+            stack.append((value, path))
+    return None
+
+
+MAX_YAML_BYTES = 16 << 20  # a config is a few kB; a bigger file is not one (nor a device behind a symlink)
+
+
+def _parse_yaml(path: str | Path) -> Any:
     try:
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{path}: cannot be read as a config (not a regular file)")
+        if info.st_size > MAX_YAML_BYTES:
+            raise ValueError(f"{path}: {info.st_size} bytes, over the {MAX_YAML_BYTES} a config may hold")
         return yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except RecursionError:
+        raise ValueError(f"{path}: not a YAML config (nested too deep to read)") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a UTF-8 text file, so not a YAML config") from None
     except OSError as err:

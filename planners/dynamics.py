@@ -20,6 +20,9 @@ highway-env's acceleration cap above ``max_speed`` is applied to the input, and 
 
 from __future__ import annotations
 
+import pickle
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -297,6 +300,17 @@ def save_model(model: LearnedDynamics, path: str | Path, extra: dict[str, Any] |
     return path
 
 
+def _load_failure(err: Exception) -> str:
+    """What a failed weights-only load met, in a few words: the code a pickled object would have called, else the
+    error's type."""
+    found = re.search(r"GLOBAL (\S+)", str(err))  # "Trying to load unsupported GLOBAL posix.system whose module..."
+    if found:
+        return f"a pickled object that calls {found.group(1)}"
+    if isinstance(err, EOFError):
+        return "empty or cut short"
+    return "not a torch weights file" if isinstance(err, pickle.UnpicklingError) else type(err).__name__
+
+
 def load_model(path: str | Path | None = None) -> LearnedDynamics:
     """Load the learned model from ``path`` (default: the shipped ``planners/weights/mlp.pt``). No network access.
 
@@ -308,9 +322,14 @@ def load_model(path: str | Path | None = None) -> LearnedDynamics:
         raise FileNotFoundError(f"dynamics model weights not found: {path} "
                                 f"(run `bimp train-dynamics --out {path}` to create them)")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns of a pickle protocol it did not write: the refusal says enough
+            warnings.simplefilter("ignore", UserWarning)
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises several types for a bad file (UnpicklingError, RuntimeError, EOF...)
-        raise ValueError(f"cannot read dynamics model weights {path}: {type(err).__name__}: {err}") from err
+        # torch's own message is paragraphs long and advises weights_only=False, which would run whatever a
+        # pickled object in the file says: one line instead, and `from None` so no traceback repeats that advice.
+        raise ValueError(f"refused {path}: it holds something other than model weights ({_load_failure(err)}); "
+                         "give a file written by `bimp train-dynamics`") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a bimp dynamics checkpoint (format {CHECKPOINT_FORMAT!r} expected)")
     if ckpt.get("version") != CHECKPOINT_VERSION:

@@ -254,7 +254,7 @@ def test_a_target_it_cannot_use_is_refused_before_anything_is_written(apart, tmp
     a, _ = apart
     odd = tmp_path / "odd"
     (odd / EPISODES_FILE).mkdir(parents=True)
-    with pytest.raises(EvaluationError, match="is not a file"):
+    with pytest.raises(EvaluationError, match="is not a regular file"):
         mg.merge([a], odd)
     assert sorted(p.name for p in odd.iterdir()) == [EPISODES_FILE]
     old = tmp_path / "old"

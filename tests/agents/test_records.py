@@ -5,11 +5,10 @@ skipped by every reader, never a traceback, and nothing already recorded is lost
 import json
 import math
 import shutil
-from pathlib import Path
 
 import pytest
 
-from bimp.agents import aggregate, compare, plots
+from bimp.agents import aggregate, compare, plots, records
 from bimp.agents import evaluate as ev
 from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate, resolve_arms
@@ -138,7 +137,7 @@ def test_episode_bytes_reads_the_records_as_bytes_and_refuses_a_folder_in_their_
     assert episode_bytes(tmp_path) == b'{"a": 1}\n{"cut'  # as they are, a cut last line included
     other = tmp_path / "other"
     (other / EPISODES_FILE).mkdir(parents=True)
-    with pytest.raises(EvaluationError, match="is not a file"):
+    with pytest.raises(EvaluationError, match="is not a regular file"):
         episode_bytes(other)
 
 
@@ -168,9 +167,9 @@ def test_unchanged_lock_refuses_a_change_planned_on_a_stale_reading_and_holds_th
 def test_episode_bytes_names_a_file_it_cannot_read(tmp_path, monkeypatch):
     (tmp_path / EPISODES_FILE).write_bytes(b"x\n")
 
-    def denied(self):
+    def denied(path, flags):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(Path, "read_bytes", denied)  # chmod would not stop root
+    monkeypatch.setattr(records.os, "open", denied)  # chmod would not stop root
     with pytest.raises(EvaluationError, match=f"cannot read {tmp_path / EPISODES_FILE}: Permission denied"):
         episode_bytes(tmp_path)

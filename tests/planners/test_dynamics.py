@@ -5,6 +5,9 @@ planner config, and where ``bimp train-dynamics`` writes."""
 from __future__ import annotations
 
 import hashlib
+import os
+import pickle
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -145,6 +148,40 @@ def test_loader_errors_name_the_file(tmp_path):
     torch.save({"weights": torch.zeros(3)}, other)
     with pytest.raises(ValueError, match="other.pt"):
         load_model(other)
+
+
+class Touch:
+    """A pickled object that, unpickled, creates ``marker``: what a weights file must never get to do."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {shlex.quote(str(self.marker))}",)
+
+
+def test_a_file_that_is_not_weights_is_refused_in_one_line_and_never_unpickled(tmp_path):
+    control = tmp_path / "control"
+    pickle.loads(pickle.dumps(Touch(control)))
+    assert control.exists()  # the payload works: only the loader keeps it from running
+    marker = tmp_path / "marker"
+    files = {"object.pt": lambda p: torch.save(Touch(marker), p),  # torch's zip format, a pickled object inside
+             "pickle.pt": lambda p: p.write_bytes(pickle.dumps(Touch(marker))),
+             "nested.pt": lambda p: torch.save({"format": "bimp-dynamics-mlp", "meta": Touch(marker)}, p),
+             "garbage.pt": lambda p: p.write_bytes(np.random.default_rng(1).bytes(3000)),
+             "empty.pt": lambda p: p.write_bytes(b"")}
+    messages = {}
+    for name, write in files.items():
+        path = tmp_path / name
+        write(path)
+        with pytest.raises(ValueError) as refused:
+            load_model(path)
+        message = messages[name] = str(refused.value)
+        assert "\n" not in message and str(path) in message and "something other than model weights" in message
+        assert "weights_only" not in message
+        assert refused.value.__suppress_context__  # no chained traceback repeating torch's advice either
+        assert not marker.exists(), name
+    assert "a pickled object that calls" in messages["object.pt"] and "empty" in messages["empty.pt"]
 
 
 def test_save_load_round_trip(model, tmp_path):
