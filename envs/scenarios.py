@@ -3,7 +3,8 @@
 Both share :class:`BimpEnv`: a two-lane road of 4 m lanes, dt = 0.1 s (simulation and policy frequency
 10 Hz), the EV driven by a continuous ``[acceleration, steering]`` action in [-1, 1] that maps linearly
 onto actuator ranges wider than the planning bounds (so violations of the bounds are measurable).
-**Actions outside [-1, 1] are clipped; a non-finite action raises ValueError.** Speeds never go negative.
+**Actions outside [-1, 1] are clipped; a non-finite action, or one that is not real numbers (a string, a complex
+number, a bool), raises ValueError** (:func:`bimp.envs.checks.checked_action`). Speeds never go negative.
 
 Configuration: ``gym.make(id, config={...})`` sets the base configuration. Scenario parameters (``PARAMS`` of
 each env, listed with units and accepted values in its docstring) given as a 2-sequence ``(lo, hi)`` are drawn
@@ -16,7 +17,9 @@ the parameter's interval (speeds in [0, 40] m/s, gaps >= one vehicle length + d_
 the vehicles start clear of each other and of the distance constraint, and <= ``MAX_GAP`` = 1 km so every position
 stays inside the observation space, ``brake_decel`` a magnitude > 0, ...);
 and orders that must hold for the worst case of the ranges, not only for one draw (OV2 ahead of OV1, the
-reference's ``ref_zero_step`` after ``ref_hold``). highway-env's own keys (rendering, frequencies) pass through.
+reference's ``ref_zero_step`` after ``ref_hold``). highway-env's own keys (rendering) pass through, checked as the
+adapter checks them (:func:`bimp.envs.checks.check_highway_config`); ``policy_frequency`` must be 10 Hz (the planners
+plan at dt = 0.1 s) and ``action`` is refused (the EV is driven by the env's own continuous action).
 
 Collision: ``info["collision"]`` is true exactly when the EV's footprint touches or overlaps an OV's, i.e. when
 ``min(info["ov_distance"]) <= 0``, the exact signed distance between the two 5 m x 2 m rectangles
@@ -52,7 +55,6 @@ spinning earn nothing, and stopping earns nothing while the reference speed is p
 from __future__ import annotations
 
 import copy
-import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -68,6 +70,7 @@ from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
+from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, is_real
 from bimp.envs.overlay import draw_lines
 from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import (
@@ -101,7 +104,7 @@ MAX_GAP = 1000.0
 
 REFERENCE_COLOUR = (255, 140, 0)  # orange: no road marking or vehicle of highway-env's is drawn in it
 
-# Keys highway-env's AbstractEnv reads; accepted as overrides, mostly for rendering.
+# Keys highway-env's AbstractEnv reads; accepted as overrides (checked: bimp.envs.checks), mostly for rendering.
 _HIGHWAY_KEYS = frozenset(AbstractEnv.default_config()) | {"observation", "action"}
 
 
@@ -171,13 +174,9 @@ class Order:
 def _fmt(value: Any) -> str:
     if isinstance(value, tuple):
         return "(" + ", ".join(_fmt(v) for v in value) + ")"
-    if isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
+    if is_real(value):
         return f"{float(value):g}" if float(value).is_integer() or not np.isfinite(value) else repr(float(value))
     return repr(value)
-
-
-def _is_real(v: Any) -> bool:
-    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
 
 
 def _checked_param(key: str, value: Any, param: Param) -> float | int | tuple:
@@ -186,9 +185,9 @@ def _checked_param(key: str, value: Any, param: Param) -> float | int | tuple:
     inside the parameter's interval."""
     if isinstance(value, np.ndarray) and value.ndim == 0:
         value = value.item()
-    if _is_real(value):
+    if is_real(value):
         values = (value,)
-    elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2 and all(_is_real(v) for v in value):
+    elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2 and all(is_real(v) for v in value):
         values = tuple(value)
     else:
         raise ValueError(f"{key} must be a number or a (lo, hi) range of two numbers, got {value!r}")
@@ -205,11 +204,12 @@ def _checked_param(key: str, value: Any, param: Param) -> float | int | tuple:
     return out if len(out) == 2 else out[0]
 
 
-def _check_frequencies(config: dict) -> None:
+def _check_frequencies(config: dict, where: str) -> None:
     for key in ("simulation_frequency", "policy_frequency"):
         v = config[key]
-        if not (_is_real(v) and float(v).is_integer() and v > 0):
+        if not (is_real(v) and float(v).is_integer() and v > 0):
             raise ValueError(f"{key} must be a positive integer [Hz], got {v!r}")
+    check_policy_frequency(config["policy_frequency"], where)
     if config["simulation_frequency"] % config["policy_frequency"]:
         raise ValueError(f"simulation_frequency must be an integer multiple of policy_frequency, got "
                          f"{config['simulation_frequency']!r} and {config['policy_frequency']!r}")
@@ -405,13 +405,17 @@ class BimpEnv(AbstractEnv):
         if unknown:
             raise ValueError(f"unknown config key(s) {unknown} for {type(self).__name__}; "
                              f"scenario keys are {sorted([*self.PARAMS, *self.OPTIONS])}")
+        if "action" in overrides:  # define_spaces drives the EV by its own action: highway-env's would be ignored
+            raise ValueError(f"config action={overrides['action']!r} cannot be honoured: {type(self).__name__} drives "
+                             "the EV by its own continuous [acceleration, steering] action in [-1, 1] (leave it out)")
+        check_highway_config(type(self).__name__, type(self), overrides, refuse_unknown=False)
         config = {**base, **overrides}
         for key, param in self.PARAMS.items():
             config[key] = _checked_param(key, config[key], param)
         for key, choices in self.OPTIONS.items():
             if config[key] not in choices:
                 raise ValueError(f"{key} must be one of {list(choices)}, got {config[key]!r}")
-        _check_frequencies(config)
+        _check_frequencies(config, type(self).__name__)
         for order in self.ORDERS:
             order.check(config)
         return config
@@ -521,16 +525,12 @@ class BimpEnv(AbstractEnv):
         return frame if drawn is None else drawn
 
     def step(self, action):
-        """highway-env's step with the action checked (shape (2,), finite; clipped to [-1, 1]). After a step that
-        terminated the episode (collision, off the road) it raises ``gymnasium.error.ResetNeeded`` until the next
-        ``reset``; see the class docstring."""
+        """highway-env's step with the action checked (real numbers, shape (2,), finite; clipped to [-1, 1]). After a
+        step that terminated the episode (collision, off the road) it raises ``gymnasium.error.ResetNeeded`` until the
+        next ``reset``; see the class docstring."""
         if self._ended:
             raise ResetNeeded("step() after the episode terminated (collision or off the road): call reset() first")
-        action = np.asarray(action, dtype=float).reshape(-1)
-        if action.shape != (2,):
-            raise ValueError(f"action must have shape (2,), got {np.shape(action)}")
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite, got {action}")
+        action = checked_action(action)
         self.prev_input = self.last_input
         self.last_input = self.scene.to_physical(action)
         obs, reward, terminated, truncated, info = super().step(np.clip(action, -1.0, 1.0))

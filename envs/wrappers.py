@@ -22,6 +22,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
+from bimp.envs.checks import checked_action
 from bimp.envs.road import wrap_angle
 from bimp.envs.scene import Scene
 
@@ -130,6 +131,8 @@ class PlanningWrapper(gym.Wrapper):
     def step(self, action):
         # The scene is rebuilt at every reset: read it at each step, never cache it.
         scene = self.env.unwrapped.scene
+        # Checked before the map: it would turn a bool or a numeric string into floats the env then accepts.
+        action = checked_action(action)
         obs, reward, terminated, truncated, info = self.env.step(to_env_action(action, self._raw, scene))
         self._raw = obs
         return features(obs, scene), reward, terminated, truncated, info

@@ -36,7 +36,9 @@ from the given env's configuration; the given env is left as it was. highway-env
 replaced by the adapter's. A config the adapter cannot honour raises ``ValueError`` naming the key: an action type
 other than ``ContinuousAction`` (discrete actions), a one-axis or dynamical ``ContinuousAction``, a
 ``policy_frequency`` other than 10 Hz (the planners plan at dt = 0.1 s), a ``simulation_frequency`` that is not a
-multiple of 10 Hz; and so does an id outside :data:`SUPPORTED`.
+multiple of 10 Hz; highway-env's own keys that it would fail on (a count that is no int, a lane past the road, more
+than :data:`bimp.envs.checks.MAX_VEHICLES` vehicles, a NaN reward weight: :func:`bimp.envs.checks
+.check_highway_config`) and, on highway-env's ids, keys it does not have; and so does an id outside :data:`SUPPORTED`.
 
 The suite's families (:mod:`bimp.envs.suite`, issue 27) are highway-env envs of bimp's own and run through this very
 adapter: each under its ``ID`` (``"stalled-vehicle-v0"``) in :data:`PROFILES` (its numbers read from its class) and
@@ -46,7 +48,6 @@ own ids.
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -56,6 +57,7 @@ from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
 from bimp.configs import added_field
+from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, is_int
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import build_route, route_from
@@ -139,13 +141,11 @@ PROFILES.update({cls.ID: Profile(cls.BOUNDS, cls.ACTUATOR_STEER, cls.TARGET_SPEE
 ENV_CLASSES: dict[str, type] = {**HIGHWAY_CLASSES, **{cls.ID: cls for cls in FAMILIES.values()}}
 
 
-def _is_int(value) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
-def adapter_config(highway_id: str, config: Mapping | None) -> dict:
+def adapter_config(highway_id: str, config: Mapping | None, base: Mapping | None = None) -> dict:
     """``config`` (highway-env keys, as for ``gym.make(highway_id, config=...)``) with the adapter's action and
-    frequencies, checked: ``ValueError`` naming a key whose value the adapter cannot honour."""
+    frequencies, checked: ``ValueError`` naming a key whose value the adapter cannot honour, or one highway-env would
+    fail on (:func:`bimp.envs.checks.check_highway_config`). ``base``: the config ``config`` updates (the env's, at a
+    reset), for the checks across keys."""
     if highway_id not in PROFILES:
         families = [i for i in PROFILES if i not in SUPPORTED]
         raise ValueError(f"the adapter has no profile for {highway_id!r}: it takes highway-env's ids "
@@ -169,14 +169,13 @@ def adapter_config(highway_id: str, config: Mapping | None) -> dict:
     if not (accel[0] <= b.accel[0] and accel[1] >= b.accel[1] and steer[0] <= -b.steer and steer[1] >= b.steer):
         raise ValueError(f"{highway_id}: config action ranges {accel}, {steer} must contain the planning bounds "
                          f"accel {b.accel}, steer ±{b.steer}")
-    policy = config.get("policy_frequency", POLICY_FREQUENCY)
-    if policy != POLICY_FREQUENCY:
-        raise ValueError(f"{highway_id}: config policy_frequency={policy!r} cannot be honoured: bimp's planners "
-                         f"plan at dt = 0.1 s (policy_frequency {POLICY_FREQUENCY})")
+    check_policy_frequency(config.get("policy_frequency", POLICY_FREQUENCY), highway_id)
     simulation = config.get("simulation_frequency", POLICY_FREQUENCY)
-    if not _is_int(simulation) or simulation <= 0 or simulation % POLICY_FREQUENCY:
+    if not is_int(simulation) or simulation <= 0 or simulation % POLICY_FREQUENCY:
         raise ValueError(f"{highway_id}: config simulation_frequency={simulation!r} must be a positive multiple "
                          f"of the policy frequency {POLICY_FREQUENCY} Hz")
+    # highway-env's own ids take only their own keys; a family refuses unknown ones itself, naming its own.
+    check_highway_config(highway_id, ENV_CLASSES[highway_id], config, base, refuse_unknown=highway_id in SUPPORTED)
     config.pop("observation", None)
     config.update(action={"type": "ContinuousAction", "acceleration_range": accel, "steering_range": steer,
                           "longitudinal": True, "lateral": True, "dynamical": False, "clip": True},
@@ -192,7 +191,7 @@ def make(highway_id: str, config: Mapping | None = None, render_mode: str | None
     builds, without gymnasium's wrappers). ``kwargs``: the env class's own (a suite family's ``difficulty``, which
     its ``-easy``/``-hard`` ids pass)."""
     config = adapter_config(highway_id, config)
-    if not _is_int(n_obstacles) or n_obstacles < 1:
+    if not is_int(n_obstacles) or n_obstacles < 1:
         raise ValueError(f"n_obstacles must be an int >= 1, got {n_obstacles!r}")
     env = adapted_class(ENV_CLASSES[highway_id])(config=config, render_mode=render_mode, **kwargs)
     return HighwayAdapter(env, highway_id, n_obstacles)
@@ -274,7 +273,7 @@ class HighwayAdapter(gym.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         options = dict(options or {})
         if "config" in options:  # highway-env's per-reset configure: held to what the adapter can honour
-            options["config"] = adapter_config(self.highway_id, {**options["config"]})
+            options["config"] = adapter_config(self.highway_id, options["config"], self.env.unwrapped.config)
         _, info = self.env.reset(seed=seed, options=options or None)
         self._start()
         obs, safety = self._measure()
@@ -302,11 +301,7 @@ class HighwayAdapter(gym.Wrapper):
         if self._ended:
             raise ResetNeeded("step() after the episode terminated (collision, off the road or highway-env's own "
                               "end): call reset() first")
-        action = np.asarray(action, dtype=float).reshape(-1)
-        if action.shape != (2,):
-            raise ValueError(f"action must have shape (2,), got {np.shape(action)}")
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite, got {action}")
+        action = checked_action(action)
         base, road_before = self.env.unwrapped, self.scene.road
         ev = base.vehicle
         before = np.array(ev.position, float)

@@ -245,6 +245,12 @@ class CutInVehicle(IDMVehicle):
         self.steps = 0  # simulation steps taken since reset
         self.guarded_steps = 0  # steps on which it braked for traffic harder than its script (GUARD)
 
+    @classmethod
+    def create_from(cls, vehicle: IDMVehicle) -> IDMVehicle:
+        """A plain IDM snapshot, for highway-env's trajectory history (``show_trajectories``): highway-env's own
+        ``create_from`` builds this class from IDM's arguments, which it does not take (a raw ``TypeError``)."""
+        return IDMVehicle.create_from(vehicle)
+
     def _lateral(self, t: float) -> float:
         """The scripted lateral position [m] at ``t`` [s]: the half-cosine from the own lane's centre to the EV's."""
         s = min(max((t - self.cut_time) / LANE_CHANGE, 0.0), 1.0)

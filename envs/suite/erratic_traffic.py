@@ -139,6 +139,12 @@ class ErraticVehicle(IDMVehicle):
         self.next_brake = self._wait(0.0)
         self.erratic_lane_changes = self.refused_lane_changes = 0
 
+    @classmethod
+    def create_from(cls, vehicle: IDMVehicle) -> IDMVehicle:
+        """A plain IDM snapshot, for highway-env's trajectory history (``show_trajectories``): highway-env's own
+        ``create_from`` builds this class from IDM's arguments, which it does not take (a raw ``TypeError``)."""
+        return IDMVehicle.create_from(vehicle)
+
     def randomize_behavior(self) -> None:
         self.DELTA = self.rng.uniform(*self.DELTA_RANGE)  # as highway-env's, from the env's generator by name
 

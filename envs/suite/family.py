@@ -131,6 +131,8 @@ class Family:
     DIFFICULTIES: ClassVar[Mapping[str, Any]] = {}  # difficulty -> RANGES instance
     DEFAULT_DIFFICULTY: ClassVar[str] = "medium"
     REMOVED_KEYS: ClassVar[frozenset[str]] = frozenset()  # highway-env keys the family's own draws replace
+    # highway-env keys the family checks itself, more strictly than the adapter would (bimp.envs.checks)
+    CHECKED_KEYS: ClassVar[frozenset[str]] = frozenset({"duration"})
     OVERTAKE: ClassVar[bool] = False  # the behaviour layer overtakes through the oncoming lane (two-way-overtake)
 
     drawn_params: dict[str, Any]
@@ -268,6 +270,7 @@ class HighwayFamily(Family):
 
     REMOVED_KEYS = frozenset({"vehicles_count", "vehicles_density", "initial_lane_id", "ego_spacing",
                               "other_vehicles_type", "controlled_vehicles"})
+    CHECKED_KEYS = Family.CHECKED_KEYS | {"lanes_count"}
     LANES_WHY: ClassVar[str] = "a lane beside the EV's"
 
     @classmethod
@@ -277,7 +280,8 @@ class HighwayFamily(Family):
         return config
 
     def configure(self, config: Mapping | None) -> None:
-        lanes = config.get("lanes_count") if isinstance(config, Mapping) else None
-        if lanes is not None and (isinstance(lanes, bool) or not isinstance(lanes, int) or not 2 <= lanes <= 5):
-            raise ConfigError("lanes_count", "an int in [2, 5]", lanes, self.LANES_WHY)
+        if isinstance(config, Mapping) and "lanes_count" in config:  # a None given is refused too
+            lanes = config["lanes_count"]
+            if isinstance(lanes, bool) or not isinstance(lanes, int) or not 2 <= lanes <= 5:
+                raise ConfigError("lanes_count", "an int in [2, 5]", lanes, self.LANES_WHY)
         super().configure(config)
