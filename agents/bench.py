@@ -2,6 +2,7 @@
 
     bimp bench [--repeats 30] [--quick] [--out bench.json]
     bimp bench --device [--out bench_device.json]     # EnKTS on JAX's default device, N up to 10^5
+    bimp bench --env [SCENARIO ...] [--out results/bench/env.json]   # env steps/s: fast traffic vs highway-env's
 
 Every planner plans on the same observations: the overtaking env after ``reset(seed=0)``, driven by EnKTS (shared
 tuning, seed 0) for ``--steps`` steps and then ``--repeats`` more, recorded once. Each planner is built, reset, and
@@ -436,6 +437,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenario", default=SCENARIO, choices=(SCENARIO, *HIGHWAY_IDS),
                         help="overtaking (the paper's, default) or a wrapped highway-env id: EnKTS and EnKS on its "
                              "road, with K and P sweeps")
+    parser.add_argument("--env", nargs="*", default=None, metavar="SCENARIO",
+                        help="env steps per second of these scenarios (none named: every one), bimp's fast traffic "
+                             "core beside highway-env's own (bimp.agents.bench_env); --out also writes a .md beside")
+    parser.add_argument("--env-steps", type=int, default=50, help="with --env: steps per round (3 rounds a core)")
     parser.add_argument("--note", default=None, help="a remark stored in the JSON (e.g. what else loaded the machine)")
     parser.add_argument("--out", type=Path, default=None, help="also write the result as JSON here")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
@@ -452,8 +457,12 @@ def main(argv: list[str] | None = None) -> int:
         except EvaluationError as err:
             print(f"bimp bench: error: {err}", file=sys.stderr)
             return 2
-    print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
     progress = lambda s: print(s, flush=True)  # noqa: E731
+    if args.env is not None:
+        from bimp.agents.bench_env import command
+
+        return command(args.env, args.env_steps, args.quick, args.out, args.note, progress)
+    print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
     if args.device:
         result, render = run_device(repeats, args.steps, progress=progress), report_device
     elif args.scenario != SCENARIO:

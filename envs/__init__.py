@@ -22,6 +22,7 @@ from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import POLICY_FREQUENCY, Bounds, Scene
 from bimp.envs.suite import FAMILIES
 from bimp.envs.suite.paper_noisy import FAMILY as PAPER_NOISY
+from bimp.envs.traffic import accelerate
 from bimp.envs.wrappers import PlanningWrapper
 
 
@@ -160,4 +161,4 @@ def scenario_name(gym_id: str) -> str | None:
 
 
 __all__ = ["ENV_IDS", "SCENARIOS", "VARIANT_IDS", "Bounds", "PlanningWrapper", "RoadGeometry", "Scene", "ScenarioSpec",
-           "default_scenarios", "env_id", "register_scenario", "scenario_name", "scenario_spec", "wrap"]
+           "accelerate", "default_scenarios", "env_id", "register_scenario", "scenario_name", "scenario_spec", "wrap"]

@@ -49,6 +49,14 @@ def is_int(value: Any) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
 
 
+def checked_flag(name: str, value: Any) -> bool:
+    """``value`` when it is a bool; else a one-line ``ValueError`` naming ``name`` (``"no"`` or 0 would pass for
+    false in an ``if``)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be true or false, got {_shown(value)}")
+    return bool(value)
+
+
 def _shown(value: Any, limit: int = 80) -> str:
     # One line, whatever the value: an array's repr spans lines.
     text = " ".join(repr(value).split())

@@ -70,7 +70,7 @@ from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, is_real
+from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, checked_flag, is_real
 from bimp.envs.overlay import draw_lines
 from bimp.envs.road import RoadGeometry
 from bimp.envs.scene import (
@@ -88,6 +88,7 @@ from bimp.envs.scene import (
     constraint_values,
     join_obs,
 )
+from bimp.envs.traffic import make_fast
 
 N_OBSTACLES = 2
 CRASH_PENALTY = 20.0
@@ -374,6 +375,11 @@ class BimpEnv(AbstractEnv):
     BEHAVIOUR: GapAcceptance | None = None  # the decision module that sets the reference, where there is one
     ORDERS: tuple[Order, ...] = ()
 
+    def __init__(self, config: dict | None = None, render_mode: str | None = None, fast_traffic: bool = True):
+        # Before highway-env's __init__, whose reset builds the first road.
+        self.fast_traffic = checked_flag("fast_traffic", fast_traffic)
+        super().__init__(config, render_mode)
+
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
         if cls.PARAMS and cls.__doc__:
@@ -484,6 +490,8 @@ class BimpEnv(AbstractEnv):
         self.scene = self._make_scene(self._scene_road())
         self.road = Road(network=_build_network(self.scene.geometry, speed_limit=40.0),
                          np_random=self.np_random, record_history=self.config["show_trajectories"])
+        if self.fast_traffic:  # bimp.envs.traffic: the same episodes
+            make_fast(self.road)
         self.obstacles: list[ObstacleVehicle] = []
         ego_speed, lane = self._populate()
         road = self.scene.geometry

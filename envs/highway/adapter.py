@@ -57,7 +57,7 @@ from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
 from bimp.configs import added_field
-from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, is_int
+from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, checked_flag, is_int
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import build_route, route_from
@@ -78,6 +78,7 @@ from bimp.envs.scene import (
     join_obs,
 )
 from bimp.envs.suite import FAMILIES
+from bimp.envs.traffic import make_fast
 
 N_OBSTACLES = 8
 _VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "scaling", "show_trajectories",
@@ -186,15 +187,17 @@ def adapter_config(highway_id: str, config: Mapping | None, base: Mapping | None
 
 
 def make(highway_id: str, config: Mapping | None = None, render_mode: str | None = None,
-         n_obstacles: int = N_OBSTACLES, **kwargs) -> "HighwayAdapter":
+         n_obstacles: int = N_OBSTACLES, fast_traffic: bool = True, **kwargs) -> "HighwayAdapter":
     """The adapted env of ``highway_id`` (what ``gym.make("bimp/" + highway_id, config=..., n_obstacles=...)``
-    builds, without gymnasium's wrappers). ``kwargs``: the env class's own (a suite family's ``difficulty``, which
-    its ``-easy``/``-hard`` ids pass)."""
+    builds, without gymnasium's wrappers). ``fast_traffic``: the road on bimp's fast traffic core
+    (:mod:`bimp.envs.traffic`, the same episodes), else highway-env's own. ``kwargs``: the env class's own (a suite
+    family's ``difficulty``, which its ``-easy``/``-hard`` ids pass)."""
     config = adapter_config(highway_id, config)
     if not is_int(n_obstacles) or n_obstacles < 1:
         raise ValueError(f"n_obstacles must be an int >= 1, got {n_obstacles!r}")
+    fast_traffic = checked_flag("fast_traffic", fast_traffic)
     env = adapted_class(ENV_CLASSES[highway_id])(config=config, render_mode=render_mode, **kwargs)
-    return HighwayAdapter(env, highway_id, n_obstacles)
+    return HighwayAdapter(env, highway_id, n_obstacles, fast_traffic)
 
 
 def highway_id_of(env: gym.Env) -> str:
@@ -211,7 +214,7 @@ def highway_id_of(env: gym.Env) -> str:
                      f"ids: {list(SUPPORTED)}")
 
 
-def wrap(env: gym.Env, n_obstacles: int = N_OBSTACLES) -> "HighwayAdapter":
+def wrap(env: gym.Env, n_obstacles: int = N_OBSTACLES, fast_traffic: bool = True) -> "HighwayAdapter":
     """``env`` (``gym.make(ID, config=...)`` of a supported highway-env id) as a bimp env: see the module docstring.
     The config keys the env was given (those differing from its class's defaults) carry over; ``ValueError`` for an
     unsupported id or a config the adapter cannot honour."""
@@ -221,7 +224,7 @@ def wrap(env: gym.Env, n_obstacles: int = N_OBSTACLES) -> "HighwayAdapter":
     base = env.unwrapped
     defaults = ENV_CLASSES[highway_id].default_config()
     given = {k: v for k, v in base.config.items() if k != "offscreen_rendering" and defaults.get(k, object()) != v}
-    return make(highway_id, given, render_mode=base.render_mode, n_obstacles=n_obstacles)
+    return make(highway_id, given, render_mode=base.render_mode, n_obstacles=n_obstacles, fast_traffic=fast_traffic)
 
 
 def entry_name(highway_id: str) -> str:
@@ -232,8 +235,8 @@ def entry_name(highway_id: str) -> str:
 
 def _entry(highway_id: str):
     def make_env(config: Mapping | None = None, render_mode: str | None = None, n_obstacles: int = N_OBSTACLES,
-                 **kwargs) -> "HighwayAdapter":
-        return make(highway_id, config, render_mode, n_obstacles, **kwargs)
+                 fast_traffic: bool = True, **kwargs) -> "HighwayAdapter":
+        return make(highway_id, config, render_mode, n_obstacles, fast_traffic, **kwargs)
 
     make_env.__name__ = make_env.__qualname__ = entry_name(highway_id)
     make_env.__doc__ = f"``bimp/{highway_id}``: :func:`make` of {highway_id!r}."
@@ -258,9 +261,10 @@ for _family in FAMILIES.values():
 class HighwayAdapter(gym.Wrapper):
     """A highway-env env (an instance of an adapted class) as a bimp env; see the module docstring."""
 
-    def __init__(self, env: gym.Env, highway_id: str, n_obstacles: int = N_OBSTACLES):
+    def __init__(self, env: gym.Env, highway_id: str, n_obstacles: int = N_OBSTACLES, fast_traffic: bool = True):
         super().__init__(env)
         self.highway_id, self.profile, self.n_obstacles = highway_id, PROFILES[highway_id], int(n_obstacles)
+        self.fast_traffic = fast_traffic
         self._start()  # highway-env's __init__ has reset the env: the scene exists before the first reset
         self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, shape=(self.scene.obs_dim,), dtype=np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
@@ -281,6 +285,8 @@ class HighwayAdapter(gym.Wrapper):
 
     def _start(self) -> None:
         base = self.env.unwrapped
+        if self.fast_traffic:  # the road highway-env's reset built, on the fast core (bimp.envs.traffic)
+            make_fast(base.road)
         # What bimp's evaluation records as the scenario's definition (as the paper's envs publish it): the env's
         # own draws where it makes some (a suite family's, drawn at this reset), else none; highway-env's config as
         # options (every key but rendering: a family's difficulty and ranges too); the behaviour layer's rule.

@@ -210,8 +210,9 @@ class PaperNoisy:
     noise_std: dict[str, float]
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None,
-                 difficulty: str | None = None) -> None:
-        super().__init__(config=with_difficulty(self, config, difficulty), render_mode=render_mode)
+                 difficulty: str | None = None, fast_traffic: bool = True) -> None:
+        super().__init__(config=with_difficulty(self, config, difficulty), render_mode=render_mode,
+                         fast_traffic=fast_traffic)
 
     @classmethod
     def range_keys(cls) -> tuple[str, ...]:

@@ -104,3 +104,20 @@ def test_highway_quick_run_has_both_sweeps():
     after = bench._threads()
     assert {k: after[k] for k in before} == before  # restored (the run may load a library more)
     assert "EnKTS vs K" in bench.report_highway(result)
+
+
+def test_env_bench_times_both_cores_on_the_same_steps_and_writes_json_and_markdown(tmp_path, capsys):
+    from bimp.agents import bench_env
+
+    out = tmp_path / "env.json"
+    assert bench.main(["--env", "highway-fast-v0", "emergency-brake", "--env-steps", "3", "--quick",
+                       "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert set(result["scenarios"]) == {"highway-fast-v0", "emergency-brake"}
+    for row in result["scenarios"].values():
+        for core in bench_env.CORES:
+            assert len(row[core]["round_s"]) == 1 and row[core]["steps_per_s"] > 0
+        assert row["ratio"] == row["fast"]["steps_per_s"] / row["highway-env"]["steps_per_s"]
+    assert "| highway-fast-v0 |" in out.with_suffix(".md").read_text()
+    assert bench.main(["--env", "no-such-road"]) == 2
+    assert "unknown scenario" in capsys.readouterr().err

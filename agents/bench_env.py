@@ -1,0 +1,136 @@
+"""``bimp bench --env``: env steps per second of every registered scenario, bimp's fast traffic core beside
+highway-env's own, timed in the same run.
+
+    bimp bench --env                                  # every scenario: the paper's, highway-env's ids, the families
+    bimp bench --env highway-v0 cut-in-hard --env-steps 100 --out results/bench/env.json
+
+Per scenario, two envs: ``gym.make(ID)`` (the fast core, :mod:`bimp.envs.traffic`) and ``gym.make(ID,
+fast_traffic=False)`` (highway-env's own ``Road``). They drive the same episodes (episode seeds 0, 1, ...; the EV
+holds the zero action: no acceleration, wheels straight, so its traffic decides), in rounds of ``--env-steps``
+steps each, the two interleaved round by round and the first of a round alternating, so that a load that comes and
+goes falls on both alike. Only ``env.step`` is timed (a reset is not). One thread (:func:`one_thread`), as every
+episode runs. Reported: steps per second of each and their ratio (fast / highway-env's); the JSON also keeps each
+round's times. On a shared machine the times move with the load: read the ratios, measured side by side.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+from bimp import envs
+from bimp.agents.backends import one_thread
+from bimp.agents.records import write_atomic
+
+CORES = ("fast", "highway-env")
+
+
+def scenario_names() -> list[str]:
+    """Every registered scenario, in the table's order."""
+    return list(envs.SCENARIOS)
+
+
+def _drive(env: gym.Env, seed: int, steps: int) -> tuple[float, int]:
+    """``(seconds in env.step, steps)`` of ``steps`` steps from ``reset(seed=seed)`` (a new episode, seed + 1000,
+    where one ends)."""
+    env.reset(seed=seed)
+    action = np.zeros(env.action_space.shape, dtype=env.action_space.dtype)
+    spent, episode = 0.0, seed
+    for _ in range(steps):
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(action)
+        spent += time.perf_counter() - start
+        if terminated or truncated:
+            episode += 1000
+            env.reset(seed=episode)
+    return spent, steps
+
+
+def time_scenario(scenario: str, steps: int, rounds: int) -> dict:
+    """Both cores on ``scenario`` (the module doc): ``{"fast": {...}, "highway-env": {...}, "ratio"}`` with each
+    core's ``steps_per_s``, ``seconds`` and per-round ``round_s``."""
+    made = {"fast": gym.make(envs.env_id(scenario)),
+            "highway-env": gym.make(envs.env_id(scenario), fast_traffic=False)}
+    spent = {core: [] for core in CORES}
+    for r in range(rounds):
+        for core in (CORES if r % 2 == 0 else CORES[::-1]):
+            seconds, _ = _drive(made[core], r, steps)
+            spent[core].append(seconds)
+    for env in made.values():
+        env.close()
+    out = {core: {"steps_per_s": steps * rounds / sum(spent[core]), "seconds": sum(spent[core]),
+                  "round_s": spent[core]} for core in CORES}
+    out["ratio"] = out["fast"]["steps_per_s"] / out["highway-env"]["steps_per_s"]
+    return out
+
+
+def run_env(scenarios: Sequence[str] | None = None, steps: int = 50, rounds: int = 3,
+            progress: Callable[[str], None] = lambda s: None) -> dict:
+    """:func:`time_scenario` of every scenario of ``scenarios`` (default :func:`scenario_names`), one thread."""
+    names = list(scenarios) if scenarios else scenario_names()
+    for name in names:
+        envs.scenario_spec(name)  # an unknown name refused before minutes of timing
+    results = {}
+    with one_thread() as threads:
+        for name in names:
+            results[name] = time_scenario(name, steps, rounds)
+            progress(f"{name}: {results[name]['fast']['steps_per_s']:.0f} steps/s fast, "
+                     f"{results[name]['highway-env']['steps_per_s']:.0f} highway-env's, "
+                     f"x{results[name]['ratio']:.2f}")
+    ratios = np.array([r["ratio"] for r in results.values()])
+    return {"steps": steps, "rounds": rounds, "threads": threads, "machine": platform.machine(),
+            "processor": platform.processor() or None, "cpus": _cpus(), "scenarios": results,
+            "ratio_median": float(np.median(ratios)), "ratio_min": float(ratios.min()),
+            "ratio_max": float(ratios.max())}
+
+
+def _cpus() -> int | None:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
+def report_env(result: dict) -> str:
+    """The result as a markdown table, a row per scenario, then the ratios' median and range."""
+    lines = ["| scenario | steps/s, fast | steps/s, highway-env's | ratio |", "|---|---|---|---|"]
+    for name, r in result["scenarios"].items():
+        lines.append(f"| {name} | {r['fast']['steps_per_s']:.0f} | {r['highway-env']['steps_per_s']:.0f} | "
+                     f"{r['ratio']:.2f} |")
+    lines.append("")
+    lines.append(f"Env steps per second, one thread ({result['steps']} steps x {result['rounds']} rounds per core and "
+                 f"scenario, interleaved); ratio: fast / highway-env's, median {result['ratio_median']:.2f} "
+                 f"(range {result['ratio_min']:.2f}-{result['ratio_max']:.2f}).")
+    return "\n".join(lines) + "\n"
+
+
+def command(scenarios: Sequence[str], steps: int, quick: bool, out: Path | None, note: str | None,
+            progress: Callable[[str], None]) -> int:
+    """``bimp bench --env``: :func:`run_env` printed (and written to ``out`` as JSON, with the markdown beside it as
+    ``.md``); the exit status (2: a bad request, refused before any timing)."""
+    if steps < 1:
+        print("bimp bench: error: --env-steps must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        result = run_env(scenarios, steps=steps, rounds=1 if quick else 3, progress=progress)
+    except ValueError as err:  # an unknown scenario
+        print(f"bimp bench: error: {err}", file=sys.stderr)
+        return 2
+    if note:
+        result["note"] = note
+    text = report_env(result) + (f"\nnote: {note}\n" if note else "")
+    print()
+    print(text)
+    if out is not None:
+        write_atomic(out, json.dumps(result, indent=2))
+        write_atomic(out.with_suffix(".md"), text)
+        print(f"wrote {out} and {out.with_suffix('.md')}")
+    return 0
+
+
+__all__ = ["CORES", "command", "report_env", "run_env", "scenario_names", "time_scenario"]
