@@ -52,6 +52,7 @@ from pathlib import Path
 import gymnasium as gym
 
 from bimp import envs
+from bimp.agents import bench_env
 from bimp.agents.backends import one_thread
 from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.records import write_atomic
@@ -459,9 +460,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     progress = lambda s: print(s, flush=True)  # noqa: E731
     if args.env is not None:
-        from bimp.agents.bench_env import command
-
-        return command(args.env, args.env_steps, args.quick, args.out, args.note, progress)
+        return bench_env.command(args.env, args.env_steps, args.quick, args.out, args.note, progress)
     print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
     if args.device:
         result, render = run_device(repeats, args.steps, progress=progress), report_device

@@ -36,6 +36,8 @@ from highway_env.road.lane import AbstractLane
 from highway_env.road.road import LaneIndex, Road
 from highway_env.vehicle.objects import Landmark, RoadObject
 
+from bimp.envs.highway.fixed import HIGHWAY_CLASSES
+
 # Kept in the broad phase beyond highway-env's pre-check bound [m]: the arrays' distance may differ from
 # ``np.linalg.norm``'s in the last bits, and a pair so near the bound is tested exactly by highway-env anyway.
 BROAD_PHASE_MARGIN = 1e-6
@@ -218,8 +220,6 @@ def accelerate(env: gym.Env) -> gym.Env:
     traffic on the fast core: the same trajectories, several times fewer seconds (``docs/highway-env.md``). Its
     actions, observation, reward and config stay highway-env's. ``ValueError`` naming what it cannot speed up
     exactly (another env, a vehicle class it does not know), the env left as it was."""
-    from bimp.envs.highway.fixed import HIGHWAY_CLASSES
-
     if isinstance(env, FastTraffic):
         return env
     base = getattr(env, "unwrapped", None)
