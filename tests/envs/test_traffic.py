@@ -16,6 +16,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.objects import Landmark, Obstacle
 
 from bimp import envs
+from bimp.envs import traffic
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES
 from bimp.envs.traffic import FastRoad, accelerate, make_fast
 
@@ -79,9 +80,10 @@ def test_neighbours_are_highway_envs(seed, segments, connected):
     assert fast._acting is None  # outside act, highway-env's own search again
 
 
-def test_a_tie_goes_as_highway_envs_loop_breaks_it():
+def test_a_tie_goes_as_highway_envs_loop_breaks_it(monkeypatch):
     """Three vehicles at one spot ahead and two at one spot behind: highway-env keeps the last tie ahead and the first
     behind; a search that took any nearest one would disagree."""
+    monkeypatch.setattr(traffic, "SMALL_ROAD", 0)  # six vehicles: the arrays, not highway-env's loop, must answer
     road = Road(network=network(1), np_random=np.random.default_rng(0))
     for x in (30.0, 40.0, 40.0, 40.0, 20.0, 20.0):
         road.vehicles.append(Asking(road, [x, 0.0], speed=20.0))
