@@ -70,9 +70,15 @@ def _spaced(xy: np.ndarray, least: float) -> np.ndarray:
     (a lane's last sample a few mm before its end) has a chord direction of no meaning, and projection divides by
     its length."""
     keep, last = np.zeros(len(xy), bool), None
-    for i, point in enumerate(xy):
-        if last is None or np.hypot(*(point - last)) >= least:
-            keep[i], last = True, point
+    # Up to the first step shorter than ``least`` every point is kept (each is then measured from the one before it,
+    # as the loop below would): only the rest needs the loop.
+    short = np.flatnonzero(np.hypot(*np.diff(xy, axis=0).T) < least)
+    head = len(xy) if not len(short) else int(short[0]) + 1
+    keep[:head] = True
+    last = xy[head - 1] if head else None
+    for i in range(head, len(xy)):
+        if last is None or np.hypot(*(xy[i] - last)) >= least:
+            keep[i], last = True, xy[i]
     return keep
 
 
@@ -102,15 +108,7 @@ def goes_on_beside(network: RoadNetwork, index: tuple, following: tuple) -> bool
 
 def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, float]:
     """Left and right edge offsets [m] at the route point ``xy (2,)`` of heading ``heading`` on lane ``index``."""
-    _from, _to, _ = index
-    graph = network.graph
-    beside = list(graph[_from][_to])
-    if _to in graph and _from in graph[_to]:
-        beside += list(graph[_to][_from])
-    # Junctions: the roads merging into the route road's end (a roundabout's entry beside its ring, merge-v0's ramp)
-    # and diverging from its start (an intersection's other turns) are drivable where they run beside it.
-    beside += [lane for node, roads in graph.items() if node != _from and _to in roads for lane in roads[_to]]
-    beside += [lane for node, lanes_ in graph[_from].items() if node != _to for lane in lanes_]
+    beside = _beside(network, index)
     normal = np.array([-np.sin(heading), np.cos(heading)])
     own = network.get_lane(index)
     s_own, _ = own.local_coordinates(xy)
@@ -126,6 +124,24 @@ def _edges(network, xy: np.ndarray, heading: np.ndarray, index) -> tuple[float, 
         half = lane.width_at(s) / 2.0
         left, right = min(left, lat - half), max(right, lat + half)
     return left, right
+
+
+def _beside(network, index) -> list:
+    """The lanes whose sides may bound the route on lane ``index``'s road (:func:`_edges`), kept on the network
+    (a road's lanes do not change within an episode, and a reset builds a new network)."""
+    cache = network.__dict__.setdefault("_bimp_beside", {})
+    if index not in cache:
+        _from, _to, _ = index
+        graph = network.graph
+        beside = list(graph[_from][_to])
+        if _to in graph and _from in graph[_to]:
+            beside += list(graph[_to][_from])
+        # Junctions: the roads merging into the route road's end (a roundabout's entry beside its ring, merge-v0's
+        # ramp) and diverging from its start (an intersection's other turns) are drivable where they run beside it.
+        beside += [lane for node, roads in graph.items() if node != _from and _to in roads for lane in roads[_to]]
+        beside += [lane for node, lanes_ in graph[_from].items() if node != _to for lane in lanes_]
+        cache[index] = beside
+    return cache[index]
 
 
 def build_route(network, index, position, route=None, behind: float = BEHIND, ahead: float = AHEAD,

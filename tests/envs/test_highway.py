@@ -13,7 +13,7 @@ from gymnasium.utils.env_checker import check_env
 import bimp  # noqa: F401  (registers bimp/ID)
 from bimp.envs import scenario_spec, wrap
 from bimp.envs.highway.adapter import SUPPORTED
-from bimp.envs.highway.lanes import build_route
+from bimp.envs.highway.lanes import _spaced, build_route
 from bimp.envs.scene import Scene
 
 pytestmark = pytest.mark.filterwarnings("ignore")
@@ -217,3 +217,17 @@ def test_the_profile_records_drive_on_only_where_it_is_set():
     """Added after records were made: at its neutral value (off) the rule, and so every arm's hash, is as before."""
     assert "drive_on" not in gym.make("bimp/highway-fast-v0").unwrapped.BEHAVIOUR.profile
     assert "('drive_on', True)" in gym.make("bimp/exit-v0").unwrapped.BEHAVIOUR.profile
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_spaced_keeps_what_the_point_by_point_rule_keeps(seed):
+    """``_spaced`` keeps every point up to the first short step at once: the same mask as the rule applied point by
+    point (each point kept when at least ``least`` from the last kept), stub steps and all."""
+    rng = np.random.default_rng(seed)
+    steps = np.where(rng.random(300) < 0.1, rng.uniform(0.0, 0.5, 300), 1.0)  # a stub step now and then
+    xy = np.cumsum(np.stack([steps, np.zeros(300)], axis=1), axis=0)
+    keep, last = np.zeros(len(xy), bool), None
+    for i, point in enumerate(xy):
+        if last is None or np.hypot(*(point - last)) >= 0.5:
+            keep[i], last = True, point
+    assert np.array_equal(_spaced(xy, 0.5), keep) and not keep.all()
