@@ -18,8 +18,9 @@ import json
 import sys
 from pathlib import Path
 
+from bimp.agents.cli import EvaluationError
 from bimp.agents.metrics import BINARY, METRICS, code_version
-from bimp.agents.records import latest_records, read_records, record_label
+from bimp.agents.records import latest_records, read_records, record_label, write_atomic
 from bimp.agents.stats import mcnemar_exact, paired_bootstrap
 
 
@@ -154,9 +155,9 @@ def main(argv: list[str] | None = None) -> int:
         # Beside the scenarios: the code versions of the paired records per arm, and the note when they are mixed.
         kept = {**result, "code_versions": {**versions, "note": note}}
         try:
-            Path(args.json).write_text(json.dumps(kept, indent=2))
-        except OSError as err:
-            print(f"bimp compare: error: cannot write --json {args.json}: {err.strerror or err}", file=sys.stderr)
+            write_atomic(args.json, json.dumps(kept, indent=2))
+        except EvaluationError as err:
+            print(f"bimp compare: error: --json: {err}", file=sys.stderr)
             return 2
     return 0 if result else 1
 

@@ -39,7 +39,15 @@ import numpy as np
 from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.compare import compare
 from bimp.agents.metrics import code_version, summarize
-from bimp.agents.records import finite, format_stat, latest_records, read_records, record_label, write_atomic
+from bimp.agents.records import (
+    finite,
+    format_stat,
+    latest_records,
+    read_records,
+    record_label,
+    write_atomic,
+    write_figure,
+)
 from bimp.agents.registry import policy_color
 from bimp.agents.stats import mcnemar_exact, stratified_bootstrap
 
@@ -422,7 +430,7 @@ def plot(board: dict, path: str | Path) -> Path:
     hollow = "; hollow: a mixed row (--allow-mixed)" if board["mixed"] else ""
     fig.suptitle(f"{', '.join(board['folders'])}: ranked by {metric}, best on top{hollow}", fontsize=10)
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

@@ -63,11 +63,12 @@ from bimp.agents.records import (
     parse_record,
     read_arms,
     record_config,
+    warn_skipped,
     write_arms,
     write_atomic,
 )
 from bimp.agents.registry import POLICIES, load, make_policy, policy_spec
-from bimp.configs import file_sha256
+from bimp.configs import file_sha256, trust_switch
 from bimp.planners.problem import ProblemConfig
 
 # sha256 of planners/weights/mlp.pt as committed at ad50d20 and never changed since (git log): every planner record
@@ -176,6 +177,11 @@ def rebuild(policy: str, scenario: str, config: dict, given: str | None = None) 
     old ``model_path``), the policy is rebuilt on a shipped model of the same algorithm and must resolve to the same
     fields but the sha256: the config names the file by content, so it stays exact, and ``note`` says so."""
     own, note = config["config"], None
+    switch = trust_switch(config)
+    if switch is not None:  # a trust switch comes from the command line or the call, never from a file
+        raise MigrationError(f"its config sets {switch}, which no file may switch on (docs/security.md)")
+    if policy in ("ppo", "sac") and not isinstance(own.get("model_sha256"), str):
+        raise MigrationError("its model is not named by content (no model_sha256): a path in a folder is not loaded")
     kwargs = _infinities(own, _default_config(policy))  # a record holds infinities as null
     if "model_sha256" in own:
         name = shipped_models().get(own["model_sha256"])
@@ -186,8 +192,6 @@ def rebuild(policy: str, scenario: str, config: dict, given: str | None = None) 
                 raise MigrationError(f"no shipped {own.get('algo')} model to check its config against")
             note = (f"its model (sha256 {own['model_sha256'][:12]}...) is no shipped file: config checked on "
                     f"{name}; artifacts name the file it was made with")
-        if own.get("trust_model"):  # a trust switch comes from the command line or the call, never from a file
-            raise MigrationError("its config sets trust_model, which no file may switch on (docs/security.md)")
         kwargs = {"model": str(MODEL_DIR / name)}
     try:
         built = make_policy(policy, _env(scenario), **kwargs)
@@ -281,8 +285,13 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
     if lines[-1] == b"":
         lines.pop()
     parsed: list[dict | None] = []
-    for line in lines:  # a line that is not a record is kept as it is (every reader skips it)
-        parsed.append(parse_record(line)[0])
+    skipped = []
+    for number, line in enumerate(lines, start=1):  # a line that is not a record is kept as it is, named
+        value, problem = parse_record(line) if line.strip() else (None, None)
+        parsed.append(value)
+        if problem is not None:
+            skipped.append(f"line {number} ({problem})")
+    warn_skipped(path, skipped)
     report.records = sum(r is not None for r in parsed)
     gated = [n for n, r in enumerate(parsed, start=1) if r is not None and _gate_goal(r)]
     report.gated = len(gated)
@@ -314,8 +323,8 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             continue
         old = json.loads(old_json)
         source = old_entries.get(first.get("config_hash"), {})  # the arm's entry, if already migrated
-        given = old["config"].get("model_path") or source.get("artifacts", {}).get("model")
         try:
+            given = (old.get("config") or {}).get("model_path") or source.get("artifacts", {}).get("model")
             config = new_shape(policy, old)
             artifacts, note = rebuild(policy, first["scenario"], config, given)
         except NotReproduced as err:  # made by code that is gone: history, kept as it was
@@ -324,6 +333,9 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             continue
         except MigrationError as err:
             report.problem = f"arm {name}: {err}"
+            return report
+        except (KeyError, TypeError, AttributeError, ValueError) as err:  # a config of no shape bimp ever wrote
+            report.problem = f"arm {name}: its config cannot be read ({type(err).__name__}: {err})"
             return report
         key = config_hash(policy, config)  # the current hash, whatever it leaves out: never copied
         if note:

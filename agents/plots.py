@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 
 from bimp import envs  # noqa: E402
 from bimp.agents.cli import EvaluationError, check_out_dir  # noqa: E402
-from bimp.agents.records import EPISODES_FILE, numbered_records, record_label  # noqa: E402
+from bimp.agents.records import EPISODES_FILE, numbered_records, record_label, write_figure  # noqa: E402
 from bimp.agents.registry import make_policy, policy_color, policy_label  # noqa: E402
 from bimp.agents.rollout import rollout  # noqa: E402
 from bimp.envs.road import RoadGeometry, Route  # noqa: E402
@@ -42,8 +42,8 @@ ROAD_KEYS = tuple(f.name for f in dataclasses.fields(RoadGeometry))
 
 
 def _number(value: object) -> bool:
-    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            and abs(value) <= MAX_MAGNITUDE)
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) <= MAX_MAGNITUDE
+            and math.isfinite(value))  # the size first: an integer past float's range makes isfinite raise
 
 
 def _shown(value: object) -> str:
@@ -272,7 +272,7 @@ def plot_safety(scenario: str, runs: dict[str, dict], out: Path) -> Path:
 
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

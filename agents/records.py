@@ -21,6 +21,7 @@ import math
 import os
 import stat
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -28,11 +29,24 @@ from pathlib import Path
 from typing import Any
 
 from bimp.agents.cli import EvaluationError
-from bimp.agents.metrics import BINARY, METRICS, SCORE_METRICS, record_label
+from bimp.agents.metrics import BINARY, METRICS, record_label
+from bimp.agents.record_check import (
+    MAX_DEPTH,
+    MAX_LINE_BYTES,
+    OUTCOMES,
+    REQUIRED,
+    config_problem,
+    entry_problem,
+    parse_record,
+    record_problem,
+    shown,
+    too_deep,
+)
 
 EPISODES_FILE = "episodes.jsonl"
 ARMS_FILE = "arms.json"
 LOCK_FILE = ".lock"
+MAX_FILE_BYTES = 1 << 30  # episodes.jsonl and arms.json: a results folder is input from anyone
 
 
 def record_key(record: dict) -> tuple[str, str, str | None, int]:
@@ -41,103 +55,6 @@ def record_key(record: dict) -> tuple[str, str, str | None, int]:
 
 
 # --- reading records ---------------------------------------------------------------------------------------
-# What every reader relies on; a JSON line without them is not a record (and never a traceback).
-REQUIRED = {"scenario": str, "policy": str, "seed": int, "status": str}
-OUTCOMES = ("success_rate", "collision_rate", "offroad_rate")  # what every reader takes from an ok record's metrics
-# Bounds on what a reader takes in: a shared folder is input from anyone (docs/security.md). The largest record bimp
-# writes is a long per-step trace (about 0.1 MB over 300 steps); the deepest is 4 levels (trace, constraints, step).
-MAX_FILE_BYTES = 1 << 30
-MAX_LINE_BYTES = 16 << 20
-MAX_DEPTH = 16
-MAX_MAGNITUDE = 1e9  # no metric comes near it; 1e308 would average to inf
-# The metrics each reader takes as they are: an episode's outcome is 0 or 1, a share of steps or a score in [0, 1].
-_UNIT = {"input_violation_rate", "rate_violation_rate", *SCORE_METRICS} - set(BINARY)
-_NON_NEGATIVE = {"min_ttc_s", "rms_lateral_error_m", "rms_speed_error_mps", "max_abs_jerk", "plan_time_ms_p50",
-                 "plan_time_ms_p95"}
-_JSON_TYPES = {dict: "an object", list: "an array", str: "a string", int: "a number", float: "a number",
-               bool: "a bool", type(None): "null"}
-
-
-def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _metric_problem(name: str, value: object) -> str | None:
-    """Why ``value`` cannot be the metric ``name`` (None when it can; null is a metric that does not apply)."""
-    if value is None:
-        return None
-    if not _is_number(value) or not math.isfinite(value) or abs(value) > MAX_MAGNITUDE:
-        return f"metrics.{name} is {_shown(value)}, not a finite number"
-    if name in BINARY and value not in (0, 1):
-        return f"metrics.{name} is {value!r}, not 0 or 1"
-    if name in _UNIT and not 0 <= value <= 1:
-        return f"metrics.{name} is {value!r}, not in [0, 1]"
-    if name in _NON_NEGATIVE and value < 0:
-        return f"metrics.{name} is {value!r}, below 0"
-    return None
-
-
-def _shown(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
-def _too_deep(value: object, limit: int = MAX_DEPTH) -> bool:
-    """Whether ``value`` nests containers deeper than ``limit`` (walked without recursion: the walk of a crafted
-    record must not be what overflows)."""
-    stack = [(value, 1)]
-    while stack:
-        node, depth = stack.pop()
-        children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
-        for child in children:
-            if isinstance(child, (dict, list)):
-                if depth + 1 > limit:
-                    return True
-                stack.append((child, depth + 1))
-    return False
-
-
-# Optional fields a reader uses, by their types: (type, None allowed).
-_OPTIONAL = {"label": (str, False), "config_hash": (str, False), "config": (dict, False), "steps": (int, False),
-             "truncated": (bool, False), "git_commit": (str, True), "git_dirty": (bool, False),
-             "policy_info": (dict, True), "metrics": (dict, True)}
-
-
-def _typed(value: object, kind: type, nullable: bool) -> bool:
-    if value is None:
-        return nullable
-    return isinstance(value, kind) and (kind is bool or not isinstance(value, bool))  # JSON's true is no count
-
-
-def record_problem(value: object) -> str | None:
-    """Why a parsed JSON line is not an episode record (``None`` when it is one), naming the field: every field a
-    reader uses is checked for its type, finiteness and range (docs/evaluation.md), so no reader meets a value it
-    cannot take."""
-    if not isinstance(value, dict):
-        return f"{_JSON_TYPES.get(type(value), type(value).__name__)}, not a record"
-    missing = [k for k in REQUIRED if k not in value]
-    if missing:
-        return f"a record without {', '.join(missing)}"
-    wrong = [k for k, kind in REQUIRED.items() if not isinstance(value[k], kind) or isinstance(value[k], bool)]
-    wrong += [k for k, (kind, nullable) in _OPTIONAL.items() if k in value and not _typed(value[k], kind, nullable)]
-    if wrong:
-        return f"a record whose {', '.join(wrong)} {'is' if len(wrong) == 1 else 'are'} of the wrong type"
-    if value["seed"] < 0 or value.get("steps", 0) < 0:
-        return f"a record whose {'seed' if value['seed'] < 0 else 'steps'} is below 0"
-    if not isinstance((value.get("policy_info") or {}).get("fallback_steps", []), list):
-        return "a record whose policy_info.fallback_steps is not a list"
-    if _too_deep(value):
-        return f"a record nested deeper than {MAX_DEPTH} levels"
-    metrics = value.get("metrics") or {}
-    if value["status"] == "ok" and not all(k in metrics for k in OUTCOMES):
-        return f"an ok record without metrics ({', '.join(OUTCOMES)})"
-    for name in METRICS:
-        problem = _metric_problem(name, metrics.get(name))
-        if problem is not None:
-            return f"a record whose {problem}"
-    return None
-
-
 def read_bounded(path: str | Path, limit: int | None = None) -> bytes:
     """The bytes of the regular file ``path``, at most ``limit`` of them; :class:`EvaluationError` naming the file
     for anything else (a device such as ``/dev/zero`` behind a symlink, a FIFO, a folder, a file over the limit, a
@@ -145,7 +62,10 @@ def read_bounded(path: str | Path, limit: int | None = None) -> bytes:
     :data:`MAX_FILE_BYTES` by default."""
     limit = MAX_FILE_BYTES if limit is None else limit
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # NONBLOCK: opening a FIFO must not wait for a writer
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a device is refused before it is opened
+            raise EvaluationError(f"{path} is not a regular file: bimp reads only regular files")
+        # NONBLOCK: opening a FIFO swapped in meanwhile must not wait for a writer; NOCTTY: nor adopt a terminal.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
     except FileNotFoundError:
         raise
     except OSError as err:
@@ -172,24 +92,10 @@ def read_json(path: str | Path, limit: int | None = None) -> Any:
     try:
         value = json.loads(data)
     except (ValueError, RecursionError) as err:  # RecursionError: nested past what the parser takes
-        raise EvaluationError(f"{path} is not JSON: {type(err).__name__}: {_shown(str(err))}") from None
-    if _too_deep(value):
+        raise EvaluationError(f"{path} is not JSON: {type(err).__name__}: {shown(str(err))}") from None
+    if too_deep(value):
         raise EvaluationError(f"{path}: nested deeper than {MAX_DEPTH} levels")
     return value
-
-
-def parse_record(line: bytes) -> tuple[dict | None, str | None]:
-    """``(record, None)`` for a line that is an episode record, else ``(None, why not)``."""
-    if len(line) > MAX_LINE_BYTES:
-        return None, f"over {MAX_LINE_BYTES} bytes, the limit per line"
-    try:
-        value = json.loads(line)
-    except ValueError:  # bad JSON or not UTF-8
-        return None, "not JSON"
-    except RecursionError:
-        return None, f"nested deeper than {MAX_DEPTH} levels"
-    problem = record_problem(value)
-    return (value, None) if problem is None else (None, problem)
 
 
 _reported: set[tuple[str, tuple[int, ...]]] = set()  # said once per process: evaluate reads a folder three times
@@ -218,12 +124,18 @@ def numbered_records(out: str | Path, data: bytes | None = None) -> list[tuple[i
             records.append((number, value))
         elif number <= len(lines):
             skipped.append(f"line {number} ({problem})")
+    warn_skipped(path, skipped)
+    return records
+
+
+def warn_skipped(path: Path, skipped: list[str]) -> None:
+    """One warning on stderr naming the lines of ``path`` that are not records and why (``skipped``: ``"line N
+    (why)"`` each), once per process and content."""
     if skipped and (str(path), tuple(skipped)) not in _reported:
         _reported.add((str(path), tuple(skipped)))
         shown = "; ".join(skipped[:5]) + ("; ..." if len(skipped) > 5 else "")
         print(f"bimp: warning: {path}: skipped {len(skipped)} line(s) that are not episode records: {shown}",
               file=sys.stderr)
-    return records
 
 
 def read_records(out: str | Path) -> list[dict]:
@@ -252,9 +164,8 @@ def read_arms(out: str | Path) -> dict[str, dict]:
         arms = read_json(path)
     except FileNotFoundError:
         return {}
-    bad = ["(the file)"] if not isinstance(arms, dict) else [
-        key for key, entry in arms.items() if not (isinstance(entry, dict) and isinstance(entry.get("policy"), str)
-                                                   and isinstance(entry.get("config"), dict))]
+    bad = ["(the file)"] if not isinstance(arms, dict) else [key for key, entry in arms.items()
+                                                             if entry_problem(entry)]
     if bad:
         raise EvaluationError(f"{path}: not a map of config hash to {{policy, config, ...}}; bad entries: {bad[:5]}")
     return arms
@@ -271,17 +182,48 @@ def write_atomic(path: str | Path, text: str | bytes) -> None:
     disk leaves the old file or the new one, never part of one. :class:`EvaluationError` in one line naming the file
     when it cannot be written (``ENOSPC`` and every other OS error), the temporary file removed."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = None
     try:
-        with open(tmp, "wb") as f:
+        # A fresh name, created exclusively: a file (or a symlink to one) planted at a fixed temporary name in a
+        # shared folder is never written through.
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        with os.fdopen(fd, "wb") as f:
             f.write(text.encode() if isinstance(text, str) else text)
             f.flush()
+            os.fchmod(f.fileno(), _mode(path))
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        tmp = None
+        with contextlib.suppress(OSError):  # the rename itself, on disk
+            folder = os.open(path.parent, os.O_RDONLY)
+            try:
+                os.fsync(folder)
+            finally:
+                os.close(folder)
     except OSError as err:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
         raise EvaluationError(f"cannot write {path}: {os_reason(err)}") from None
+    finally:
+        if tmp is not None:  # an error, or an interruption (Ctrl-C): no temporary file left
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
+def _mode(path: Path) -> int:
+    """The permissions ``path`` has (a group-writable file stays so), else those a new file gets under the umask."""
+    try:
+        return stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
+
+
+def write_figure(fig: Any, path: str | Path, dpi: int) -> Path:
+    """A matplotlib figure saved as PNG at ``path`` through :func:`write_atomic`."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    write_atomic(path, buffer.getvalue())
+    return Path(path)
 
 
 def os_reason(err: OSError) -> str:
@@ -304,7 +246,10 @@ def record_config(record: dict, arms: dict[str, dict]) -> dict | None:
 def folder_lock(out: Path, hint: str = "wait for it to end or choose another --out") -> Iterator[None]:
     """Hold ``out/.lock`` for the run; a second run into the same folder refuses at once, saying ``hint``. The lock
     is an ``flock``, so the kernel releases it when the holder dies: no stale locks."""
-    handle = open(out / LOCK_FILE, "a+")
+    try:  # NOFOLLOW: a .lock planted as a symlink must not truncate what it points to
+        handle = os.fdopen(os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NOCTTY, 0o666), "r+")
+    except OSError as err:
+        raise EvaluationError(f"cannot lock {out / LOCK_FILE}: {os_reason(err)}") from None
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -418,7 +363,7 @@ def markdown_table(summary: dict) -> str:
 
 
 __all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "MAX_DEPTH", "MAX_FILE_BYTES", "MAX_LINE_BYTES", "OUTCOMES",
-           "REQUIRED", "episode_bytes", "finite", "folder_lock", "format_stat", "latest_records", "markdown_table",
-           "numbered_records", "os_reason", "parse_record", "read_arms", "read_bounded", "read_json", "read_records",
-           "record_config", "record_key", "record_label", "record_problem", "unchanged_lock", "write_arms",
-           "write_atomic", "write_summary"]
+           "REQUIRED", "config_problem", "episode_bytes", "finite", "folder_lock", "format_stat", "latest_records",
+           "markdown_table", "numbered_records", "os_reason", "parse_record", "read_arms", "read_bounded",
+           "read_json", "read_records", "record_config", "record_key", "record_label", "record_problem",
+           "unchanged_lock", "warn_skipped", "write_arms", "write_atomic", "write_figure", "write_summary"]

@@ -61,7 +61,7 @@ from bimp import envs
 from bimp.agents.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.baselines import ZeroAction
 from bimp.agents.cli import EvaluationError, add_backend_arguments, check_out_dir
-from bimp.agents.records import read_json, write_atomic
+from bimp.agents.records import read_json, write_atomic, write_figure
 from bimp.agents.rollout import rollout
 from bimp.configs import check_fields, file_sha256, read_yaml
 from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
@@ -440,6 +440,8 @@ def _check_same_run(cfg: RLConfig, out: Path) -> None:
     if not path.is_file():
         return
     before = read_json(path)
+    if not isinstance(before, dict):
+        raise EvaluationError(f"{path} is not a training run's config (not a JSON object): train into a new --out")
     now = json.loads(json.dumps(asdict(cfg)))  # tuples as lists, as they were written
     differ = sorted(k for k in set(before) | set(now)
                     if before.get(k) != now.get(k) and k not in _RESUMABLE_CHANGES)
@@ -493,6 +495,8 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     write_atomic(out / "config.json", json.dumps(asdict(cfg), indent=2) + "\n")
     segments_file = out / "segments.json"  # the timesteps each segment (run, or resume) started from
     segments = read_json(segments_file) if segments_file.is_file() else [0]
+    if not (isinstance(segments, list) and segments and all(type(n) is int and n >= 0 for n in segments)):
+        raise EvaluationError(f"{segments_file} is not a list of step counts: train into a new --out")
     resume_at, checkpoint = _latest_checkpoint(out)
     if _monitor_files(out):
         _drop_replayed_episodes(out, cfg.n_envs, segments[-1], resume_at)
@@ -536,7 +540,10 @@ def _finished(cfg: RLConfig, out: Path) -> bool:
 
 def _wall_s(out: Path) -> float:
     """The training wall time [s] a finished run recorded."""
-    return json.loads((out / "train_time.json").read_text())["wall_s"]
+    wall = read_json(out / "train_time.json")
+    if not (isinstance(wall, dict) and isinstance(wall.get("wall_s"), (int, float))):
+        raise EvaluationError(f"{out / 'train_time.json'} holds no wall_s")
+    return float(wall["wall_s"])
 
 
 def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
@@ -558,7 +565,7 @@ def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    write_figure(fig, path, dpi=120)
     plt.close(fig)
 
 

@@ -48,7 +48,7 @@ from bimp.agents.cli import (
     parse_overrides,
 )
 from bimp.agents.evaluate import DryRun, check_conflicts, evaluate, resolve_arms
-from bimp.agents.records import format_stat, numbered_records, write_atomic, write_summary
+from bimp.agents.records import format_stat, numbered_records, write_atomic, write_figure, write_summary
 from bimp.agents.registry import is_policy_name, make_policy, policy_color, policy_label, policy_spec
 from bimp.agents.tune import TuneError, factory_kwargs, overrides_for
 
@@ -208,7 +208,7 @@ def plot(rows: list[dict], path: Path, frontier: bool) -> Path:
         axes[i, 0].set_ylim(-0.05, 1.05)
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

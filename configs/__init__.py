@@ -63,18 +63,22 @@ def read_yaml(path: str | Path) -> Any:
     line and column (yaml's own message names a ``"<unicode string>"``); so does one that sets a key of
     :data:`TRUST_SWITCHES`, at any depth."""
     doc = _parse_yaml(path)
-    switch = _trust_switch(doc)
+    switch = trust_switch(doc)
     if switch is not None:
         raise ValueError(f"{path} sets {switch}, a trust switch, which no file may set: give it on the command line "
                          f"(--set POLICY.{switch.rpartition('.')[2]}=true) or in the Python call (docs/security.md)")
     return doc
 
 
-def _trust_switch(doc: Any) -> str | None:
-    """The dotted key of a :data:`TRUST_SWITCHES` key set in ``doc`` (None when none is)."""
-    stack = [(doc, "")]
+def trust_switch(doc: Any) -> str | None:
+    """The dotted key of a :data:`TRUST_SWITCHES` key set in ``doc`` (a parsed file: YAML or JSON), None when none
+    is."""
+    stack, seen = [(doc, "")], set()
     while stack:  # no recursion: a crafted file may nest as deep as the parser lets it
         node, where = stack.pop()
+        if id(node) in seen:  # YAML aliases share nodes (``a: &a [*a]`` is a cycle): each is walked once
+            continue
+        seen.add(id(node))
         children = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
         for key, value in children:
             path = f"{where}.{key}" if where else str(key)
@@ -184,7 +188,10 @@ def _number(key: str, value: Any, allow_inf: bool) -> float:
     finite = "a finite number" if not allow_inf else "a number (inf allowed)"
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ConfigError(key, finite, value)
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an integer past float's range
+        raise ConfigError(key, finite, value) from None
     if math.isnan(value) or (math.isinf(value) and not allow_inf):
         raise ConfigError(key, finite, value)
     return value

@@ -119,8 +119,8 @@ def _real(low: float = -np.inf, high: float = np.inf, open_low: bool = False, wh
     else:
         bound = f" {'>' if open_low else '>='} {low:g}" if np.isfinite(low) else ""
         what = "a finite real number" + bound
-    return Rule(what, lambda v: is_real(v) and bool(np.isfinite(v)) and (v > low if open_low else v >= low)
-                and v <= high, why)
+    return Rule(what, lambda v: is_real(v) and abs(v) < 1e300 and bool(np.isfinite(v))  # 10**400: no float
+                and (v > low if open_low else v >= low) and v <= high, why)
 
 
 def _pair(ordered: bool, why: str = "") -> Rule:

@@ -14,7 +14,7 @@ import gymnasium as gym
 import pytest
 
 from bimp import envs
-from bimp.agents import migrate, records
+from bimp.agents import migrate, record_check, records, rl
 from bimp.agents.cli import EvaluationError, main
 from bimp.agents.evaluate import evaluate
 from bimp.agents.metrics import METRICS, summarize
@@ -137,14 +137,18 @@ def test_evaluate_refuses_a_set_config_file_with_trust_model_in_one_line(tmp_pat
 
 
 # --- 3-4. bad records are skipped by every reader, with one warning naming line and field ---------------------
-BAD_VALUES = ["yes", {}, [1], math.nan, math.inf, 1e308, 2.0, -1, 0.5, True, None, "many", 10**30]
+BAD_VALUES = ["yes", {}, [1], math.nan, math.inf, 1e308, 2.0, -1, 0.5, True, None, "many", 10**30, 10**400,
+              "a\nb", "a/b", "\x1b[2J", "x" * 300]
 FIELDS = ["seed", "steps", "status", "scenario", "policy", "label", "config_hash", "truncated", "git_commit",
-          "git_dirty", "policy_info", *[f"metrics.{name}" for name in METRICS]]
+          "git_dirty", "policy_info", "overrides", "seeding", "config", "config.config", "config.files",
+          *[f"metrics.{name}" for name in METRICS]]
 
 
 def variant(record: dict, field: str, value: object) -> dict:
     out = json.loads(json.dumps(record))
     head, _, name = field.partition(".")
+    if name and not isinstance(out.get(head), dict):
+        out[head] = {}
     (out[head] if name else out).__setitem__(name or head, value)
     return out
 
@@ -234,7 +238,7 @@ def test_a_fifo_is_refused_without_waiting_for_a_writer(tmp_path):
 
 
 def test_a_file_or_a_line_over_its_limit_is_refused_naming_the_limit(folder, monkeypatch, capsys):
-    monkeypatch.setattr(records, "MAX_LINE_BYTES", 100)
+    monkeypatch.setattr(record_check, "MAX_LINE_BYTES", 100)
     assert read_records(folder) == []
     assert "over 100 bytes, the limit per line" in capsys.readouterr().err
     monkeypatch.setattr(records, "MAX_FILE_BYTES", 100)
@@ -299,3 +303,79 @@ def test_migrate_refuses_a_locked_folder_in_one_line(folder, capsys):
         assert main(["migrate", str(folder)]) == 1
     out = capsys.readouterr().out
     assert "is in use by another bimp run" in out and "Traceback" not in out
+
+
+# --- what a review found: trust switches anywhere, planted symlinks, config internals ---------------------------
+def evil_zip(tmp_path, marker):
+    """A shipped PPO model with a pickle that creates ``marker`` when SB3's own load unpickles it."""
+    from tests.agents.test_model_files import _evil_data, _rewrite
+
+    shipped = sorted(rl.MODEL_DIR.glob("ppo_overtaking_*.zip"))[0]
+    return _rewrite(shipped, tmp_path / "evil.zip", data=_evil_data(shipped, marker))
+
+
+@pytest.mark.parametrize("route", ["record", "arms.json"])
+def test_migrate_never_switches_on_trust_model_a_folder_sets(folder, tmp_path, capsys, route):
+    marker = tmp_path / "MARKER"
+    config = {"config": {"model": str(evil_zip(tmp_path, marker)), "trust_model": True}, "scenario": "overtaking"}
+    record = {**json.loads((folder / EPISODES_FILE).read_bytes().splitlines()[0]), "policy": "ppo",
+              "scenario": "overtaking", "config_hash": "0123456789abcdef"}
+    if route == "record":
+        record["config"] = config
+    else:
+        (folder / ARMS_FILE).write_text(json.dumps({"0123456789abcdef": {"policy": "ppo", "config": config}}))
+    (folder / EPISODES_FILE).write_text(json.dumps(record) + "\n")
+    assert main(["migrate", str(folder), "--dry-run"]) == 1
+    assert not marker.exists()
+    assert "trust_model, which no file may switch on" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", [".arms.json.tmp", ".episodes.jsonl.tmp", ".summary.json.tmp", ".lock"])
+def test_a_symlink_planted_in_a_folder_is_never_written_through(folder, tmp_path, capsys, name):
+    victim = tmp_path / "victim"
+    victim.write_text("precious\n")
+    (folder / name).symlink_to(victim)
+    evaluate(out=folder, policies=["lane-keep", TOY], labels={TOY: "brake"}, scenarios=[SCENARIO], episodes=2,
+             seed=5, workers=1, traces=0, progress=False) if name != ".lock" else None
+    main(["drop", str(folder), "--label", "brake"])
+    assert victim.read_text() == "precious\n"
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_a_rewritten_file_keeps_its_permissions(folder):
+    os.chmod(folder / ARMS_FILE, 0o664)
+    write_atomic(folder / ARMS_FILE, "{}")
+    assert (folder / ARMS_FILE).stat().st_mode & 0o777 == 0o664
+
+
+@pytest.mark.parametrize("config", [{"config": [1]}, {"config": {"algo": "ppo", "model_sha256": [1]}},
+                                    {"config": {}, "files": 5}, {"config": {}, "files": [1]}])
+def test_migrate_and_merge_skip_or_refuse_a_config_of_no_shape_in_one_line(folder, tmp_path, capsys, config):
+    record = {**json.loads((folder / EPISODES_FILE).read_bytes().splitlines()[0]), "config": config}
+    (folder / EPISODES_FILE).write_text(json.dumps(record) + "\n")
+    codes = [main(["migrate", str(folder), "--dry-run"]), main(["merge", str(folder), "--into", str(tmp_path / "m")])]
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and codes[0] in (0, 1) and codes[1] in (0, 2), (codes, out, err)
+
+
+def test_every_reader_names_the_bad_line_itself(folder, tmp_path, capsys):
+    append(folder, NESTED)
+    for argv in (["compare", str(folder), "--policies", "lane-keep", "brake"], ["leaderboard", str(folder)],
+                 ["merge", str(folder), "--into", str(tmp_path / "merged")],
+                 ["drop", str(folder), "--label", "brake", "--dry-run"], ["migrate", str(folder), "--dry-run"]):
+        records._reported.clear()
+        main(argv)
+        assert "skipped 1 line(s) that are not episode records: line 5" in capsys.readouterr().err, argv
+
+
+def test_a_yaml_cycle_or_a_billion_laughs_is_read_at_once(tmp_path):
+    from bimp.configs import read_yaml
+
+    (tmp_path / "cycle.yaml").write_text("a: &a [*a]\n")
+    assert isinstance(read_yaml(tmp_path / "cycle.yaml"), dict)
+    laughs = "a: &a [x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{chr(98 + k)}: &{chr(98 + k)} [{', '.join(['*' + chr(97 + k)] * 9)}]\n" for k in range(9))
+    (tmp_path / "laughs.yaml").write_text(laughs)
+    start = time.perf_counter()
+    read_yaml(tmp_path / "laughs.yaml")
+    assert time.perf_counter() - start < 5.0  # each shared node walked once, not 9**10 times

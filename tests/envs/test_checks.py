@@ -57,7 +57,7 @@ BAD_KEYS = [  # (id, config, words the message must contain: the key and the val
     ("highway-v0", {"collision_reward": 0.5}, ["collision_reward", "0.5", "below", "high_speed_reward"]),
     ("merge-v0", {"merging_speed_reward": 2.0}, ["collision_reward + merging_speed_reward", "below"]),
     ("racetrack-v0", {"collision_reward": 1}, ["collision_reward", "1", "below"]),
-    ("highway-v0", {"high_speed_reward": 1e308, "right_lane_reward": 1e308}, ["high_speed_reward", "inf"]),
+    ("highway-v0", {"high_speed_reward": 1e308, "right_lane_reward": 1e308}, ["high_speed_reward", "finite"]),
     ("highway-v0", {"reward_speed_range": [30, 20]}, ["reward_speed_range", "[30, 20]", "lo < hi"]),
     ("u-turn-v0", {"reward_speed_range": [8, NAN]}, ["reward_speed_range", "nan"]),
     ("highway-v0", {"duration": 0}, ["duration", "0", "> 0"]),
