@@ -26,6 +26,7 @@ COMMANDS = {
     "frontier": ("bimp.agents.sweep:frontier_main", "success and violations against plan time, across N / iterations"),
     "tune": ("bimp.agents.tune", "tune a policy's config with Optuna on training seeds (best to configs/tuned/)"),
     "bench": ("bimp.agents.bench", "plan-step timing of the planners, side by side"),
+    "verify": ("bimp.agents.verify", "rerun a sample of each arm's seeds at the current code, compare every metric"),
     "migrate": ("bimp.agents.migrate", "turn evaluation folders of older code into ones the current code resumes"),
     "drop": ("bimp.agents.drop", "take a scenario's or a label's records out of an evaluation folder"),
     "merge": ("bimp.agents.merge", "copy evaluation folders' records into one (runs made apart, ranked as one)"),

@@ -22,11 +22,13 @@ from bimp.agents.cli import EvaluationError
 from bimp.agents.metrics import BINARY, METRICS, code_version
 from bimp.agents.records import latest_records, read_records, record_label, write_atomic
 from bimp.agents.stats import mcnemar_exact, paired_bootstrap
+from bimp.agents.verification import as_current
 
 
 def label_records(folder: Path, label: str) -> dict[tuple[str, int], dict]:
-    """``{(scenario, seed): record}`` of the successful episodes of ``label`` in ``folder``."""
-    rows = [r for r in latest_records(read_records(folder))
+    """``{(scenario, seed): record}`` of the successful episodes of ``label`` in ``folder`` (an arm ``bimp verify``
+    found the same at the current code: as made by it, :func:`bimp.agents.verification.as_current`)."""
+    rows = [r for r in as_current(folder, latest_records(read_records(folder)))
             if record_label(r) == label and r["status"] == "ok"]
     for scenario in {r["scenario"] for r in rows}:  # one config per scenario (the scenario's ranges are in it)
         hashes = {r.get("config_hash") for r in rows if r["scenario"] == scenario}

@@ -50,6 +50,7 @@ from bimp.agents.records import (
 )
 from bimp.agents.registry import policy_color
 from bimp.agents.stats import mcnemar_exact, stratified_bootstrap
+from bimp.agents.verification import as_current
 
 # What a row shows, in its order: (metric, column heading). The four rates are per-episode 0/1 outcomes (Wilson),
 # the score and the plan time per-episode numbers (bootstrap of the mean), as in every summary.
@@ -111,7 +112,7 @@ def load_arms(folders: list[str | Path]) -> list[Arm]:
     overall row joins its scenarios). :class:`EvaluationError` for a folder without any record."""
     grouped: dict[tuple[str, str, str], list[dict]] = {}
     for folder in map(str, folders):
-        records = latest_records(read_records(folder))
+        records = as_current(folder, latest_records(read_records(folder)))  # verified arms: the current code's
         if not records:
             raise EvaluationError(f"no episode records in {folder} (a folder written by bimp evaluate holds "
                                   "episodes.jsonl)")

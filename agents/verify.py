@@ -1,0 +1,231 @@
+"""``bimp verify DIR [DIR ...]``: rerun a sample of each arm's seeds at the current code and compare every recorded
+metric but timings; what it found goes into ``DIR/verified.json``.
+
+    bimp verify results/suite --sample 2 --dry-run     # which arms, which seeds; refuses what it cannot rerun
+    bimp verify results/suite --sample 1 --workers 2
+
+Per arm (a scenario, a label and its config hash), the policy is rebuilt from the policy table with the overrides
+the arm was run with (a ``module:factory`` policy only when named with ``--trust-policy``: a folder never names code
+to run), and must resolve to the arm's config hash: else the arm cannot be rerun, and says why. ``--sample K`` seeds
+of its results, evenly spread over them, are rerun in a fresh folder (``bimp evaluate``); an arm that ran batched
+(``batch`` in its records: EnKTS and EnKS plan B episodes in one call, which reproduces per seed only in the same
+batch) reruns the whole batch of the chosen seed, as its records were written. Compared: ``status``, ``steps``,
+``truncated`` and every metric but the plan times, to 1e-9. A difference prints the arm, the seed and the metric.
+
+Exit status: 0 when every arm rerun is the same, 1 when one differs, 2 when an arm cannot be rerun (then nothing
+runs and the folder is left as it was). ``compare``, ``aggregate`` and ``leaderboard`` then take the arms found the
+same as made by the current code (:mod:`bimp.agents.verification`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import tempfile
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bimp.agents.cli import EvaluationError
+from bimp.agents.evaluate import evaluate, resolve_arms
+from bimp.agents.metrics import record_label
+from bimp.agents.provenance import code_version, config_diff
+from bimp.agents.records import (
+    EPISODES_FILE,
+    episode_bytes,
+    folder_lock,
+    numbered_records,
+    read_arms,
+    read_records,
+    record_config,
+    write_atomic,
+)
+from bimp.agents.registry import POLICIES
+from bimp.agents.verification import VERIFIED_FILE, arm_key, read_verified
+from bimp.configs import trust_switch
+
+TIMINGS = ("plan_time_ms_p50", "plan_time_ms_p95")  # the machine's, not the code's
+COMPARED = ("status", "steps", "truncated")
+TOLERANCE = 1e-9
+
+
+@dataclass
+class ArmCheck:
+    """One arm of a folder: what to rerun (``seeds``, ``batch``) or why it cannot be (``reason``), then what was
+    found (``differences``)."""
+
+    scenario: str
+    label: str
+    policy: str
+    config_hash: str | None
+    overrides: dict = field(default_factory=dict)
+    seeds: list[int] = field(default_factory=list)
+    batch: int = 1
+    reason: str | None = None
+    differences: list[str] | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.label!r} ({self.policy}) on {self.scenario}, hash {self.config_hash}"
+
+
+def _spread(seeds: list[int], sample: int) -> list[int]:
+    """``sample`` of ``seeds`` (sorted), evenly spread from the first to the last."""
+    picks = np.unique(np.round(np.linspace(0, len(seeds) - 1, min(sample, len(seeds)))).astype(int))
+    return [seeds[i] for i in picks]
+
+
+def _batch_of(arm_records: list[dict], seed: int) -> tuple[list[int], int]:
+    """The seeds that ran in one batched call with ``seed`` and the batch size: a group's records are written
+    together, ``batch`` of them, so the arm's records in file order fall into its groups."""
+    k = 0
+    while k < len(arm_records):
+        size = int(arm_records[k].get("batch") or 1)
+        group = arm_records[k:k + size]
+        if any(r["seed"] == seed for r in group):
+            return sorted(r["seed"] for r in group), size
+        k += size
+    return [seed], 1
+
+
+def plan(folder: str | Path, sample: int, trusted: Iterable[str] = ()) -> list[ArmCheck]:
+    """Every arm of ``folder`` with the seeds to rerun, or the reason it cannot be rerun."""
+    folder = Path(folder)
+    data = episode_bytes(folder)
+    numbered, arms_json = numbered_records(folder, data), read_arms(folder)
+    by_arm: dict[tuple, list[dict]] = {}
+    for _, r in numbered:
+        if r["status"] == "ok":
+            by_arm.setdefault((r["scenario"], record_label(r), r.get("config_hash")), []).append(r)
+    checks = []
+    for (scenario, label, key), rs in by_arm.items():
+        first = rs[0]
+        entry = arms_json.get(key, {})
+        overrides = first.get("overrides", entry.get("overrides", {})) or {}
+        check = ArmCheck(scenario, label, first["policy"], key, overrides)
+        checks.append(check)
+        if key is None:
+            check.reason = "made before config hashes: `bimp migrate` it first"
+        elif check.policy not in POLICIES and check.policy not in trusted:
+            check.reason = (f"its policy is not in the policy table and a folder never names code to run; if you "
+                            f"trust it, name it: --trust-policy {check.policy}")
+        elif trust_switch(overrides) is not None:
+            check.reason = f"its overrides set {trust_switch(overrides)}, which no file may switch on"
+        if check.reason:
+            continue
+        try:
+            (arm,) = resolve_arms([scenario], [check.policy], {check.policy: overrides}, {check.policy: label})
+        except EvaluationError as err:
+            check.reason = f"the current code cannot build it: {err}"
+            continue
+        if arm.config_hash != key:
+            diff = config_diff(record_config(first, arms_json) or {}, arm.resolved)
+            check.reason = ("the current code resolves it to another config (" + "; ".join(diff[:3]) + "): rerun "
+                            "the arm instead")
+            continue
+        latest = {r["seed"]: r for r in rs}  # the last ok record per seed, as every reader takes it
+        chosen = _spread(sorted(latest), sample)
+        seeds, batch = set(), 1
+        for seed in chosen:
+            group, batch = _batch_of(rs, seed)
+            seeds.update(group)
+        check.seeds, check.batch = sorted(seeds), batch
+    return checks
+
+
+def differences(old: dict, new: dict) -> list[str]:
+    """What differs between two records of one seed: ``status``, ``steps``, ``truncated`` and every metric but
+    the timings (to :data:`TOLERANCE`)."""
+    out = [f"seed {old['seed']}: {k} {old.get(k)!r} -> {new.get(k)!r}" for k in COMPARED if old.get(k) != new.get(k)]
+    a, b = old.get("metrics") or {}, new.get("metrics") or {}
+    for name in sorted((set(a) | set(b)) - set(TIMINGS)):
+        x, y = a.get(name), b.get(name)
+        same = (x is None and y is None) or (x is not None and y is not None
+                                             and math.isclose(x, y, rel_tol=TOLERANCE, abs_tol=TOLERANCE))
+        if not same:
+            out.append(f"seed {old['seed']}: metrics.{name} {x!r} -> {y!r}")
+    return out
+
+
+def rerun(folder: Path, check: ArmCheck, workers: int, progress: bool) -> list[str]:
+    """The differences between ``check``'s seeds as recorded in ``folder`` and as the current code runs them."""
+    recorded = {r["seed"]: r for r in read_records(folder) if r["status"] == "ok"
+                and (r["scenario"], record_label(r), r.get("config_hash"))
+                == (check.scenario, check.label, check.config_hash)}
+    with tempfile.TemporaryDirectory(prefix="bimp-verify-") as scratch:
+        evaluate([check.scenario], [check.policy], seeds=check.seeds, out=scratch, workers=workers,
+                 overrides={check.policy: check.overrides}, labels={check.policy: check.label}, batch=check.batch,
+                 progress=progress)
+        fresh = {r["seed"]: r for r in read_records(scratch)}
+    found = []
+    for seed in check.seeds:
+        found += differences(recorded[seed], fresh[seed]) if seed in fresh else [f"seed {seed}: no record made"]
+    return found
+
+
+def verify_folder(folder: str | Path, sample: int = 2, workers: int = 1, trusted: Iterable[str] = (),
+                  dry_run: bool = False, progress: bool = True) -> list[ArmCheck]:
+    """Verify ``folder`` (the module doc); the arms with what was found. :class:`EvaluationError`, with nothing
+    run or written, when an arm cannot be rerun (every such arm named)."""
+    folder = Path(folder)
+    if not (folder / EPISODES_FILE).is_file():
+        raise EvaluationError(f"{folder} is not an evaluation folder (no {EPISODES_FILE})")
+    checks = plan(folder, sample, trusted)
+    refused = [c for c in checks if c.reason]
+    if refused:
+        raise EvaluationError(f"{folder}: {len(refused)} arm(s) cannot be rerun: "
+                              + "; ".join(f"{c.name}: {c.reason}" for c in refused))
+    if dry_run:
+        return checks
+    version = code_version()
+    for check in checks:
+        check.differences = rerun(folder, check, workers, progress)
+        with folder_lock(folder, hint="wait for it to end"):  # each arm kept as soon as it is known
+            verified = read_verified(folder)
+            verified[arm_key(check.scenario, check.label, check.config_hash)] = {
+                "policy": check.policy, "commit": version["git_commit"] or "", "dirty": bool(version["git_dirty"]),
+                "seeds": check.seeds, "batch": check.batch,
+                "outcome": "different" if check.differences else "same", "differences": check.differences[:10]}
+            write_atomic(folder / VERIFIED_FILE, _dumps(verified))
+    return checks
+
+
+def _dumps(verified: dict) -> str:
+    return json.dumps(verified, indent=1, sort_keys=True) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp verify", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folders", nargs="+", metavar="DIR", help="evaluation folders (each holding episodes.jsonl)")
+    parser.add_argument("--sample", type=int, default=2, metavar="K", help="seeds rerun per arm (default 2)")
+    parser.add_argument("--workers", type=int, default=1, help="processes the episodes run in")
+    parser.add_argument("--trust-policy", action="append", default=[], metavar="MODULE:FACTORY",
+                        help="rerun arms of this policy outside the policy table (code: only one you trust)")
+    parser.add_argument("--dry-run", action="store_true", help="say what would be rerun; run and write nothing")
+    args = parser.parse_args(argv)
+    if args.sample < 1 or args.workers < 1:
+        parser.error("--sample and --workers must be >= 1")
+    status = 0
+    try:
+        plans = {d: verify_folder(d, args.sample, args.workers, args.trust_policy, dry_run=True)
+                 for d in dict.fromkeys(args.folders)}  # every folder checked before anything runs
+        for folder in plans:
+            checks = plans[folder] if args.dry_run else verify_folder(folder, args.sample, args.workers,
+                                                                     args.trust_policy)
+            for c in checks:
+                found = ("would rerun" if args.dry_run else "same" if not c.differences
+                         else "DIFFERENT: " + "; ".join(c.differences[:5]))
+                print(f"{folder}: {c.name}: seeds {c.seeds}{f' (batch {c.batch})' if c.batch > 1 else ''}: {found}")
+                status = max(status, 1 if c.differences else 0)
+    except EvaluationError as err:
+        print(f"bimp verify: error: {err}", file=sys.stderr)
+        return 2
+    return status
+
+
+__all__ = ["ArmCheck", "differences", "plan", "verify_folder"]
