@@ -6,11 +6,13 @@ highway-env's own, timed in the same run.
 
 Per scenario, two envs: ``gym.make(ID)`` (the fast core, :mod:`bimp.envs.traffic`) and ``gym.make(ID,
 fast_traffic=False)`` (highway-env's own ``Road``). They drive the same episodes (episode seeds 0, 1, ...; the EV
-holds the zero action: no acceleration, wheels straight, so its traffic decides), in rounds of ``--env-steps``
-steps each, the two interleaved round by round and the first of a round alternating, so that a load that comes and
-goes falls on both alike. Only ``env.step`` is timed (a reset is not). One thread (:func:`one_thread`), as every
-episode runs. Reported: steps per second of each and their ratio (fast / highway-env's); the JSON also keeps each
-round's times. On a shared machine the times move with the load: read the ratios, measured side by side.
+holds the zero action: no acceleration, wheels straight, so its traffic decides), in rounds of ``--env-steps`` steps
+each, the two interleaved round by round and the first of a round alternating, so that a load that comes and goes
+falls on both alike. Last, ``plain:highway-v0``: highway-env's own ``gym.make("highway-v0")`` at its default config
+(its discrete actions, IDLE every step; 15 simulation steps a step) through :func:`bimp.envs.accelerate` beside the
+same env as highway-env has it. Only ``env.step`` is timed (a reset is not). One thread (:func:`one_thread`), as
+every episode runs. Reported: steps per second of each and their ratio (fast / highway-env's); the JSON also keeps
+each round's times. On a shared machine the times move with the load: read the ratios, measured side by side.
 """
 
 from __future__ import annotations
@@ -33,16 +35,20 @@ from bimp.agents.records import write_atomic
 CORES = ("fast", "highway-env")
 
 
+PLAIN = ("plain:highway-v0",)  # highway-env's own env at its default config, through accelerate
+
+
 def scenario_names() -> list[str]:
-    """Every registered scenario, in the table's order."""
-    return list(envs.SCENARIOS)
+    """Every registered scenario, in the table's order, then highway-env's own highway-v0 (:data:`PLAIN`)."""
+    return [*envs.SCENARIOS, *PLAIN]
 
 
 def _drive(env: gym.Env, seed: int, steps: int) -> tuple[float, int]:
     """``(seconds in env.step, steps)`` of ``steps`` steps from ``reset(seed=seed)`` (a new episode, seed + 1000,
     where one ends)."""
     env.reset(seed=seed)
-    action = np.zeros(env.action_space.shape, dtype=env.action_space.dtype)
+    # The zero action; highway-env's discrete actions: IDLE (1), keep lane and speed.
+    action = np.zeros(env.action_space.shape, dtype=env.action_space.dtype) if env.action_space.shape else 1
     spent, episode = 0.0, seed
     for _ in range(steps):
         start = time.perf_counter()
@@ -56,9 +62,18 @@ def _drive(env: gym.Env, seed: int, steps: int) -> tuple[float, int]:
 
 def time_scenario(scenario: str, steps: int, rounds: int) -> dict:
     """Both cores on ``scenario`` (the module doc): ``{"fast": {...}, "highway-env": {...}, "ratio"}`` with each
-    core's ``steps_per_s``, ``seconds`` and per-round ``round_s``."""
-    made = {"fast": gym.make(envs.env_id(scenario)),
-            "highway-env": gym.make(envs.env_id(scenario), fast_traffic=False)}
+    core's ``steps_per_s``, ``seconds`` and per-round ``round_s``. ``scenario`` ``"plain:ID"``: highway-env's own
+    env of ``ID`` at its default config (its actions, 15 simulation steps a step), through :func:`accelerate`."""
+    if scenario.startswith("plain:"):
+        plain = scenario.removeprefix("plain:")
+        made = {"fast": envs.accelerate(gym.make(plain)), "highway-env": gym.make(plain)}
+    else:
+        made = {"fast": gym.make(envs.env_id(scenario)),
+                "highway-env": gym.make(envs.env_id(scenario), fast_traffic=False)}
+    return _time(made, steps, rounds)
+
+
+def _time(made: dict, steps: int, rounds: int) -> dict:
     spent = {core: [] for core in CORES}
     for r in range(rounds):
         for core in (CORES if r % 2 == 0 else CORES[::-1]):
@@ -77,7 +92,8 @@ def run_env(scenarios: Sequence[str] | None = None, steps: int = 50, rounds: int
     """:func:`time_scenario` of every scenario of ``scenarios`` (default :func:`scenario_names`), one thread."""
     names = list(scenarios) if scenarios else scenario_names()
     for name in names:
-        envs.scenario_spec(name)  # an unknown name refused before minutes of timing
+        if name not in PLAIN:
+            envs.scenario_spec(name)  # an unknown name refused before minutes of timing
     results = {}
     with one_thread() as threads:
         for name in names:

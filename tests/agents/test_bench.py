@@ -110,10 +110,10 @@ def test_env_bench_times_both_cores_on_the_same_steps_and_writes_json_and_markdo
     from bimp.agents import bench_env
 
     out = tmp_path / "env.json"
-    assert bench.main(["--env", "highway-fast-v0", "emergency-brake", "--env-steps", "3", "--quick",
-                       "--out", str(out)]) == 0
+    assert bench.main(["--env", "highway-fast-v0", "emergency-brake", "plain:highway-v0", "--env-steps", "3",
+                       "--quick", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
-    assert set(result["scenarios"]) == {"highway-fast-v0", "emergency-brake"}
+    assert set(result["scenarios"]) == {"highway-fast-v0", "emergency-brake", "plain:highway-v0"}
     for row in result["scenarios"].values():
         for core in bench_env.CORES:
             assert len(row[core]["round_s"]) == 1 and row[core]["steps_per_s"] > 0
