@@ -2,7 +2,8 @@
 same is taken as made by that code, and so by the current code when the two do not differ (``docs/evaluation.md``).
 
 ``verified.json`` in an evaluation folder maps ``"SCENARIO|LABEL|CONFIG_HASH"`` to ``{"commit", "seeds", "outcome",
-"differences"}`` (:func:`bimp.agents.verify.verify_folder` writes it). :func:`as_current` gives ``compare``,
+"differences"}``, the outcome ``same``, ``drift`` or ``different`` (:func:`bimp.agents.verify.verify_folder`
+writes it; only ``same`` makes an arm the current code's). :func:`as_current` gives ``compare``,
 ``aggregate`` and ``leaderboard`` the records of the arms verified at code the current code equals with the current
 commit as their version, so a folder made over many commits and verified since is one code version to them.
 """
@@ -34,7 +35,7 @@ def read_verified(folder: str | Path) -> dict[str, dict]:
     except FileNotFoundError:
         return {}
     good = isinstance(verified, dict) and all(
-        isinstance(v, dict) and isinstance(v.get("commit"), str) and v.get("outcome") in ("same", "different")
+        isinstance(v, dict) and isinstance(v.get("commit"), str) and v.get("outcome") in ("same", "drift", "different")
         for v in verified.values())
     if not good:
         raise EvaluationError(f"{path}: not a map of arms to what bimp verify found")

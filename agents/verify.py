@@ -11,10 +11,13 @@ of its results, evenly spread over them, are rerun in a fresh folder (``bimp eva
 (``batch`` in its records: EnKTS and EnKS plan B episodes in one call, which reproduces per seed only in the same
 batch) reruns the whole batch of the chosen seed, as its records were written. Compared: ``status``, ``steps``,
 ``truncated`` and every metric but the plan times, to 1e-9. A difference prints the arm, the seed and the metric.
+An arm is ``same`` (every value to 1e-9), ``drift`` (every episode outcome the same: status, steps, the end and the
+0/1 outcomes, such as success and collision, while a continuous metric moved: floating-point drift, a closed loop
+amplifies it) or ``different`` (an outcome changed).
 
-Exit status: 0 when every arm rerun is the same, 1 when one differs, 2 when an arm cannot be rerun (then nothing
-runs and the folder is left as it was). ``compare``, ``aggregate`` and ``leaderboard`` then take the arms found the
-same as made by the current code (:mod:`bimp.agents.verification`).
+Exit status: 0 when every arm rerun is the same, 1 when one drifts or differs, 2 when an arm cannot be rerun (then
+nothing runs and the folder is left as it was). ``compare``, ``aggregate`` and ``leaderboard`` then take the arms
+found the same as made by the current code (:mod:`bimp.agents.verification`).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ import numpy as np
 
 from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate, resolve_arms
-from bimp.agents.metrics import record_label
+from bimp.agents.metrics import BINARY, record_label
 from bimp.agents.provenance import code_version, config_diff
 from bimp.agents.records import (
     EPISODES_FILE,
@@ -67,6 +70,11 @@ class ArmCheck:
     batch: int = 1
     reason: str | None = None
     differences: list[str] | None = None
+    outcomes_changed: bool = False
+
+    @property
+    def outcome(self) -> str:
+        return "different" if self.outcomes_changed else "drift" if self.differences else "same"
 
     @property
     def name(self) -> str:
@@ -137,9 +145,12 @@ def plan(folder: str | Path, sample: int, trusted: Iterable[str] = ()) -> list[A
     return checks
 
 
+OUTCOME_FIELDS = (*COMPARED, *(f"metrics.{name}" for name in BINARY))  # what an episode's outcome is
+
+
 def differences(old: dict, new: dict) -> list[str]:
     """What differs between two records of one seed: ``status``, ``steps``, ``truncated`` and every metric but
-    the timings (to :data:`TOLERANCE`)."""
+    the timings (to :data:`TOLERANCE`), each ``"seed S: FIELD old -> new"``."""
     out = [f"seed {old['seed']}: {k} {old.get(k)!r} -> {new.get(k)!r}" for k in COMPARED if old.get(k) != new.get(k)]
     a, b = old.get("metrics") or {}, new.get("metrics") or {}
     for name in sorted((set(a) | set(b)) - set(TIMINGS)):
@@ -163,8 +174,13 @@ def rerun(folder: Path, check: ArmCheck, workers: int, progress: bool) -> list[s
         fresh = {r["seed"]: r for r in read_records(scratch)}
     found = []
     for seed in check.seeds:
-        found += differences(recorded[seed], fresh[seed]) if seed in fresh else [f"seed {seed}: no record made"]
+        found += differences(recorded[seed], fresh[seed]) if seed in fresh else [f"seed {seed}: status (no record)"]
     return found
+
+
+def outcome_changed(found: list[str]) -> bool:
+    """Whether one of ``found`` (:func:`differences`) is an episode's outcome, not a continuous metric."""
+    return any(d.split(": ", 1)[1].split(" ", 1)[0] in OUTCOME_FIELDS for d in found)
 
 
 def verify_folder(folder: str | Path, sample: int = 2, workers: int = 1, trusted: Iterable[str] = (),
@@ -184,12 +200,13 @@ def verify_folder(folder: str | Path, sample: int = 2, workers: int = 1, trusted
     version = code_version()
     for check in checks:
         check.differences = rerun(folder, check, workers, progress)
+        check.outcomes_changed = outcome_changed(check.differences)
         with folder_lock(folder, hint="wait for it to end"):  # each arm kept as soon as it is known
             verified = read_verified(folder)
             verified[arm_key(check.scenario, check.label, check.config_hash)] = {
                 "policy": check.policy, "commit": version["git_commit"] or "", "dirty": bool(version["git_dirty"]),
                 "seeds": check.seeds, "batch": check.batch,
-                "outcome": "different" if check.differences else "same", "differences": check.differences[:10]}
+                "outcome": check.outcome, "differences": check.differences}
             write_atomic(folder / VERIFIED_FILE, _dumps(verified))
     return checks
 
@@ -218,10 +235,13 @@ def main(argv: list[str] | None = None) -> int:
             checks = plans[folder] if args.dry_run else verify_folder(folder, args.sample, args.workers,
                                                                      args.trust_policy)
             for c in checks:
-                found = ("would rerun" if args.dry_run else "same" if not c.differences
-                         else "DIFFERENT: " + "; ".join(c.differences[:5]))
+                found = ("would rerun" if args.dry_run else c.outcome if not c.differences
+                         else f"{c.outcome.upper()}: " + "; ".join(c.differences[:5]))
                 print(f"{folder}: {c.name}: seeds {c.seeds}{f' (batch {c.batch})' if c.batch > 1 else ''}: {found}")
                 status = max(status, 1 if c.differences else 0)
+            if not args.dry_run:
+                counts = {k: sum(c.outcome == k for c in checks) for k in ("same", "drift", "different")}
+                print(f"{folder}: {len(checks)} arm(s): " + ", ".join(f"{n} {k}" for k, n in counts.items()))
     except EvaluationError as err:
         print(f"bimp verify: error: {err}", file=sys.stderr)
         return 2

@@ -60,9 +60,20 @@ def test_a_changed_metric_is_named_by_arm_seed_and_metric(folder, capsys):
     rewrite(folder, change)
     assert main(["verify", str(folder), "--sample", "2"]) == 1
     out = capsys.readouterr().out
-    assert "'zero' (zero) on emergency-brake" in out and "DIFFERENT: seed 13: metrics.min_distance_m" in out
+    assert "'zero' (zero) on emergency-brake" in out and "DRIFT: seed 13: metrics.min_distance_m" in out
+    assert "2 arm(s): 1 same, 1 drift, 0 different" in out
     assert read_verified(folder)[f"{SCENARIO}|zero|" + json.loads(
-        (folder / EPISODES_FILE).read_bytes().splitlines()[-1])["config_hash"]]["outcome"] == "different"
+        (folder / EPISODES_FILE).read_bytes().splitlines()[-1])["config_hash"]]["outcome"] == "drift"
+
+
+def test_a_changed_outcome_is_different_not_drift(folder, capsys):
+    def change(r):
+        if r["policy"] == "zero" and r["seed"] == 11:
+            r["metrics"]["success_rate"] = 1.0 - r["metrics"]["success_rate"]
+
+    rewrite(folder, change)
+    assert main(["verify", str(folder), "--sample", "2"]) == 1
+    assert "DIFFERENT: seed 11: metrics.success_rate" in capsys.readouterr().out
 
 
 def test_timings_are_not_compared_and_a_status_is():
