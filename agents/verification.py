@@ -15,8 +15,9 @@ import subprocess
 from pathlib import Path
 
 from bimp.agents.cli import EvaluationError
-from bimp.agents.metrics import record_label
-from bimp.agents.provenance import CODE_PATHS, REPO_ROOT, code_version
+from bimp.agents.metrics import code_version, record_label
+from bimp.agents.provenance import CODE_PATHS, REPO_ROOT
+from bimp.agents.provenance import code_version as running_code
 from bimp.agents.records import read_json
 
 VERIFIED_FILE = "verified.json"
@@ -57,19 +58,24 @@ def same_code(commit: str, other: str) -> bool:
 
 def current_commit() -> str | None:
     """The commit of the running code, None when it has uncommitted changes (nothing is verified against those)."""
-    version = code_version()
+    version = running_code()
     return version["git_commit"] if version["git_commit"] and not version["git_dirty"] else None
 
 
 def as_current(folder: str | Path, records: list[dict]) -> list[dict]:
     """``records`` (of ``folder``) with the arms ``verified.json`` found the same at code the current code equals
-    stamped with the current commit (``verified_from``: the commit they were made at); the rest as they are."""
+    stamped with the current commit (``verified_from``: the commit they were made at): only the records of the code
+versions the rerun checked, and only where the verifying checkout had no uncommitted changes; the rest as they
+are."""
     verified, now = read_verified(folder), current_commit()
     if not verified or now is None:
         return records
-    current = {key for key, v in verified.items() if v["outcome"] == "same" and same_code(v["commit"], now)}
+    # Found the same, at committed code the current code equals: the records of the code versions it checked.
+    current = {key: set(v.get("versions") or ()) for key, v in verified.items()
+               if v["outcome"] == "same" and v.get("dirty") is False and same_code(v["commit"], now)}
     return [{**r, "git_commit": now, "git_dirty": False, "verified_from": r.get("git_commit")}
-            if arm_key(r["scenario"], record_label(r), r.get("config_hash")) in current else r for r in records]
+            if code_version(r) in current.get(arm_key(r["scenario"], record_label(r), r.get("config_hash")), ())
+            else r for r in records]
 
 
 __all__ = ["VERIFIED_FILE", "arm_key", "as_current", "current_commit", "read_verified", "same_code"]

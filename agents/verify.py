@@ -7,13 +7,14 @@ metric but timings; what it found goes into ``DIR/verified.json``.
 Per arm (a scenario, a label and its config hash), the policy is rebuilt from the policy table with the overrides
 the arm was run with (a ``module:factory`` policy only when named with ``--trust-policy``: a folder never names code
 to run), and must resolve to the arm's config hash: else the arm cannot be rerun, and says why. ``--sample K`` seeds
-of its results, evenly spread over them, are rerun in a fresh folder (``bimp evaluate``); an arm that ran batched
-(``batch`` in its records: EnKTS and EnKS plan B episodes in one call, which reproduces per seed only in the same
-batch) reruns the whole batch of the chosen seed, as its records were written. Compared: ``status``, ``steps``,
-``truncated`` and every metric but the plan times, to 1e-9. A difference prints the arm, the seed and the metric.
-An arm is ``same`` (every value to 1e-9), ``drift`` (every episode outcome the same: status, steps, the end and the
-0/1 outcomes, such as success and collision, while a continuous metric moved: floating-point drift, a closed loop
-amplifies it) or ``different`` (an outcome changed).
+of its results, evenly spread over them, are rerun in a fresh folder (``bimp evaluate``); at least one seed of every
+code version its records hold; an arm that ran batched (``batch`` in its records: EnKTS and EnKS plan B episodes in
+one call, which reproduces per seed only in the same batch) reruns the whole batch of each chosen seed, each batch
+in one call with its seeds in the order they ran. An arm seeded otherwise than the current code seeds is refused.
+Compared: ``status``, ``steps``, ``truncated`` and every metric but the plan times, to 1e-9. A difference prints the
+arm, the seed and the metric. An arm is ``same`` (every value to 1e-9), ``drift`` (every episode outcome the same:
+status, steps, the end and the 0/1 outcomes, such as success and collision, while a continuous metric moved:
+floating-point drift, a closed loop amplifies it) or ``different`` (an outcome changed).
 
 Exit status: 0 when every arm rerun is the same, 1 when one drifts or differs, 2 when an arm cannot be rerun (then
 nothing runs and the folder is left as it was). ``compare``, ``aggregate`` and ``leaderboard`` then take the arms
@@ -36,6 +37,7 @@ import numpy as np
 from bimp.agents.cli import EvaluationError
 from bimp.agents.evaluate import evaluate, resolve_arms
 from bimp.agents.metrics import BINARY, record_label
+from bimp.agents.metrics import code_version as code_version_of
 from bimp.agents.provenance import code_version, config_diff
 from bimp.agents.records import (
     EPISODES_FILE,
@@ -48,6 +50,7 @@ from bimp.agents.records import (
     write_atomic,
 )
 from bimp.agents.registry import POLICIES
+from bimp.agents.rollout import SEEDING
 from bimp.agents.verification import VERIFIED_FILE, arm_key, read_verified
 from bimp.configs import trust_switch
 
@@ -66,8 +69,8 @@ class ArmCheck:
     policy: str
     config_hash: str | None
     overrides: dict = field(default_factory=dict)
-    seeds: list[int] = field(default_factory=list)
-    batch: int = 1
+    groups: list[list[int]] = field(default_factory=list)  # the seeds of each call to rerun, as they ran
+    versions: list[str] = field(default_factory=list)  # the code versions of the records the rerun checks
     reason: str | None = None
     differences: list[str] | None = None
     outcomes_changed: bool = False
@@ -75,6 +78,14 @@ class ArmCheck:
     @property
     def outcome(self) -> str:
         return "different" if self.outcomes_changed else "drift" if self.differences else "same"
+
+    @property
+    def seeds(self) -> list[int]:
+        return sorted(s for group in self.groups for s in group)
+
+    @property
+    def batch(self) -> int:
+        return max((len(g) for g in self.groups), default=1)
 
     @property
     def name(self) -> str:
@@ -87,17 +98,19 @@ def _spread(seeds: list[int], sample: int) -> list[int]:
     return [seeds[i] for i in picks]
 
 
-def _batch_of(arm_records: list[dict], seed: int) -> tuple[list[int], int]:
-    """The seeds that ran in one batched call with ``seed`` and the batch size: a group's records are written
-    together, ``batch`` of them, so the arm's records in file order fall into its groups."""
-    k = 0
-    while k < len(arm_records):
-        size = int(arm_records[k].get("batch") or 1)
-        group = arm_records[k:k + size]
-        if any(r["seed"] == seed for r in group):
-            return sorted(r["seed"] for r in group), size
-        k += size
-    return [seed], 1
+def _groups(arm_records: list[dict]) -> list[list[dict]]:
+    """The arm's records (in file order) in the groups they ran in: a batched call writes its ``batch`` records
+    together (consecutive lines, one ``batch`` value and one ``wall_s``); an unbatched record is a group alone."""
+    groups: list[list[dict]] = []
+    for r in arm_records:
+        size = int(r.get("batch") or 1)
+        last = groups[-1] if groups else None
+        if (last is not None and len(last) < size and int(last[0].get("batch") or 1) == size
+                and last[0].get("wall_s") == r.get("wall_s")):
+            last.append(r)
+        else:
+            groups.append([r])
+    return groups
 
 
 def plan(folder: str | Path, sample: int, trusted: Iterable[str] = ()) -> list[ArmCheck]:
@@ -135,13 +148,21 @@ def plan(folder: str | Path, sample: int, trusted: Iterable[str] = ()) -> list[A
             check.reason = ("the current code resolves it to another config (" + "; ".join(diff[:3]) + "): rerun "
                             "the arm instead")
             continue
+        if first.get("seeding", entry.get("seeding", SEEDING)) not in (SEEDING, None):
+            check.reason = "its episodes were seeded otherwise than the current code seeds them: rerun the arm"
+            continue
         latest = {r["seed"]: r for r in rs}  # the last ok record per seed, as every reader takes it
-        chosen = _spread(sorted(latest), sample)
-        seeds, batch = set(), 1
-        for seed in chosen:
-            group, batch = _batch_of(rs, seed)
-            seeds.update(group)
-        check.seeds, check.batch = sorted(seeds), batch
+        chosen = set(_spread(sorted(latest), sample))
+        by_version: dict[str, list[int]] = {}
+        for seed, r in sorted(latest.items()):
+            by_version.setdefault(code_version_of(r), []).append(seed)
+        chosen |= {seeds[0] for seeds in by_version.values()}  # every code version the arm holds, checked
+        picked = []
+        for group in _groups(rs):  # the group each chosen seed's latest record ran in, in file order
+            if any(latest.get(r["seed"]) is r and r["seed"] in chosen for r in group) and group not in picked:
+                picked.append(group)
+        check.groups = [[r["seed"] for r in group] for group in picked]
+        check.versions = sorted({code_version_of(r) for group in picked for r in group})
     return checks
 
 
@@ -151,9 +172,11 @@ OUTCOME_FIELDS = (*COMPARED, *(f"metrics.{name}" for name in BINARY))  # what an
 def differences(old: dict, new: dict) -> list[str]:
     """What differs between two records of one seed: ``status``, ``steps``, ``truncated`` and every metric but
     the timings (to :data:`TOLERANCE`), each ``"seed S: FIELD old -> new"``."""
-    out = [f"seed {old['seed']}: {k} {old.get(k)!r} -> {new.get(k)!r}" for k in COMPARED if old.get(k) != new.get(k)]
+    # What the old record holds: a field added since is not a difference.
+    out = [f"seed {old['seed']}: {k} {old.get(k)!r} -> {new.get(k)!r}" for k in COMPARED
+           if k in old and old.get(k) != new.get(k)]
     a, b = old.get("metrics") or {}, new.get("metrics") or {}
-    for name in sorted((set(a) | set(b)) - set(TIMINGS)):
+    for name in sorted(set(a) - set(TIMINGS)):
         x, y = a.get(name), b.get(name)
         same = (x is None and y is None) or (x is not None and y is not None
                                              and math.isclose(x, y, rel_tol=TOLERANCE, abs_tol=TOLERANCE))
@@ -168,9 +191,10 @@ def rerun(folder: Path, check: ArmCheck, workers: int, progress: bool) -> list[s
                 and (r["scenario"], record_label(r), r.get("config_hash"))
                 == (check.scenario, check.label, check.config_hash)}
     with tempfile.TemporaryDirectory(prefix="bimp-verify-") as scratch:
-        evaluate([check.scenario], [check.policy], seeds=check.seeds, out=scratch, workers=workers,
-                 overrides={check.policy: check.overrides}, labels={check.policy: check.label}, batch=check.batch,
-                 progress=progress)
+        for group in check.groups:  # each batch as it ran: its seeds, in its order, in one call
+            evaluate([check.scenario], [check.policy], seeds=group, out=scratch, workers=workers,
+                     overrides={check.policy: check.overrides}, labels={check.policy: check.label},
+                     batch=len(group), progress=progress)
         fresh = {r["seed"]: r for r in read_records(scratch)}
     found = []
     for seed in check.seeds:
@@ -198,14 +222,14 @@ def verify_folder(folder: str | Path, sample: int = 2, workers: int = 1, trusted
     if dry_run:
         return checks
     version = code_version()
-    for check in checks:
-        check.differences = rerun(folder, check, workers, progress)
-        check.outcomes_changed = outcome_changed(check.differences)
-        with folder_lock(folder, hint="wait for it to end"):  # each arm kept as soon as it is known
-            verified = read_verified(folder)
+    with folder_lock(folder, hint="wait for it to end"):  # held throughout: no run adds records meanwhile
+        for check in checks:
+            check.differences = rerun(folder, check, workers, progress)
+            check.outcomes_changed = outcome_changed(check.differences)
+            verified = read_verified(folder)  # each arm kept as soon as it is known
             verified[arm_key(check.scenario, check.label, check.config_hash)] = {
                 "policy": check.policy, "commit": version["git_commit"] or "", "dirty": bool(version["git_dirty"]),
-                "seeds": check.seeds, "batch": check.batch,
+                "seeds": check.seeds, "groups": check.groups, "versions": check.versions,
                 "outcome": check.outcome, "differences": check.differences}
             write_atomic(folder / VERIFIED_FILE, _dumps(verified))
     return checks
@@ -237,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
             for c in checks:
                 found = ("would rerun" if args.dry_run else c.outcome if not c.differences
                          else f"{c.outcome.upper()}: " + "; ".join(c.differences[:5]))
-                print(f"{folder}: {c.name}: seeds {c.seeds}{f' (batch {c.batch})' if c.batch > 1 else ''}: {found}")
+                batches = f" (batches {c.groups})" if c.batch > 1 else ""
+                print(f"{folder}: {c.name}: seeds {c.seeds}{batches}: {found}")
                 status = max(status, 1 if c.differences else 0)
             if not args.dry_run:
                 counts = {k: sum(c.outcome == k for c in checks) for k in ("same", "drift", "different")}

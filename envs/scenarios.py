@@ -88,7 +88,7 @@ from bimp.envs.scene import (
     constraint_values,
     join_obs,
 )
-from bimp.envs.traffic import make_fast
+from bimp.envs.traffic import make_fast_if_known
 
 N_OBSTACLES = 2
 CRASH_PENALTY = 20.0
@@ -491,7 +491,7 @@ class BimpEnv(AbstractEnv):
         self.road = Road(network=_build_network(self.scene.geometry, speed_limit=40.0),
                          np_random=self.np_random, record_history=self.config["show_trajectories"])
         if self.fast_traffic:  # bimp.envs.traffic: the same episodes
-            make_fast(self.road)
+            make_fast_if_known(self.road)
         self.obstacles: list[ObstacleVehicle] = []
         ego_speed, lane = self._populate()
         road = self.scene.geometry

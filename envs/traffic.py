@@ -66,6 +66,11 @@ class FastRoad(Road):
     same episodes. Built by :func:`make_fast` on any road (highway-env's ``Road`` or a subclass of it)."""
 
     _acting: list[RoadObject] | None = None  # the objects' order while vehicles act; None outside ``act``
+    _base: type = Road  # the road class this one makes fast
+
+    def __reduce_ex__(self, protocol: int):
+        # A class made for a road subclass has no name to be found by: pickle the road as its base, made fast again.
+        return _unpickle, (self._base,), self.__dict__
     _views: dict[int, _LaneView]
     _rows: dict[int, int]
 
@@ -80,7 +85,7 @@ class FastRoad(Road):
             super().act()
         finally:
             self._acting = None
-            self._views = {}
+            self._views, self._rows = {}, {}
 
     def _view(self, lane: AbstractLane) -> _LaneView:
         view = self._views.get(id(lane))
@@ -153,7 +158,7 @@ class FastRoad(Road):
         # highway-env's pre-check for (self i, other j): |p_j - p_i| > (d_i + d_j) / 2 + speed_i * dt drops the pair
         distance = np.linalg.norm(position[None, :, :] - position[: len(vehicles), None, :], axis=-1)  # (N, N + K)
         bound = (diagonal[: len(vehicles), None] + diagonal[None, :]) / 2 + speed[:, None] * dt
-        near = distance <= bound + BROAD_PHASE_MARGIN
+        near = ~(distance > bound + BROAD_PHASE_MARGIN)  # as highway-env's "not >": a NaN pair is tested, and raises
         for i, vehicle in enumerate(vehicles):
             if _changes_collisions(type(vehicle)):
                 candidates = range(i + 1, len(others))
@@ -176,9 +181,12 @@ def _fast_class(cls: type) -> type:
     ``act``, ``step`` and ``neighbour_vehicles`` reach :class:`FastRoad`'s through ``cls``'s own."""
     if cls is Road or cls is FastRoad or issubclass(cls, FastRoad):
         return FastRoad if cls is Road else cls
-    fast = type(f"Fast{cls.__name__}", (cls, FastRoad), {"__module__": __name__})
-    globals().setdefault(fast.__name__, fast)  # found by name, as pickle looks a class up
-    return fast
+    return type(f"Fast{cls.__name__}", (cls, FastRoad), {"__module__": __name__, "_base": cls})
+
+
+def _unpickle(base: type) -> Road:
+    road = object.__new__(_fast_class(base))
+    return road
 
 
 def make_fast(road: Road) -> Road:
@@ -187,6 +195,12 @@ def make_fast(road: Road) -> Road:
         raise TypeError(f"make_fast expects a highway-env Road, got {type(road).__name__}")
     road.__class__ = _fast_class(type(road))
     return road
+
+
+def make_fast_if_known(road: Road) -> Road:
+    """``road`` made fast when every vehicle class on it is known not to move anything while vehicles act
+    (:func:`_known`); else left on highway-env's own code (a user's ``other_vehicles_type``): the same episodes."""
+    return road if _unknown_classes(road) else make_fast(road)
 
 
 # --- highway-env's own envs ------------------------------------------------------------------------------------
@@ -239,4 +253,5 @@ def accelerate(env: gym.Env) -> gym.Env:
     return FastTraffic(env)
 
 
-__all__ = ["BROAD_PHASE_MARGIN", "SMALL_ROAD", "FastRoad", "FastTraffic", "accelerate", "make_fast"]
+__all__ = ["BROAD_PHASE_MARGIN", "SMALL_ROAD", "FastRoad", "FastTraffic", "accelerate", "make_fast",
+           "make_fast_if_known"]

@@ -78,7 +78,7 @@ from bimp.envs.scene import (
     join_obs,
 )
 from bimp.envs.suite import FAMILIES
-from bimp.envs.traffic import make_fast
+from bimp.envs.traffic import make_fast_if_known
 
 N_OBSTACLES = 8
 _VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "scaling", "show_trajectories",
@@ -286,7 +286,7 @@ class HighwayAdapter(gym.Wrapper):
     def _start(self) -> None:
         base = self.env.unwrapped
         if self.fast_traffic:  # the road highway-env's reset built, on the fast core (bimp.envs.traffic)
-            make_fast(base.road)
+            make_fast_if_known(base.road)
         # What bimp's evaluation records as the scenario's definition (as the paper's envs publish it): the env's
         # own draws where it makes some (a suite family's, drawn at this reset), else none; highway-env's config as
         # options (every key but rendering: a family's difficulty and ranges too); the behaviour layer's rule.

@@ -8,14 +8,14 @@ import json
 
 import pytest
 
-from bimp.agents import leaderboard, verification
+from bimp.agents import leaderboard, verification, verify
 from bimp.agents.cli import main
 from bimp.agents.compare import label_records
 from bimp.agents.evaluate import evaluate
 from bimp.agents.metrics import code_version
 from bimp.agents.records import ARMS_FILE, EPISODES_FILE
 from bimp.agents.verification import VERIFIED_FILE, as_current, read_verified
-from bimp.agents.verify import _batch_of, _spread, differences, verify_folder
+from bimp.agents.verify import _groups, _spread, differences, verify_folder
 
 SCENARIO = "emergency-brake"
 OLD = "0" * 40  # a commit the records claim, of code the current code equals (monkeypatched below)
@@ -95,11 +95,26 @@ def test_arms_it_cannot_rerun_are_named_and_nothing_runs_or_is_written(folder, c
     assert {p.name: p.read_bytes() for p in folder.iterdir() if p.name != ".lock"} == before
 
 
-def test_a_batched_arm_reruns_the_batch_its_seed_ran_in():
-    records = [{"seed": s, "batch": 3} for s in (5, 6, 7)] + [{"seed": s, "batch": 2} for s in (8, 9)]
-    assert _batch_of(records, 6) == ([5, 6, 7], 3) and _batch_of(records, 9) == ([8, 9], 2)
-    assert _batch_of([{"seed": 4}], 4) == ([4], 1)
+def test_a_batched_arm_is_read_in_the_groups_it_ran_in():
+    """Consecutive records of one batched call share its size and wall time; a rerun seed's record stands alone."""
+    records = ([{"seed": s, "batch": 3, "wall_s": 1.0} for s in (5, 7, 6)]
+               + [{"seed": s, "batch": 2, "wall_s": 2.0} for s in (8, 9)]
+               + [{"seed": s, "batch": 2, "wall_s": 3.0} for s in (10, 11)] + [{"seed": 6}])
+    assert [[r["seed"] for r in g] for g in _groups(records)] == [[5, 7, 6], [8, 9], [10, 11], [6]]
     assert _spread(list(range(100)), 3) == [0, 50, 99] and _spread([7], 3) == [7]
+
+
+def test_the_rerun_takes_each_chosen_seeds_latest_group_and_every_code_version(folder):
+    def change(r):
+        r.update(batch=3, wall_s=1.0 if r["seed"] < 14 else 2.0)
+        if r["policy"] == "zero" and r["seed"] == 13:
+            r.update(git_commit=OLD, git_dirty=False)
+
+    rewrite(folder, change)
+    checks = {c.label: c for c in verify.plan(folder, sample=1)}
+    assert checks["lane-keep"].groups == [[11, 12, 13]] and checks["lane-keep"].batch == 3
+    assert checks["zero"].versions == sorted({OLD, code_version(json.loads(
+        (folder / EPISODES_FILE).read_bytes().splitlines()[0]))})
 
 
 def test_verified_arms_are_the_current_codes_to_the_readers(folder, monkeypatch):
@@ -109,12 +124,16 @@ def test_verified_arms_are_the_current_codes_to_the_readers(folder, monkeypatch)
     now = json.loads((folder / EPISODES_FILE).read_bytes().splitlines()[0])["git_commit"]
     monkeypatch.setattr(verification, "current_commit", lambda: now)
     monkeypatch.setattr(verification, "same_code", lambda a, b: True)
+    monkeypatch.setattr(verify, "code_version", lambda: {"git_commit": now, "git_dirty": False})
     verify_folder(folder, sample=1, progress=False)
     versions = {code_version(r) for r in as_current(folder, [json.loads(x) for x in
                                                               (folder / EPISODES_FILE).read_bytes().splitlines()])}
     assert versions == {now}
     assert not any(m.kind == "code" for m in leaderboard.find_mixing(leaderboard.load_arms([folder])))
     assert {code_version(r) for r in label_records(folder, "zero").values()} == {now}
-    (folder / VERIFIED_FILE).write_text(json.dumps({"x": {"commit": OLD, "outcome": "same"}}))
-    monkeypatch.setattr(verification, "same_code", lambda a, b: a == b)  # verified at other code: not current
-    assert any(m.kind == "code" for m in leaderboard.find_mixing(leaderboard.load_arms([folder])))
+    verified = read_verified(folder)
+    for kind, change in (("other code", {"commit": OLD}), ("uncommitted code", {"dirty": True}),
+                         ("other versions", {"versions": [now]})):
+        (folder / VERIFIED_FILE).write_text(json.dumps({k: {**v, **change} for k, v in verified.items()}))
+        monkeypatch.setattr(verification, "same_code", lambda a, b: a == b)
+        assert any(m.kind == "code" for m in leaderboard.find_mixing(leaderboard.load_arms([folder]))), kind
