@@ -43,8 +43,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -272,15 +270,10 @@ def run(repeats: int, quick: bool, steps: int, progress=print) -> dict:
     return {
         "scenario": SCENARIO, "env_seed": 0, "steps_before": steps, "horizon": H_DEFAULT, "repeats": repeats,
         "threads": _threads(),
-        "machine": _machine(),
+        "machine": bench_env.machine(),
         "float": "float32", "floor_ms": {str(n): f for n, f in floors.items()},
         "rows": rows, "nmpc": nmpc, "enkts_vs_horizon": h_rows, "ratios": ratios,
     }
-
-
-def _machine() -> dict:
-    return {"python": platform.python_version(), "processor": platform.machine(), "cpus": os.cpu_count(),
-            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
 
 
 @one_thread()
@@ -316,7 +309,7 @@ def run_highway(scenario: str, repeats: int, quick: bool, steps: int, progress=p
         "road_spacing": ROAD_WINDOW / HIGHWAY_P, "repeats": repeats, "quick": quick,
         "p_sweep_spacing": f"road_spacing = {ROAD_WINDOW:g} m / P: the window's length held, resolution varied",
         "threads": _threads(),
-        "machine": _machine(), "float": "float32", "timing": "interleaved",
+        "machine": bench_env.machine(), "float": "float32", "timing": "interleaved",
         "floor_ms": {str(HIGHWAY_N): floor}, "floor_p95_ms": floor_row["p95_ms"], "rows": rows,
         "k_sweep": k_sweep, "p_sweep": p_sweep,
         "ratios": {"enkts/floor": median["enkts"] / floor, "enks/floor": median["enks"] / floor,

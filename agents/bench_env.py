@@ -102,14 +102,15 @@ def run_env(scenarios: Sequence[str] | None = None, steps: int = 50, rounds: int
                      f"{results[name]['highway-env']['steps_per_s']:.0f} highway-env's, "
                      f"x{results[name]['ratio']:.2f}")
     ratios = np.array([r["ratio"] for r in results.values()])
-    return {"steps": steps, "rounds": rounds, "threads": threads, "machine": platform.machine(),
-            "processor": platform.processor() or None, "cpus": _cpus(), "scenarios": results,
+    return {"steps": steps, "rounds": rounds, "threads": threads, "machine": machine(), "scenarios": results,
             "ratio_median": float(np.median(ratios)), "ratio_min": float(ratios.min()),
             "ratio_max": float(ratios.max())}
 
 
-def _cpus() -> int | None:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+def machine() -> dict:
+    """What a benchmark ran on: Python, the processor, the CPUs and the load when it ended (``bimp bench`` too)."""
+    return {"python": platform.python_version(), "processor": platform.machine(), "cpus": os.cpu_count(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
 
 
 def report_env(result: dict) -> str:
@@ -149,4 +150,4 @@ def command(scenarios: Sequence[str], steps: int, quick: bool, out: Path | None,
     return 0
 
 
-__all__ = ["CORES", "command", "report_env", "run_env", "scenario_names", "time_scenario"]
+__all__ = ["CORES", "command", "machine", "report_env", "run_env", "scenario_names", "time_scenario"]
