@@ -11,8 +11,10 @@ each, the two interleaved round by round and the first of a round alternating, s
 falls on both alike. Last, ``plain:highway-v0``: highway-env's own ``gym.make("highway-v0")`` at its default config
 (its discrete actions, IDLE every step; 15 simulation steps a step) through :func:`bimp.envs.accelerate` beside the
 same env as highway-env has it. Only ``env.step`` is timed (a reset is not). One thread (:func:`one_thread`), as
-every episode runs. Reported: steps per second of each and their ratio (fast / highway-env's); the JSON also keeps
-each round's times. On a shared machine the times move with the load: read the ratios, measured side by side.
+every episode runs. Reported: steps per second of each and their ratio (fast / highway-env's), and on the envs
+behind the highway-env adapter the adapter's share of a fast step in ms (the step's time less the time in
+highway-env's own ``step`` under it: the scene, the observation, the safety ``info``); the JSON also keeps each
+round's times. On a shared machine the times move with the load: read the ratios, measured side by side.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import numpy as np
 from bimp import envs
 from bimp.agents.backends import one_thread
 from bimp.agents.records import write_atomic
+from bimp.envs.highway.adapter import HighwayAdapter
 
 CORES = ("fast", "highway-env")
 
@@ -41,6 +44,32 @@ PLAIN = ("plain:highway-v0",)  # highway-env's own env at its default config, th
 def scenario_names() -> list[str]:
     """Every registered scenario, in the table's order, then highway-env's own highway-v0 (:data:`PLAIN`)."""
     return [*envs.SCENARIOS, *PLAIN]
+
+
+class _SimClock(gym.Wrapper):
+    """Times highway-env's own ``step`` under the adapter (``seconds``), so the adapter's share is the rest."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.seconds = 0.0
+
+    def step(self, action):
+        start = time.perf_counter()
+        try:
+            return self.env.step(action)
+        finally:
+            self.seconds += time.perf_counter() - start
+
+
+def _sim_clock(env: gym.Env) -> _SimClock | None:
+    """A :class:`_SimClock` put under the highway-env adapter in ``env``'s wrappers (None where there is none)."""
+    layer = env
+    while isinstance(layer, gym.Wrapper):
+        if isinstance(layer, HighwayAdapter):
+            layer.env = _SimClock(layer.env)
+            return layer.env
+        layer = layer.env
+    return None
 
 
 def _drive(env: gym.Env, seed: int, steps: int) -> tuple[float, int]:
@@ -75,6 +104,7 @@ def time_scenario(scenario: str, steps: int, rounds: int) -> dict:
 
 def _time(made: dict, steps: int, rounds: int) -> dict:
     spent = {core: [] for core in CORES}
+    clock = _sim_clock(made["fast"])
     for r in range(rounds):
         for core in (CORES if r % 2 == 0 else CORES[::-1]):
             seconds, _ = _drive(made[core], r, steps)
@@ -84,6 +114,7 @@ def _time(made: dict, steps: int, rounds: int) -> dict:
     out = {core: {"steps_per_s": steps * rounds / sum(spent[core]), "seconds": sum(spent[core]),
                   "round_s": spent[core]} for core in CORES}
     out["ratio"] = out["fast"]["steps_per_s"] / out["highway-env"]["steps_per_s"]
+    out["adapter_ms"] = None if clock is None else 1e3 * (sum(spent["fast"]) - clock.seconds) / (steps * rounds)
     return out
 
 
@@ -102,7 +133,9 @@ def run_env(scenarios: Sequence[str] | None = None, steps: int = 50, rounds: int
                      f"{results[name]['highway-env']['steps_per_s']:.0f} highway-env's, "
                      f"x{results[name]['ratio']:.2f}")
     ratios = np.array([r["ratio"] for r in results.values()])
-    return {"steps": steps, "rounds": rounds, "threads": threads, "machine": machine(), "scenarios": results,
+    adapter = [r["adapter_ms"] for r in results.values() if r["adapter_ms"] is not None]
+    return {"adapter_ms_max": max(adapter) if adapter else None,
+            "steps": steps, "rounds": rounds, "threads": threads, "machine": machine(), "scenarios": results,
             "ratio_median": float(np.median(ratios)), "ratio_min": float(ratios.min()),
             "ratio_max": float(ratios.max())}
 
@@ -115,14 +148,17 @@ def machine() -> dict:
 
 def report_env(result: dict) -> str:
     """The result as a markdown table, a row per scenario, then the ratios' median and range."""
-    lines = ["| scenario | steps/s, fast | steps/s, highway-env's | ratio |", "|---|---|---|---|"]
+    lines = ["| scenario | steps/s, fast | steps/s, highway-env's | ratio | adapter ms/step |", "|---|---|---|---|---|"]
     for name, r in result["scenarios"].items():
+        adapter = "-" if r.get("adapter_ms") is None else f"{r['adapter_ms']:.2f}"
         lines.append(f"| {name} | {r['fast']['steps_per_s']:.0f} | {r['highway-env']['steps_per_s']:.0f} | "
-                     f"{r['ratio']:.2f} |")
+                     f"{r['ratio']:.2f} | {adapter} |")
     lines.append("")
     lines.append(f"Env steps per second, one thread ({result['steps']} steps x {result['rounds']} rounds per core and "
                  f"scenario, interleaved); ratio: fast / highway-env's, median {result['ratio_median']:.2f} "
-                 f"(range {result['ratio_min']:.2f}-{result['ratio_max']:.2f}).")
+                 f"(range {result['ratio_min']:.2f}-{result['ratio_max']:.2f}); adapter: the fast step's time outside "
+                 f"highway-env's own step" + (f", at most {result['adapter_ms_max']:.2f} ms."
+                                              if result.get("adapter_ms_max") is not None else "."))
     return "\n".join(lines) + "\n"
 
 

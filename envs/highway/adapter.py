@@ -7,7 +7,8 @@
   and ``simulation_frequency`` 10 Hz (or a multiple of 10 that the config names, e.g. 20);
 - **scene**: a new :class:`bimp.envs.scene.Scene` at every reset and step, published as ``env.unwrapped.scene``:
   the road ahead of the EV (:func:`bimp.envs.highway.lanes.build_route`: the EV's lane continued along its route,
-  30 m behind to 250 m ahead, edges from the lanes beside it) and the id's planning bounds (:data:`PROFILES`);
+  from 30 m behind to at least 250 m ahead, edges from the lanes beside it; built 100 m longer and kept while it
+  serves, :class:`bimp.envs.highway.lanes.RouteCache`) and the id's planning bounds (:data:`PROFILES`);
 - **observation**: bimp's layout (:func:`bimp.envs.scene.join_obs`) with ``n_obstacles`` OV slots (default 8): the
   nearest vehicles and road objects (merge-v0's end-of-ramp obstacle) by centre distance, absent slots zeros; an
   OV's acceleration is its speed change over the last step; the reference ``[v_ref, a_ref, l_ref]`` comes from the
@@ -49,29 +50,26 @@ own ids.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
-from bimp.configs import added_field
 from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, checked_flag, is_int
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
-from bimp.envs.highway.lanes import build_route, route_from
+from bimp.envs.highway.lanes import RouteCache, route_from
+from bimp.envs.highway.profiles import PROFILES, SUPPORTED
 from bimp.envs.overlay import draw_lines
-from bimp.envs.road import Route, body_corners
+from bimp.envs.road import Projection, Route, body_corners
 from bimp.envs.scene import (
     ACTUATOR_ACCEL,
-    ACTUATOR_STEER,
     OBS_BOUND,
     OV_FIELDS,
     POLICY_FREQUENCY,
     VEHICLE_LENGTH,
     VEHICLE_WIDTH,
-    Bounds,
     Scene,
     attribution_info,
     constraint_values,
@@ -86,58 +84,6 @@ _VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "
 JUNCTION_MARGIN = 1.0  # m: see HighwayAdapter._corner_off_lanes
 
 
-@dataclass(frozen=True)
-class Profile:
-    """What the adapter needs per id: the planning ``bounds``, the ``actuator_steer`` range [rad] that the
-    normalized steering maps onto (the acceleration maps onto bimp's ±10 m/s^2 everywhere), the free-road
-    ``target_speed`` [m/s] of the behaviour layer (from the env's config: the top of its reward speed range or of
-    its discrete action's target speeds), ``duration`` [s] (highway-env's, for the registration's step limit), and
-    ``drive_on``: whether the behaviour layer drives on where the route's next road leaves from another lane (exit-v0,
-    the exit missed: :class:`bimp.envs.highway.behaviour.DriveOnDriver`); ``overtake``: whether it overtakes through
-    the lane of oncoming traffic (the suite's two-way-overtake: :class:`bimp.envs.highway.behaviour.OvertakeDriver`)."""
-
-    bounds: Bounds
-    actuator_steer: tuple[float, float]
-    target_speed: float
-    duration: float
-    drive_on: bool = added_field(False, neutral=False)
-    overtake: bool = added_field(False, neutral=False)
-
-
-def _curve_bounds(steer: float) -> Bounds:
-    # The paper's bounds with a steering bound that takes the road's tightest curve, and a steering rate that
-    # reaches it in 1 s (10 steps): highway-env's bicycle needs tan(delta) = 2 tan(asin(L / (2 R))), L = 5 m.
-    return Bounds(steer=steer, steer_rate=steer / 10.0)
-
-
-_STRAIGHT = Bounds()  # the paper's: straight roads and lane changes need no more than 0.05 rad
-# The one table of per-id numbers. Tightest radius on the EV's route -> steering needed -> planning bound (about 20%
-# above it) -> actuator range (wider still, so violations of the bound stay measurable).
-PROFILES: dict[str, Profile] = {
-    # straight multi-lane roads; target: the top of reward_speed_range (30 m/s)
-    "highway-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
-    "highway-fast-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 30.0),
-    "merge-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),  # no duration of its own: highway-env's goal x > 370
-    # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
-    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True),
-    # ring of radius 20 m (inner lane): 0.247 rad needed
-    "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 11.0),
-    # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
-    "two-way-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
-    # a half turn of radius 20 m (inner lane): 0.247 rad; the lanes' 20 m/s limit (highway-env's default) caps IDM
-    "u-turn-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 24.0, 10.0),
-    # tightest turn radius 15 m: 0.326 rad; speed limit 10 m/s
-    "racetrack-v0": Profile(_curve_bounds(0.4), (-0.6, 0.6), 10.0, 30.0),
-    # right turn of radius 9 m: 0.524 rad; target: the top of its target_speeds (9 m/s)
-    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 13.0),
-}
-SUPPORTED = tuple(PROFILES)  # highway-env's ids, what wrap(gym.make(ID)) takes
-# racetrack-v0's duration (300 s) is shortened to 30 s for bimp: its step limit is the registration's.
-
-# The suite's families in the same table, keyed by their ID (registered as bimp/ID): each family class carries its
-# numbers, so a new family adds no line here (bimp.envs.suite.family.Family).
-PROFILES.update({cls.ID: Profile(cls.BOUNDS, cls.ACTUATOR_STEER, cls.TARGET_SPEED, cls.DURATION,
-                                 overtake=cls.OVERTAKE) for cls in FAMILIES.values()})
 # The env class behind every key of PROFILES: highway-env's (fixed.HIGHWAY_CLASSES) and the families'.
 ENV_CLASSES: dict[str, type] = {**HIGHWAY_CLASSES, **{cls.ID: cls for cls in FAMILIES.values()}}
 
@@ -300,8 +246,10 @@ class HighwayAdapter(gym.Wrapper):
         self._speeds: dict[int, float] = {}
         self._accels: dict[int, float] = {}
         self._ended = False
+        self._routes, self._shifted = RouteCache(), (None, 0.0, None)
         self.behaviour.decide(0.0)
         self._publish()
+        self._ev_s = float(self.scene.road.project(np.array(base.vehicle.position, float)).s)  # as _measure sets it
 
     def step(self, action):
         if self._ended:
@@ -316,8 +264,9 @@ class HighwayAdapter(gym.Wrapper):
         _, reward, terminated, truncated, info = self.env.step(np.clip(action, -1, 1).astype(np.float32))
         # Progress on the road the EV drove along this step (the scene before it): the republished roads differ.
         # Projected on a window of it about the EV: a looping road (racetrack) passes near itself within 250 m.
-        local = road_before.window(float(road_before.project(before).s) - 20.0, 81, 1.0)
-        self.progress += float(local.project(np.array(ev.position, float)).s - local.project(before).s)
+        local = road_before.window(self._ev_s - 20.0, 81, 1.0)
+        s_before, s_after = local.project(np.stack([before, np.array(ev.position, float)])).s
+        self.progress += float(s_after - s_before)
         self._accels = {id(v): (float(v.speed) - self._speeds[id(v)]) / self.dt
                         for v in self._others() if id(v) in self._speeds}
         self.behaviour.decide(self.dt)
@@ -338,19 +287,18 @@ class HighwayAdapter(gym.Wrapper):
     def _publish(self) -> None:
         base = self.env.unwrapped
         ev = base.vehicle
-        network = base.road.network
         route = getattr(ev, "route", None) or self.behaviour.route
-        road, _ = build_route(network, self._route_lane(ev, route), ev.position, route)
+        road, at = self._routes.get(base.road.network, self._route_lane(ev, route), ev.position, route)
         # Headings are continuous along the route; shift them by whole turns to the EV's own (unwrapped) heading.
-        turns = np.round((ev.heading - float(road.project(np.array(ev.position, float)).heading)) / (2 * np.pi))
-        if turns:
-            road = Route(xy=road.xy, s=road.s, heading=road.heading + 2 * np.pi * turns, curvature=road.curvature,
-                         left=road.left, right=road.right)
+        turns = float(np.round((ev.heading - float(road.heading[at])) / (2 * np.pi)))
+        if road is not self._shifted[0] or turns != self._shifted[1]:
+            shifted = road if not turns else Route(xy=road.xy, s=road.s, heading=road.heading + 2 * np.pi * turns,
+                                                   curvature=road.curvature, left=road.left, right=road.right)
+            self._shifted = (road, turns, shifted)
         p = self.profile
-        base.scene = Scene(road=road, bounds=p.bounds, dt=self.dt, vehicle_length=VEHICLE_LENGTH,
+        base.scene = Scene(road=self._shifted[2], bounds=p.bounds, dt=self.dt, vehicle_length=VEHICLE_LENGTH,
                            vehicle_width=VEHICLE_WIDTH, actuator_accel=tuple(base.action_type.acceleration_range),
                            actuator_steer=tuple(base.action_type.steering_range), n_obstacles=self.n_obstacles)
-        self._cache = None
 
     def _route_lane(self, ev, route):
         """The EV's lane on its route: highway-env's closest lane, unless that lane's road is off the route and a
@@ -422,27 +370,38 @@ class HighwayAdapter(gym.Wrapper):
 
     def reference(self) -> np.ndarray:
         """``[v_ref m/s, a_ref m/s^2, l_ref m]`` (module docstring)."""
-        base, scene = self.env.unwrapped, self.scene
-        ev = base.vehicle
-        lane = base.road.network.get_lane(self.behaviour.target_lane_index)
-        s_t, _ = lane.local_coordinates(ev.position)
-        p = scene.road.project(np.array(lane.position(s_t, 0.0), float))
-        half = scene.vehicle_width / 2
-        e = scene.road.project(np.array(ev.position, float))
-        l_ref = float(np.clip(p.l, e.left + half, e.right - half)) if e.right - e.left > 2 * half else 0.0
-        a_ref = float(np.clip(self.behaviour.action["acceleration"], *scene.bounds.accel))
-        return np.array([max(float(ev.speed), 0.0), a_ref, l_ref])
+        return self._reference(self.scene.road.project(np.stack([self._ev_state()[:2], self._abreast()])))
+
+    def _abreast(self) -> np.ndarray:
+        """The point ``(2,)`` of MOBIL's target lane's centre abreast of the EV."""
+        ev = self.env.unwrapped.vehicle
+        lane = self.env.unwrapped.road.network.get_lane(self.behaviour.target_lane_index)
+        return np.asarray(lane.position(lane.local_coordinates(ev.position)[0], 0.0), float)
+
+    def _reference(self, p) -> np.ndarray:
+        """:meth:`reference` from the projections ``p`` of the EV's position (first) and :meth:`_abreast` (second)."""
+        half = self.scene.vehicle_width / 2
+        e_left, e_right = float(p.left[0]), float(p.right[0])
+        l_ref = float(np.clip(p.l[1], e_left + half, e_right - half)) if e_right - e_left > 2 * half else 0.0
+        a_ref = float(np.clip(self.behaviour.action["acceleration"], *self.scene.bounds.accel))
+        return np.array([max(float(self.env.unwrapped.vehicle.speed), 0.0), a_ref, l_ref])
 
     def _ev_state(self) -> np.ndarray:
         ev = self.env.unwrapped.vehicle
         return np.array([*ev.position, ev.heading, ev.speed], float)
 
     def _measure(self) -> tuple[np.ndarray, dict]:
-        """The observation and bimp's safety ``info`` of the current state, from one reading of the traffic and the
-        reference."""
+        """The observation and bimp's safety ``info`` of the current state, from one reading of the traffic and one
+        projection on the route of every point they need: the EV, the reference lane abreast, the EV's body corners
+        and the OVs in the slots (rows ``0``, ``1``, ``2:6``, ``6:``)."""
         rows, crashed = self._rows()
-        ref = self.reference()
-        return self._observe(rows, ref), self._safety(rows, ref, crashed)
+        state = self._ev_state()
+        corners = body_corners(state[:2], state[2], VEHICLE_LENGTH, VEHICLE_WIDTH)
+        p = self.scene.road.project(np.vstack([state[None, :2], self._abreast()[None], corners,
+                                               rows[:self.n_obstacles, 1:3]]))
+        self._ev_s = float(p.s[0])  # where the next step's progress starts
+        ref = self._reference(p)
+        return self._observe(rows, ref), self._safety(rows, ref, crashed, p)
 
     def _observe(self, rows: np.ndarray, ref: np.ndarray) -> np.ndarray:
         ovs = np.zeros((self.n_obstacles, len(OV_FIELDS)))
@@ -450,18 +409,26 @@ class HighwayAdapter(gym.Wrapper):
         obs = join_obs(self._ev_state(), self.last_input, ovs, ref)
         return np.clip(obs, -OBS_BOUND, OBS_BOUND).astype(np.float32)
 
-    def _safety(self, rows: np.ndarray, ref: np.ndarray, crashed: np.ndarray) -> dict:
+    def _safety(self, rows: np.ndarray, ref: np.ndarray, crashed: np.ndarray, p) -> dict:
         base, scene = self.env.unwrapped, self.scene
         ev = base.vehicle
         state = self._ev_state()
-        gaps_all = scene.ov_gaps(state, rows) if len(rows) else np.zeros(0)
+        # Footprint gaps of the slots, of any vehicle near enough to touch (centres within the two half-diagonals)
+        # and, once highway-env has crashed the EV, of all (the contact may be one it pushed apart).
+        gaps_all = np.full(len(rows), np.inf)
+        near = np.hypot(*(rows[:, 1:3] - state[:2]).T) <= np.hypot(VEHICLE_LENGTH, VEHICLE_WIDTH) + 1e-6
+        near[:self.n_obstacles] = True
+        if ev.crashed:
+            near[:] = True
+        if near.any():
+            gaps_all[near] = scene.ov_gaps(state, rows[near])
         gaps = np.full(self.n_obstacles, np.inf)
         gaps[:min(len(rows), self.n_obstacles)] = gaps_all[:self.n_obstacles]
-        edge = float(scene.edge_distance(state))
-        e = scene.road.project(state[:2])
+        edge = float(np.minimum(p.right[2:6] - p.l[2:6], p.l[2:6] - p.left[2:6]).min())  # Route.edge_distance's
+        e = Projection(*(field[0] for field in p))
         slots = rows[:self.n_obstacles]
         if len(slots):
-            o = scene.road.project(slots[:, 1:3])
+            o = Projection(*(field[6:] for field in p))
             ahead = (o.s > e.s) & (np.abs(o.l - e.l) < scene.vehicle_width + 0.5)
             closing = ev.speed - slots[:, 4] * np.cos(slots[:, 3] - o.heading)
             ttc = np.where(ahead & (closing > 1e-6), np.maximum(gaps[:len(slots)], 0.0) / np.maximum(closing, 1e-6),

@@ -187,3 +187,55 @@ def route_from(route, index):
         if tuple(step[:2]) == tuple(index[:2]):
             return list(route[k:])
     return None
+
+
+SLACK = 100.0  # m: a kept route reaches this far past AHEAD, so it serves about SLACK m of driving between builds
+
+
+class RouteCache:
+    """The EV's :func:`build_route`, built ``slack`` m longer than ``ahead`` and kept while it serves: rebuilt only
+    when the EV's lane sequence changes (its lane is not one the kept route walks, or the planned route from its
+    road on differs), when less than ``ahead`` m of the kept route lies ahead of the EV or the EV is behind where it
+    was built, and on a new network (a reset). A build costs milliseconds, the check microseconds."""
+
+    def __init__(self, behind: float = BEHIND, ahead: float = AHEAD, slack: float = SLACK, spacing: float = SPACING):
+        if not (behind >= 0 and ahead > 0 and slack >= 0 and spacing > 0):
+            raise ValueError(f"a route cache needs behind >= 0, ahead > 0, slack >= 0, spacing > 0 (m), got "
+                             f"{behind}, {ahead}, {slack}, {spacing}")
+        self.behind, self.ahead, self.slack, self.spacing = behind, ahead, slack, spacing
+        self.builds = 0
+        self._network = self._route = self._plan = None
+        self._points: dict[tuple, np.ndarray] = {}
+        self._s_built = 0.0
+
+    def get(self, network, index, position, route=None) -> tuple[Route, int]:
+        """The route along lane ``index`` through ``position (2,)`` (:func:`build_route`'s arguments) and the index
+        of its point nearest to ``position`` among lane ``index``'s points."""
+        position = np.asarray(position, float)
+        at = self._serves(network, index, position, route)
+        if at is None:
+            self._route, lanes = build_route(network, index, position, route, self.behind, self.ahead + self.slack,
+                                             self.spacing)
+            self._network, self._plan, self.builds = network, list(route) if route else None, self.builds + 1
+            self._points = {}
+            for k, lane in enumerate(lanes):
+                self._points.setdefault(lane, []).append(k)
+            self._points = {lane: np.array(ks) for lane, ks in self._points.items()}
+            at = self._nearest(index, position)
+            self._s_built = float(self._route.s[at])
+        return self._route, at
+
+    def _nearest(self, index, position: np.ndarray) -> int:
+        points = self._points[index]
+        return int(points[np.argmin(((self._route.xy[points] - position) ** 2).sum(-1))])
+
+    def _serves(self, network, index, position: np.ndarray, route) -> int | None:
+        """The EV's point on the kept route where that route still serves, else None."""
+        if (self._route is None or network is not self._network or index not in self._points
+                or route_from(self._plan, index) != route_from(route, index)):
+            return None
+        at = self._nearest(index, position)
+        s = self._route.s
+        if s[at] < self._s_built - self.spacing or s[-1] - s[at] < self.ahead:
+            return None
+        return at

@@ -17,7 +17,7 @@ A family is a highway-env env class (a subclass of one of highway-env's, as exit
   ``vehicles_count``, ``vehicles_density`` ...) refused as unknown, so that no key is silently ignored;
 - the draws from the env's own ``np_random`` (seeded by ``reset(seed=...)``), recorded in ``drawn_params`` as the
   paper's envs record theirs (the evaluation's records carry them);
-- what the adapter needs per family (:mod:`bimp.envs.highway.adapter`'s ``Profile``): ``BOUNDS``,
+- what the adapter needs per family (:mod:`bimp.envs.highway.profiles`'s ``Profile``): ``BOUNDS``,
   ``ACTUATOR_STEER``, ``TARGET_SPEED``, ``DURATION``, ``OVERTAKE``, so that a family is one module plus one entry
   in the suite's table (:data:`bimp.envs.suite.FAMILIES`).
 """

@@ -72,13 +72,18 @@ def test_highway_report_lists_point_and_sweeps():
 
 
 def test_highway_observations_pair_each_observation_with_its_scene():
-    """The wrapped env republishes its scene (the road from 30 m behind the EV) every step: each recorded
-    observation comes with the scene that was current then, so the EV sits 30 m along that scene's road."""
+    """The wrapped env republishes its scene (a road from at least 30 m behind the EV to at least 250 m ahead,
+    kept while it serves) every step: each recorded observation comes with the scene that was current then, so the
+    EV sits within that scene's road."""
+    from bimp.envs.highway.lanes import AHEAD, BEHIND, SLACK
+
     pairs = bench.highway_observations("highway-fast-v0", 4, 2)
     assert len(pairs) == 4 and len({id(scene) for _, scene in pairs}) == 4
     for obs, scene in pairs:
         assert obs.shape == (scene.obs_dim,) and scene.n_obstacles == 2
-        assert abs(float(scene.road.project(np.asarray(obs[:2], float)).s) - float(scene.road.s[0]) - 30.0) < 1.0
+        along = float(scene.road.project(np.asarray(obs[:2], float)).s)
+        assert BEHIND - 1.0 < along - float(scene.road.s[0]) < BEHIND + SLACK + 1.0
+        assert float(scene.road.s[-1]) - along > AHEAD - 1.0
 
 
 @pytest.mark.slow
@@ -118,6 +123,12 @@ def test_env_bench_times_both_cores_on_the_same_steps_and_writes_json_and_markdo
         for core in bench_env.CORES:
             assert len(row[core]["round_s"]) == 1 and row[core]["steps_per_s"] > 0
         assert row["ratio"] == row["fast"]["steps_per_s"] / row["highway-env"]["steps_per_s"]
+    # The adapter's share: timed under the adapter only (the paper's envs and a plain highway-env env have none).
+    adapter = result["scenarios"]["highway-fast-v0"]["adapter_ms"]
+    assert 0 < adapter < 1e3 / result["scenarios"]["highway-fast-v0"]["fast"]["steps_per_s"]
+    assert result["scenarios"]["emergency-brake"]["adapter_ms"] is None
+    assert result["scenarios"]["plain:highway-v0"]["adapter_ms"] is None
+    assert result["adapter_ms_max"] == adapter
     assert "| highway-fast-v0 |" in out.with_suffix(".md").read_text()
     assert bench.main(["--env", "no-such-road"]) == 2
     assert "unknown scenario" in capsys.readouterr().err
