@@ -52,7 +52,7 @@ import gymnasium as gym
 from bimp import envs
 from bimp.agents import bench_env
 from bimp.agents.backends import one_thread
-from bimp.agents.cli import EvaluationError, check_out_dir
+from bimp.agents.errors import EvaluationError, check_out_dir
 from bimp.agents.records import write_atomic
 from bimp.agents.registry import POLICIES, make_policy
 from bimp.agents.rollout import rollout

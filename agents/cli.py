@@ -2,7 +2,7 @@
 helpers the commands share (``--set``, ``--label``, the backend options, ``--out``).
 
 Modules load lazily so ``bimp --help`` stays instant and a command pulls in only what it uses: this module imports
-nothing heavy and no other module of bimp at its top.
+nothing heavy and, of bimp, only :mod:`bimp.agents.errors` (what every command raises and checks) at its top.
 """
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ import importlib
 import os
 import sys
 import tempfile
-from pathlib import Path
+
+# Re-exported: what the commands raise and check lives where the library can import it (bimp.agents.errors).
+from bimp.agents.errors import EvaluationError, check_out_dir, parse_labels, parse_overrides  # noqa: F401
 
 COMMANDS = {
     "demo": ("bimp.agents.demo", "small evaluation of both scenarios and planners, with table and figures"),
@@ -26,6 +28,7 @@ COMMANDS = {
     "frontier": ("bimp.agents.sweep:frontier_main", "success and violations against plan time, across N / iterations"),
     "tune": ("bimp.agents.tune", "tune a policy's config with Optuna on training seeds (best to configs/tuned/)"),
     "bench": ("bimp.agents.bench", "plan-step timing of the planners, side by side"),
+    "report": ("bimp.agents.report", "render the README's and the docs' results tables from the committed folders"),
     "verify": ("bimp.agents.verify", "rerun a sample of each arm's seeds at the current code, compare every metric"),
     "migrate": ("bimp.agents.migrate", "turn evaluation folders of older code into ones the current code resumes"),
     "drop": ("bimp.agents.drop", "take a scenario's or a label's records out of an evaluation folder"),
@@ -33,11 +36,6 @@ COMMANDS = {
     "train-dynamics": ("bimp.planners.dynamics_train", "train the MLP vehicle model and print its accuracy"),
     "train-rl": ("bimp.agents.rl", "train the stable-baselines3 baseline"),
 }
-
-
-class EvaluationError(ValueError):
-    """A request that cannot be run as given (unknown name, bad override, a label's config conflict, an unusable
-    folder): every command reports it in one line and exits with status 2, before anything is written."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,40 +70,6 @@ def add_set_argument(parser: argparse.ArgumentParser,
                         metavar="POLICY.KEY=VALUE", help=help)
 
 
-def parse_overrides(pairs: list[str]) -> dict:
-    """``POLICY.KEY=VALUE`` (VALUE read as YAML) -> ``{policy: {key: value}}``; EvaluationError naming the pair."""
-    import yaml  # heavy for `bimp --help`, which never parses a value
-
-    result: dict[str, dict] = {}
-    for pair in pairs:
-        name, eq, value = pair.partition("=")
-        policy, dot, key = name.partition(".")
-        if not (eq and dot and policy and key):
-            raise EvaluationError(f"--set expects POLICY.KEY=VALUE, got {pair!r}")
-        if key in result.get(policy, {}):
-            raise EvaluationError(f"--set gives {policy}.{key} twice")
-        try:
-            result.setdefault(policy, {})[key] = yaml.safe_load(value)
-        except yaml.YAMLError as err:
-            raise EvaluationError(f"--set {pair!r}: the value is not valid YAML ({err})") from None
-    return result
-
-
-def parse_labels(items: list[str], policies: list[str]) -> dict:
-    """``--label NAME`` (one policy) or ``POLICY=NAME`` per policy -> ``{policy: label}``."""
-    labels = {}
-    for item in items:
-        policy, eq, name = item.rpartition("=")
-        if not eq:
-            if len(policies) != 1:
-                raise EvaluationError(f"--label {item!r} is ambiguous with several policies: use POLICY=NAME")
-            policy, name = policies[0], item
-        if not name or "/" in name:
-            raise EvaluationError(f"--label {item!r}: a label is a non-empty name without '/'")
-        labels[policy] = name
-    return labels
-
-
 def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
     """``--backend``, ``--address``, ``--ray-cpus`` (read back by :func:`backend_options`)."""
     parser.add_argument("--backend", default="local", help="where the episodes run: local (a process pool of "
@@ -119,28 +83,6 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
 def backend_options(args: argparse.Namespace) -> dict:
     """The keyword arguments of ``evaluate`` (and of what calls it) that :func:`add_backend_arguments` parsed."""
     return {"backend": args.backend, "address": args.address, "ray_cpus": args.ray_cpus}
-
-
-def check_out_dir(out: str | Path, create: bool = True, flag: str = "--out") -> Path:
-    """``out`` as a folder a command can write into (made, with its parents, when ``create``), or
-    :class:`EvaluationError` in one line naming it (as ``flag``): empty (``--out ""`` would write into the current
-    folder), an existing file, a path under a file, or a folder this user cannot write. ``create=False`` checks
-    without writing anything, so a command can refuse before its first episode."""
-    if not str(out).strip():
-        raise EvaluationError(f"{flag} is empty: name the folder to write into")
-    out = Path(out)
-    existing = next(p for p in (out, *out.parents) if p.exists() or p == Path(p.anchor or "."))
-    if not existing.is_dir():
-        where = "is a file" if existing == out else f"lies under {existing}, a file"
-        raise EvaluationError(f"{flag} {out} {where}, not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise EvaluationError(f"{flag} {out}: {existing} is not writable")
-    if create:
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as err:  # what the checks above cannot see (a full disk, a race)
-            raise EvaluationError(f"{flag} {out}: cannot create it ({err.strerror or err})") from None
-    return out
 
 
 if __name__ == "__main__":

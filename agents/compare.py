@@ -18,7 +18,7 @@ import json
 import sys
 from pathlib import Path
 
-from bimp.agents.cli import EvaluationError
+from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import BINARY, METRICS, code_version
 from bimp.agents.records import latest_records, read_records, record_label, write_atomic
 from bimp.agents.stats import mcnemar_exact, paired_bootstrap

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from bimp import envs
-from bimp.agents.cli import EvaluationError
+from bimp.agents.errors import EvaluationError
 from bimp.agents.evaluate import evaluate
 from bimp.agents.plots import plot_all, render_episode
 from bimp.agents.records import format_stat

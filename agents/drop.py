@@ -28,7 +28,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from bimp.agents.cli import EvaluationError
+from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import summarize
 from bimp.agents.records import (
     EPISODES_FILE,

@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bimp.agents.cli import EvaluationError, check_out_dir
 from bimp.agents.compare import compare
+from bimp.agents.errors import EvaluationError, check_out_dir
 from bimp.agents.metrics import code_version, summarize
 from bimp.agents.records import (
     finite,

@@ -29,8 +29,8 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-from bimp.agents.cli import EvaluationError
 from bimp.agents.drop import check_names, matching
+from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import summarize
 from bimp.agents.provenance import config_hash
 from bimp.agents.records import (

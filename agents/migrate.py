@@ -52,7 +52,7 @@ from pathlib import Path
 import gymnasium as gym
 
 from bimp import envs
-from bimp.agents.cli import EvaluationError
+from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import record_label, record_missed_goal
 from bimp.agents.provenance import REPO_ROOT, config_diff, config_hash, neutral_config, plain, resolved_config
 from bimp.agents.records import (

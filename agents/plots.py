@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bimp import envs  # noqa: E402
-from bimp.agents.cli import EvaluationError, check_out_dir  # noqa: E402
+from bimp.agents.errors import EvaluationError, check_out_dir  # noqa: E402
 from bimp.agents.records import EPISODES_FILE, numbered_records, record_label, write_figure  # noqa: E402
 from bimp.agents.registry import make_policy, policy_color, policy_label  # noqa: E402
 from bimp.agents.rollout import rollout  # noqa: E402

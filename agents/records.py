@@ -28,7 +28,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from bimp.agents.cli import EvaluationError
+from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import BINARY, METRICS, record_label
 from bimp.agents.record_check import (
     MAX_DEPTH,

@@ -14,7 +14,7 @@ import functools
 import subprocess
 from pathlib import Path
 
-from bimp.agents.cli import EvaluationError
+from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import code_version, record_label
 from bimp.agents.provenance import CODE_PATHS, REPO_ROOT
 from bimp.agents.provenance import code_version as running_code

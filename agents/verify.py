@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bimp.agents.cli import EvaluationError
+from bimp.agents.errors import EvaluationError
 from bimp.agents.evaluate import evaluate, resolve_arms
 from bimp.agents.metrics import BINARY, record_label
 from bimp.agents.metrics import code_version as code_version_of
