@@ -1,0 +1,222 @@
+"""``bimp report``: the results tables of the README and the manual, rendered from the committed folders.
+
+A table lives in a markdown file between two markers, its name in the first::
+
+    <!-- report: suite -->
+    (rendered: never edited by hand)
+    <!-- /report -->
+
+    bimp report                      # rewrite every block of README.md and docs/*.md from results/
+    bimp report --check              # write nothing; exit 1 naming each block that differs from its folders
+    bimp report docs/suite.md        # only these files
+
+Every number a reader sees in such a table comes from the records of its folders (``episodes.jsonl``: the latest
+record per seed, :func:`bimp.agents.records.latest_records`), through the same statistics as ``bimp evaluate``'s
+summary (:func:`bimp.agents.metrics.summarize`), ``bimp aggregate`` and ``bimp leaderboard``. Arms of a learning
+algorithm's training seeds (labels ``NAME-s1``, ``NAME-s2``, ...) are one column: the mean over the seeds, with
+the range of the seeds' own values. A table whose arms were made at more than one code version marks with ``†``
+each arm that ``bimp verify`` did not find the same at a later one, and the command names them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bimp.agents.errors import EvaluationError
+from bimp.agents.leaderboard import leaderboard
+from bimp.agents.metrics import code_version, record_label, summarize
+from bimp.agents.provenance import REPO_ROOT
+from bimp.agents.records import format_stat, latest_records, read_records, write_atomic
+from bimp.agents.verification import arm_key, read_verified
+
+BLOCK = re.compile(r"(<!-- report: ([\w-]+) -->\n)(.*?)(<!-- /report -->)", re.S)
+SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
+MARK = "†"
+NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",
+         "lane-keep": "lane keeping", "ppo": "PPO", "sac": "SAC"}
+
+
+@dataclass
+class Arm:
+    """A column's records on one scenario: one label, or a learning algorithm's training seeds (``runs``)."""
+
+    scenario: str
+    column: str
+    runs: dict[str, list[dict]]  # label -> its latest ok records
+    marked: list[str]  # the labels made at an unverified older code version (see the module doc)
+
+
+def _arms(folders: list[Path]) -> list[Arm]:
+    """The arms of ``folders`` grouped by scenario and column, marked where their code versions are mixed."""
+    grouped: dict[tuple[str, str], dict[str, list[dict]]] = {}
+    versions: dict[tuple[str, str], str] = {}  # (scenario, label) -> the code it stands for
+    verified_same: set[tuple[str, str]] = set()
+    for folder in folders:
+        verified = read_verified(folder)
+        for r in latest_records(read_records(folder)):
+            if r["status"] != "ok":
+                continue
+            label = record_label(r)
+            column = SEEDED.sub(r"\1", label)
+            grouped.setdefault((r["scenario"], column), {}).setdefault(label, []).append(r)
+            found = verified.get(arm_key(r["scenario"], label, r.get("config_hash")))
+            if found and found["outcome"] == "same" and code_version(r) in (found.get("versions") or ()):
+                verified_same.add((r["scenario"], label))
+                versions[(r["scenario"], label)] = found["commit"]
+            else:
+                versions.setdefault((r["scenario"], label), code_version(r))
+    mixed = len(set(versions.values())) > 1
+    return [Arm(scenario, column, runs, sorted(label for label in runs
+                                               if mixed and (scenario, label) not in verified_same))
+            for (scenario, column), runs in sorted(grouped.items())]
+
+
+def _column_name(column: str, runs: dict) -> str:
+    name = NAMES.get(column, column)
+    return f"{name} ({len(runs)} seeds)" if len(runs) > 1 and any(SEEDED.match(label) for label in runs) else name
+
+
+def _stat(arm: Arm, metric: str) -> dict | None:
+    """The arm's ``metric``: its summary statistic with its interval; over training seeds, the mean of the seeds'
+    means with their range as the interval."""
+    means = []
+    for label, records in arm.runs.items():
+        entry = summarize([{**r, "label": label} for r in records])[f"{label}/{arm.scenario}"].get(metric)
+        if not entry or entry.get("mean") is None:
+            return None
+        if len(arm.runs) == 1:
+            return entry
+        means.append(entry["mean"])
+    return {"mean": float(np.mean(means)), "ci_low": float(min(means)), "ci_high": float(max(means))}
+
+
+def _short(stat: dict | None, digits: int = 2) -> str:
+    if not stat or stat.get("mean") is None:
+        return "-"
+    return f"{stat['mean']:.{digits}f} [{stat['ci_low']:.{digits}f}, {stat['ci_high']:.{digits}f}]"
+
+
+def _mark(arm: Arm) -> str:
+    return MARK if arm.marked else ""
+
+
+def _footnote(arms: list[Arm]) -> list[str]:
+    marked = [a for a in arms if a.marked]
+    if not marked:
+        return []
+    return ["", f"{MARK} {len(marked)} of {len(arms)} cells: the table's arms were made at more than one code "
+            "version, and `bimp verify` has not found these the same at a later one (`bimp report` names them)."]
+
+
+def metrics_table(folders: list[Path]) -> tuple[str, list[Arm]]:
+    """A row per scenario and policy: episodes, success, collision, off road and progress, with their intervals
+    (Wilson 95% for rates, bootstrap of the mean for progress; over training seeds, the seeds' range)."""
+    arms = _arms(folders)
+    lines = ["| scenario | policy | episodes | success | collision | off road | progress [m] |",
+             "|---|---|---|---|---|---|---|"]
+    for a in arms:
+        counts = {len(records) for records in a.runs.values()}
+        episodes = f"{len(a.runs)} x {counts.pop()}" if len(a.runs) > 1 and len(counts) == 1 else \
+            str(sum(len(records) for records in a.runs.values()))
+        cells = [format_stat(_stat(a, m)) for m in ("success_rate", "collision_rate", "offroad_rate", "progress_m")]
+        lines.append(f"| {a.scenario} | {_column_name(a.column, a.runs)}{_mark(a)} | {episodes} | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines + _footnote(arms)), arms
+
+
+def grid_table(folders: list[Path], with_score: bool) -> tuple[str, list[Arm]]:
+    """A row per scenario, a column per policy: success (Wilson 95%; over training seeds their range) and, with
+    ``with_score``, the mean closed-loop score after a semicolon; ``-`` where a policy did not run."""
+    arms = _arms(folders)
+    columns = list(dict.fromkeys(a.column for a in arms))
+    by = {(a.scenario, a.column): a for a in arms}
+    runs = {a.column: a.runs for a in arms}
+    lines = ["| scenario | " + " | ".join(_column_name(c, runs[c]) for c in columns) + " |",
+             "|---|" + "---|" * len(columns)]
+    for scenario in sorted({a.scenario for a in arms}):
+        cells = []
+        for column in columns:
+            a = by.get((scenario, column))
+            if a is None:
+                cells.append("-")
+                continue
+            score = _stat(a, "score") if with_score else None
+            cells.append(_short(_stat(a, "success_rate")) + (f"; {score['mean']:.2f}" if score else "") + _mark(a))
+        lines.append(f"| {scenario} | " + " | ".join(cells) + " |")
+    return "\n".join(lines + _footnote(arms)), arms
+
+
+def overall_table(folder: Path) -> tuple[str, list[Arm]]:
+    """``bimp leaderboard``'s overall ranking of ``folder`` (every scenario weighted equally): rank, policy, score
+    and success with their stratified bootstrap intervals, the policies that ran every scenario."""
+    board = leaderboard([folder], metric="score", allow_mixed=True)["overall"]
+    lines = ["| rank | policy | score | success | episodes |", "|---|---|---|---|---|"]
+    for row in board["rows"]:
+        lines.append(f"| {row['rank']} | {NAMES.get(row['label'], row['label'])} | {_short(row['score'], 3)} | "
+                     f"{_short(row['success_rate'], 3)} | {row['episodes']} |")
+    return "\n".join(lines), []
+
+
+def _results(name: str) -> Path:
+    return REPO_ROOT / "results" / name
+
+
+TABLES: dict[str, Callable[[], tuple[str, list[Arm]]]] = {
+    "paper": lambda: metrics_table([_results("paper"), _results("peers"), _results("rl")]),
+    "highway": lambda: grid_table([_results("highway")], with_score=False),
+    "suite": lambda: grid_table([_results("suite")], with_score=True),
+    "suite-overall": lambda: overall_table(_results("suite")),
+}
+
+
+def render(text: str, tables: dict[str, Callable] = TABLES, cache: dict | None = None,
+           where: str = "text") -> tuple[str, list[str]]:
+    """``text`` with every report block rendered, and the marked arms' names (``where``: the file, for messages).
+    :class:`EvaluationError` naming a block of an unknown table."""
+    cache = {} if cache is None else cache
+    notes: list[str] = []
+
+    def block(match: re.Match) -> str:
+        name = match.group(2)
+        if name not in tables:
+            raise EvaluationError(f"{where}: a report block names table {name!r}; the tables: {', '.join(tables)}")
+        if name not in cache:
+            cache[name] = tables[name]()
+        table, arms = cache[name]
+        notes.extend(f"{where}: table {name}: {a.scenario} {label}: made at an older code version, not verified "
+                     "since" for a in arms for label in a.marked)
+        return match.group(1) + table + "\n" + match.group(4)
+
+    return BLOCK.sub(block, text), notes
+
+
+def default_files() -> list[Path]:
+    return [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").rglob("*.md"))]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("files", nargs="*", type=Path, help="markdown files (default: README.md and docs/)")
+    parser.add_argument("--check", action="store_true", help="write nothing; exit 1 where a block differs")
+    args = parser.parse_args(argv)
+    cache: dict = {}
+    stale = []
+    for path in args.files or default_files():
+        text = path.read_text()
+        rendered, notes = render(text, cache=cache, where=str(path))
+        for note in dict.fromkeys(notes):
+            print(f"bimp report: {note}", file=sys.stderr)
+        if rendered != text:
+            stale.append(path)
+            if not args.check:
+                write_atomic(path, rendered)
+    for path in stale:
+        print(f"{path}: {'differs from its folders (run bimp report)' if args.check else 'rendered'}")
+    return 1 if args.check and stale else 0
