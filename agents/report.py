@@ -37,6 +37,7 @@ from bimp.agents.records import format_stat, latest_records, read_records, write
 from bimp.agents.verification import arm_key, read_verified
 
 BLOCK = re.compile(r"(<!-- report: ([\w-]+) -->\n)(.*?)(<!-- /report -->)", re.S)
+BLOCK_NAMES = re.compile(r"<!-- report: ([\w-]+) -->")
 SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
 NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",
@@ -210,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     stale = []
     for path in args.files or default_files():
         text = path.read_text()
-        rendered, notes = render(text, cache=cache, where=str(path))
+        rendered, notes = render(text, TABLES, cache, where=str(path))
         for note in dict.fromkeys(notes):
             print(f"bimp report: {note}", file=sys.stderr)
         if rendered != text:

@@ -1,0 +1,89 @@
+"""``bimp report``: every results table of the README and the docs is what its folders render, and the rendering
+marks arms of mixed, unverified code versions."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bimp.agents import report
+from bimp.agents.errors import EvaluationError
+from bimp.agents.verification import arm_key
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_every_committed_table_is_what_its_folders_render(capsys):
+    """A hand edit of a rendered table, or a folder changed without `bimp report`, fails here."""
+    assert report.main(["--check"]) == 0, capsys.readouterr().out
+    rendered = {name for path in report.default_files() for name in report.BLOCK_NAMES.findall(path.read_text())}
+    assert set(report.TABLES) <= rendered  # every table is shown somewhere
+
+
+def _table(rows):
+    return lambda: ("| a |\n|---|\n" + "\n".join(f"| {r} |" for r in rows), [])
+
+
+def test_blocks_are_rendered_in_place_and_unknown_tables_refused():
+    text = "before\n<!-- report: t -->\nstale\n<!-- /report -->\nafter\n"
+    out, notes = report.render(text, {"t": _table([1, 2])})
+    assert out == "before\n<!-- report: t -->\n| a |\n|---|\n| 1 |\n| 2 |\n<!-- /report -->\nafter\n"
+    assert notes == [] and report.render(out, {"t": _table([1, 2])})[0] == out  # a fixed point
+    with pytest.raises(EvaluationError, match="names table 'nope'"):
+        report.render("<!-- report: nope -->\n<!-- /report -->", {"t": _table([])}, where="x.md")
+
+
+def test_check_writes_nothing_and_fails_where_a_block_differs(tmp_path, monkeypatch, capsys):
+    page = tmp_path / "page.md"
+    page.write_text("<!-- report: t -->\nold\n<!-- /report -->\n")
+    monkeypatch.setattr(report, "TABLES", {"t": _table(["new"])})
+    assert report.main(["--check", str(page)]) == 1
+    assert "old" in page.read_text() and "differs" in capsys.readouterr().out
+    assert report.main([str(page)]) == 0 and "| new |" in page.read_text()
+    assert report.main(["--check", str(page)]) == 0
+
+
+def _folder(tmp_path, commits: dict[str, str]) -> Path:
+    """Two arms of results/highway on highway-v0, each label's records stamped with ``commits[label]``."""
+    folder = tmp_path / "f"
+    folder.mkdir()
+    lines = []
+    for line in (ROOT / "results/highway/episodes.jsonl").read_text().splitlines():
+        r = json.loads(line)
+        if r["scenario"] == "highway-v0" and r["label"] in commits and r["status"] == "ok":
+            lines.append(json.dumps({**r, "git_commit": commits[r["label"]], "git_dirty": False}))
+    (folder / "episodes.jsonl").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def test_arms_of_mixed_unverified_code_versions_are_marked_and_named(tmp_path):
+    a, b = "a" * 40, "b" * 40
+    folder = _folder(tmp_path, {"idm": a, "lane-keep": b})
+    table, arms = report.grid_table([folder], with_score=False)
+    assert {(x.column, tuple(x.marked)) for x in arms} == {("idm", ("idm",)), ("lane-keep", ("lane-keep",))}
+    assert table.count(report.MARK) == 3 and "2 of 2 cells" in table  # two cells and the footnote
+    _, notes = report.render("<!-- report: g -->\n<!-- /report -->",
+                             {"g": lambda: report.grid_table([folder], with_score=False)}, where="p.md")
+    assert notes == ["p.md: table g: highway-v0 idm: made at an older code version, not verified since",
+                     "p.md: table g: highway-v0 lane-keep: made at an older code version, not verified since"]
+    # lane-keep found the same at the code idm was made at: one code version, nothing marked.
+    lane = next(json.loads(x) for x in (folder / "episodes.jsonl").read_text().splitlines()
+                if json.loads(x)["label"] == "lane-keep")
+    verified = {arm_key("highway-v0", "lane-keep", lane.get("config_hash")):
+                {"commit": a, "outcome": "same", "versions": [b], "dirty": False, "seeds": [1000]}}
+    (folder / "verified.json").write_text(json.dumps(verified))
+    table, arms = report.grid_table([folder], with_score=False)
+    assert all(not x.marked for x in arms) and report.MARK not in table
+
+
+def test_training_seeds_are_one_column_with_their_range(tmp_path):
+    table, arms = report.metrics_table([ROOT / "results/rl"])
+    ppo = next(x for x in arms if x.column == "ppo" and x.scenario == "overtaking")
+    assert sorted(ppo.runs) == ["ppo-s1", "ppo-s2", "ppo-s3"]
+    means = [report._stat(report.Arm("overtaking", "ppo", {k: v}, []), "success_rate")["mean"]
+             for k, v in ppo.runs.items()]
+    stat = report._stat(ppo, "success_rate")
+    assert stat["ci_low"] == min(means) and stat["ci_high"] == max(means)
+    assert "| overtaking | PPO (3 seeds)" in table and "3 x 200" in table
