@@ -82,6 +82,7 @@ N_OBSTACLES = 8
 _VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "scaling", "show_trajectories",
                         "render_agent", "offscreen_rendering", "manual_control", "real_time_rendering"})
 JUNCTION_MARGIN = 1.0  # m: see HighwayAdapter._corner_off_lanes
+PROGRESS_WINDOW = 80.0  # m of the road before a step about the EV (a quarter behind) that its progress is read on
 
 
 # The env class behind every key of PROFILES: highway-env's (fixed.HIGHWAY_CLASSES) and the families'.
@@ -262,16 +263,11 @@ class HighwayAdapter(gym.Wrapper):
         self.prev_input, self.last_input = self.last_input, self.scene.to_physical(action)
         self._speeds = {id(v): float(v.speed) for v in self._others()}
         _, reward, terminated, truncated, info = self.env.step(np.clip(action, -1, 1).astype(np.float32))
-        # Progress on the road the EV drove along this step (the scene before it): the republished roads differ.
-        # Projected on a window of it about the EV: a looping road (racetrack) passes near itself within 250 m.
-        local = road_before.window(self._ev_s - 20.0, 81, 1.0)
-        s_before, s_after = local.project(np.stack([before, np.array(ev.position, float)])).s
-        self.progress += float(s_after - s_before)
         self._accels = {id(v): (float(v.speed) - self._speeds[id(v)]) / self.dt
                         for v in self._others() if id(v) in self._speeds}
         self.behaviour.decide(self.dt)
         self._publish()
-        obs, safety = self._measure()
+        obs, safety = self._measure((road_before, before))
         terminated = bool(terminated or safety["collision"] or safety["offroad"] or bool(safety["goal"]))
         self._ended = terminated
         return obs, float(reward), terminated, bool(truncated), {**info, **safety}
@@ -390,15 +386,24 @@ class HighwayAdapter(gym.Wrapper):
         ev = self.env.unwrapped.vehicle
         return np.array([*ev.position, ev.heading, ev.speed], float)
 
-    def _measure(self) -> tuple[np.ndarray, dict]:
+    def _measure(self, stepped: tuple[Route, np.ndarray] | None = None) -> tuple[np.ndarray, dict]:
         """The observation and bimp's safety ``info`` of the current state, from one reading of the traffic and one
         projection on the route of every point they need: the EV, the reference lane abreast, the EV's body corners
-        and the OVs in the slots (rows ``0``, ``1``, ``2:6``, ``6:``)."""
+        and the OVs in the slots (rows ``0``, ``1``, ``2:6``, ``6:``). After a step, ``stepped``: the road before it
+        and the EV's position then, to add the step's progress along that road."""
         rows, crashed = self._rows()
         state = self._ev_state()
         corners = body_corners(state[:2], state[2], VEHICLE_LENGTH, VEHICLE_WIDTH)
         p = self.scene.road.project(np.vstack([state[None, :2], self._abreast()[None], corners,
                                                rows[:self.n_obstacles, 1:3]]))
+        if stepped is not None:
+            road_before, before = stepped
+            if road_before is self.scene.road and abs(float(p.s[0]) - self._ev_s) < PROGRESS_WINDOW / 2:
+                self.progress += float(p.s[0]) - self._ev_s  # the route kept: the EV's arc lengths on it
+            else:  # on a window of the road before about the EV (an EV far off it projects on any pass near it)
+                local = road_before.window(self._ev_s - PROGRESS_WINDOW / 4, int(PROGRESS_WINDOW) + 1, 1.0)
+                s_before, s_after = local.project(np.stack([before, state[:2]])).s
+                self.progress += float(s_after - s_before)
         self._ev_s = float(p.s[0])  # where the next step's progress starts
         ref = self._reference(p)
         return self._observe(rows, ref), self._safety(rows, ref, crashed, p)

@@ -190,6 +190,7 @@ def route_from(route, index):
 
 
 SLACK = 100.0  # m: a kept route reaches this far past AHEAD, so it serves about SLACK m of driving between builds
+SELF, LOOP = 2.0, 20.0  # m: a route within SELF m of itself LOOP m further along has come round (_once_round)
 
 
 class RouteCache:
@@ -214,8 +215,11 @@ class RouteCache:
         position = np.asarray(position, float)
         at = self._serves(network, index, position, route)
         if at is None:
-            self._route, lanes = build_route(network, index, position, route, self.behind, self.ahead + self.slack,
-                                             self.spacing)
+            self._route, lanes = _once_round(*build_route(network, index, position, route, self.behind,
+                                                          self.ahead + self.slack, self.spacing))
+            if self._route.s[-1] - self._route.s[0] < self.behind + self.ahead:  # a loop shorter than the slack
+                self._route, lanes = build_route(network, index, position, route, self.behind, self.ahead,
+                                                 self.spacing)
             self._network, self._plan, self.builds = network, list(route) if route else None, self.builds + 1
             self._points = {}
             for k, lane in enumerate(lanes):
@@ -239,3 +243,17 @@ class RouteCache:
         if s[at] < self._s_built - self.spacing or s[-1] - s[at] < self.ahead:
             return None
         return at
+
+
+def _once_round(route: Route, lanes: list) -> tuple[Route, list]:
+    """``route`` up to where it comes back onto itself (a loop: racetrack-v0's inner lane is about 345 m round,
+    less than a kept route's 380): a point more than ``LOOP`` m along it within ``SELF`` m of an earlier one. Past
+    there it would lie on itself, and a point on it would project on either pass."""
+    xy, s = route.xy, route.s
+    close = (np.hypot(*(xy[:, None, :] - xy[None, :, :]).T) < SELF) & (s[:, None] - s[None, :] > LOOP)
+    back = np.flatnonzero(close.any(axis=1))
+    if not len(back):
+        return route, lanes
+    k = int(back[0])
+    return Route(xy=xy[:k], s=s[:k], heading=route.heading[:k], curvature=route.curvature[:k],
+                 left=route.left[:k], right=route.right[:k]), lanes[:k]

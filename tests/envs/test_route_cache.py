@@ -10,7 +10,7 @@ import pytest
 import bimp  # noqa: F401  (registers bimp/ID)
 from bimp import make_policy
 from bimp.envs.highway.adapter import SUPPORTED
-from bimp.envs.highway.lanes import AHEAD, RouteCache, build_route
+from bimp.envs.highway.lanes import AHEAD, SLACK, RouteCache, build_route
 
 CURVED = {"roundabout-v0", "u-turn-v0", "racetrack-v0", "intersection-v0"}
 
@@ -30,6 +30,9 @@ def test_the_kept_route_is_the_fresh_route_where_a_planner_reads_it(highway_id):
         kept = base.scene.road
         s_ev = float(kept.project(np.array(ev.position, float)).s)
         assert kept.s[-1] - s_ev >= AHEAD - 1.0  # a planner's horizon ahead, always
+        # Never lying on itself (racetrack-v0 loops in about 345 m): points 20 m apart along it are 2 m apart or more.
+        gap = np.hypot(*(kept.xy[:, None, :] - kept.xy[None, :, :]).T)
+        assert gap[np.abs(kept.s[:, None] - kept.s[None, :]) > 20.0].min() > 2.0
         # Every fresh point from 20 m behind the EV to 200 m ahead (the planners' windows) lies on the kept route,
         # up to the chords' sag on a curve (1 m chords on radii >= 9 m: under 2 cm) and headed the same way.
         s_fresh = fresh.project(np.array(ev.position, float)).s
@@ -80,6 +83,23 @@ def test_the_cache_rebuilds_where_the_planned_route_changes():
     assert cache.builds == 1
     cache.get(network, index, position, other)
     assert cache.builds == 2
+
+
+def test_a_kept_route_never_comes_round_onto_itself():
+    """racetrack-v0's inner lane is about 345 m round: a kept route (380 m) from it is cut where it comes back."""
+    env = gym.make("bimp/racetrack-v0")
+    env.reset(seed=0)
+    network = env.unwrapped.road.network
+    cut = 0
+    for index in network.lanes_dict():
+        lane = network.get_lane(index)
+        position = lane.position(lane.length / 2, 0.0)
+        kept, at = RouteCache().get(network, index, position)
+        assert kept.s[-1] - kept.s[at] >= AHEAD
+        gap = np.hypot(*(kept.xy[:, None, :] - kept.xy[None, :, :]).T)
+        assert gap[np.abs(kept.s[:, None] - kept.s[None, :]) > 20.0].min() > 2.0, index
+        cut += kept.s[-1] < build_route(network, index, position, ahead=AHEAD + SLACK)[0].s[-1] - 1.0
+    assert cut >= 8  # the inner lane's routes, at least
 
 
 @pytest.mark.parametrize("bad", [{"behind": -1.0}, {"ahead": 0.0}, {"slack": -5.0}, {"spacing": 0.0},
