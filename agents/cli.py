@@ -34,7 +34,7 @@ COMMANDS = {
     "drop": ("bimp.agents.drop", "take a scenario's or a label's records out of an evaluation folder"),
     "merge": ("bimp.agents.merge", "copy evaluation folders' records into one (runs made apart, ranked as one)"),
     "train-dynamics": ("bimp.planners.dynamics_train", "train the MLP vehicle model and print its accuracy"),
-    "train-rl": ("bimp.agents.rl", "train the stable-baselines3 baseline"),
+    "train-rl": ("bimp.agents.rl_train", "train the stable-baselines3 baseline"),
 }
 
 

@@ -50,7 +50,7 @@ from bimp.agents.cli import (
 from bimp.agents.evaluate import DryRun, check_conflicts, evaluate, resolve_arms
 from bimp.agents.records import format_stat, numbered_records, write_atomic, write_figure, write_summary
 from bimp.agents.registry import is_policy_name, make_policy, policy_color, policy_label, policy_spec
-from bimp.agents.tune import TuneError, factory_kwargs, overrides_for
+from bimp.agents.tune_space import TuneError, factory_kwargs, overrides_for
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 

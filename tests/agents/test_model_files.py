@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from bimp import envs
-from bimp.agents import rl
+from bimp.agents import rl, rl_train
 from bimp.agents.cli import main as bimp
 from bimp.agents.records import read_arms, read_records, record_config
 from bimp.agents.registry import make_policy
@@ -187,7 +187,7 @@ def _sac_run(tmp_path) -> tuple[rl.RLConfig, Path]:
     cfg = rl.RLConfig(scenario="emergency-brake", algo="sac", timesteps=192, learning_starts=32, batch_size=16,
                       buffer_size=400, checkpoint_every=96, seed=2)
     out = tmp_path / "run"
-    rl.train(cfg, out, progress=False)
+    rl_train.train(cfg, out, progress=False)
     (out / cfg.model_name).unlink()
     (out / "train_time.json").unlink()
     for late in (out / "checkpoints").glob("*"):
@@ -201,13 +201,13 @@ def test_resume_reads_the_checkpoint_as_sb3_load_does_and_runs_no_code(tmp_path)
     from stable_baselines3.common.env_util import make_vec_env
 
     cfg, out = _sac_run(tmp_path)
-    checkpoint = rl._latest_checkpoint(out)[1]
-    buffer = rl._buffer_path(checkpoint)
+    checkpoint = rl_train._latest_checkpoint(out)[1]
+    buffer = rl.buffer_path(checkpoint)
     assert buffer.is_file() and not list(out.glob("checkpoints/*.pkl"))  # no pickle is written
 
     # the checkpoint's state, read the safe way, is what SB3's load (of our own file) restores
     venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=0, wrapper_class=envs.PlanningWrapper)
-    ours, theirs = rl._resume(cfg, venv, checkpoint), SAC.load(checkpoint, env=venv, device="cpu")
+    ours, theirs = rl_train._resume(cfg, venv, checkpoint), SAC.load(checkpoint, env=venv, device="cpu")
     assert ours.num_timesteps == theirs.num_timesteps == 96 and ours._n_updates == theirs._n_updates
     for name, state in theirs.get_parameters().items():
         mine = ours.get_parameters()[name]
@@ -226,28 +226,28 @@ def test_resume_reads_the_checkpoint_as_sb3_load_does_and_runs_no_code(tmp_path)
     marker = tmp_path / "marker"
     _rewrite(checkpoint, tmp_path / "evil.zip", data=_evil_data(checkpoint, marker)).replace(checkpoint)
     buffer.with_suffix(".pkl").write_bytes(pickle.dumps(Marker(marker)))
-    rl.train(cfg, out, progress=False)
+    rl_train.train(cfg, out, progress=False)
     assert not marker.exists()
     assert rl.read_model_file(out / cfg.model_name)[0]["num_timesteps"] == 192
 
 
 def test_a_crafted_or_missing_replay_buffer_is_refused_and_runs_no_code(tmp_path, capsys):
     cfg, out = _sac_run(tmp_path)
-    buffer = rl._buffer_path(rl._latest_checkpoint(out)[1])
+    buffer = rl.buffer_path(rl_train._latest_checkpoint(out)[1])
     marker = tmp_path / "marker"
     # an array of objects: np.save pickles it, np.load(allow_pickle=False) refuses it before unpickling
     with np.load(buffer) as saved:
         arrays = dict(saved)
     np.savez(buffer, **{**arrays, "observations": np.array([Marker(marker)], dtype=object)})
     with pytest.raises(ValueError, match=rf"{buffer} is not a replay buffer of this run.*allow_pickle"):
-        rl.train(cfg, out, progress=False)
+        rl_train.train(cfg, out, progress=False)
     assert not marker.exists()
     # through the command: one line, exit 2
     overrides = tmp_path / "overrides.yaml"
     overrides.write_text(json.dumps({k: v for k, v in dataclasses.asdict(cfg).items()
                                      if k not in ("scenario", "algo", "net_arch")}))
     with pytest.raises(SystemExit) as exit_:
-        rl.main(["--scenario", "emergency-brake", "--algo", "sac", "--config", str(overrides), "--out", str(out),
+        rl_train.main(["--scenario", "emergency-brake", "--algo", "sac", "--config", str(overrides), "--out", str(out),
                  "--no-progress"])
     assert exit_.value.code == 2 and "is not a replay buffer of this run" in capsys.readouterr().err
     assert not marker.exists()
@@ -255,12 +255,12 @@ def test_a_crafted_or_missing_replay_buffer_is_refused_and_runs_no_code(tmp_path
     buffer.unlink()
     buffer.with_suffix(".pkl").write_bytes(pickle.dumps(Marker(marker)))
     with pytest.raises(ValueError, match=r"replay_buffer_96_steps.pkl is a pickled one .*not read"):
-        rl.train(cfg, out, progress=False)
+        rl_train.train(cfg, out, progress=False)
     assert not marker.exists()
     # a buffer of another run's size is refused, naming the array
     np.savez(buffer, **{**arrays, "observations": arrays["observations"][:, :1]})
     with pytest.raises(ValueError, match=r"observations has shape \(47, 1, 21\), this run's buffer \(47, 2, 21\)"):
-        rl.train(cfg, out, progress=False)
+        rl_train.train(cfg, out, progress=False)
 
 
 def test_a_model_is_identified_by_its_content_not_where_it_lies(overtaking, tmp_path):

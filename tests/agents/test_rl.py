@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from bimp import envs
-from bimp.agents import rl
+from bimp.agents import rl, rl_train
 from bimp.agents.policy import Policy
 from bimp.agents.registry import make_policy
 from bimp.envs.wrappers import features, n_features
@@ -94,7 +94,7 @@ def test_policy_sees_what_training_saw(algo, scenario):
 @pytest.mark.parametrize(("algo", "scenario"), SHIPPED)
 def test_shipped_model_beats_the_zero_action(algo, scenario):
     env = gym.make(envs.env_id(scenario))
-    result = rl.compare_with_zero(env, make_policy(algo, env), EVAL_SEEDS)
+    result = rl_train.compare_with_zero(env, make_policy(algo, env), EVAL_SEEDS)
     env.close()
     ours, zero = result["policy"], result["zero"]
     # Fewer failures than the zero action (which runs into OV1 on every seed), not none: the shipped default
@@ -113,7 +113,7 @@ def test_short_training_writes_a_loadable_model(algo, tmp_path):
     overrides = {"ppo": "n_steps: 64\n", "sac": "learning_starts: 64\n"}[algo] + "checkpoint_every: 128\n"
     (tmp_path / "overrides.yaml").write_text(overrides)
     out = tmp_path / algo
-    code = rl.main(["--scenario", "emergency-brake", "--algo", algo, "--timesteps", "256", "--seed", "1",
+    code = rl_train.main(["--scenario", "emergency-brake", "--algo", algo, "--timesteps", "256", "--seed", "1",
                     "--config", str(tmp_path / "overrides.yaml"), "--out", str(out), "--eval-seeds", "1",
                     "--no-progress"])
     assert code == 0
@@ -144,7 +144,7 @@ def _untrained_model(scenario: str, tmp_path, meta: bool = True):
 
     cfg = rl.RLConfig(scenario=scenario, n_steps=64)
     venv = make_vec_env(cfg.env_id, n_envs=1, seed=0, wrapper_class=envs.PlanningWrapper)
-    model = rl.make_model(cfg, venv)
+    model = rl_train.make_model(cfg, venv)
     if meta:
         model.bimp = {"scenario": scenario, "algo": "ppo", "n_features": venv.observation_space.shape[0]}
     path = tmp_path / f"{scenario}{'' if meta else '_bare'}.zip"
@@ -175,7 +175,7 @@ def _logged_steps(out) -> int:
 def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_path):
     cfg = rl.RLConfig(scenario="emergency-brake", timesteps=1024, n_steps=64, checkpoint_every=256, seed=3)
     out = tmp_path / "run"
-    path = rl.train(cfg, out, progress=False)
+    path = rl_train.train(cfg, out, progress=False)
     assert _logged_steps(out) <= 1024
     # an interruption after the first checkpoint: the model, the time and the later checkpoints never written
     path.unlink()
@@ -183,8 +183,8 @@ def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_p
     for late in (out / "checkpoints").glob("*.zip"):
         if not late.name.endswith("_256_steps.zip"):
             late.unlink()
-    assert rl._latest_checkpoint(out)[0] == 256
-    rl.train(dataclasses.replace(cfg, vec_env="subproc"), out, progress=False)  # how it runs may change
+    assert rl_train._latest_checkpoint(out)[0] == 256
+    rl_train.train(dataclasses.replace(cfg, vec_env="subproc"), out, progress=False)  # how it runs may change
     assert rl.read_model_file(path)[0]["num_timesteps"] == 1024  # 768 more, not 1024 again
     assert json.loads((out / "train_time.json").read_text())["resumed_at"] == 256
     assert json.loads((out / "segments.json").read_text()) == [0, 256]
@@ -192,11 +192,11 @@ def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_p
     # the episodes the first segment played after its checkpoint are cut: every timestep is counted once
     assert _logged_steps(out) <= 1024
     with pytest.raises(ValueError, match="gamma: 0.99 there, 0.9 here"):
-        rl.train(dataclasses.replace(cfg, gamma=0.9), out, progress=False)
+        rl_train.train(dataclasses.replace(cfg, gamma=0.9), out, progress=False)
 
 
 def _fake_train(calls: list, fails: str = "never"):
-    """A stand-in for :func:`rl.train` that writes what a finished run leaves, and raises for scenario ``fails``."""
+    """A stand-in for :func:`rl_train.train`: writes what a finished run leaves, raises for scenario ``fails``."""
     def train(cfg, out, progress=True):
         calls.append((cfg.scenario, cfg.seed, out.name))
         if cfg.scenario == fails:
@@ -220,41 +220,41 @@ def _fake_train(calls: list, fails: str = "never"):
 ])
 def test_a_grid_is_refused_before_any_run_trains(tmp_path, monkeypatch, capsys, extra, message):
     calls = []
-    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    monkeypatch.setattr(rl_train, "train", _fake_train(calls))
     argv = ["--scenario", "emergency-brake", "overtaking", "--runs-dir", str(tmp_path), "--no-progress"]
     with pytest.raises(SystemExit) as exit_:
-        rl.main(argv + extra)
+        rl_train.main(argv + extra)
     assert exit_.value.code == 2 and message in capsys.readouterr().err
     assert calls == []
 
 
 def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, monkeypatch, capsys):
     calls = []
-    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    monkeypatch.setattr(rl_train, "train", _fake_train(calls))
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_:
-        rl.main(["--scenario", "overtaking", "--out", "", "--no-progress"])
+        rl_train.main(["--scenario", "overtaking", "--out", "", "--no-progress"])
     assert exit_.value.code == 2 and "--out is empty" in capsys.readouterr().err
     assert calls == [] and list(tmp_path.iterdir()) == []
 
 
 def test_a_grid_refuses_a_folder_of_another_run_before_the_first_trains(tmp_path, monkeypatch, capsys):
     calls = []
-    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    monkeypatch.setattr(rl_train, "train", _fake_train(calls))
     other = rl.RLConfig(scenario="overtaking", seed=2, timesteps=999)
-    (tmp_path / rl.run_name(other)).mkdir()
-    (tmp_path / rl.run_name(other) / "config.json").write_text(json.dumps(dataclasses.asdict(other)))
+    (tmp_path / rl_train.run_name(other)).mkdir()
+    (tmp_path / rl_train.run_name(other) / "config.json").write_text(json.dumps(dataclasses.asdict(other)))
     with pytest.raises(SystemExit):  # the second scenario's second seed: after three runs that would have trained
-        rl.main(["--scenario", "emergency-brake", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path)])
+        rl_train.main(["--scenario", "emergency-brake", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path)])
     assert "timesteps: 999 there, 150000 here" in capsys.readouterr().err
     assert calls == []
 
 
 def test_a_grid_trains_every_scenario_and_seed_and_a_failed_run_stops_no_other(tmp_path, monkeypatch, capsys):
     calls = []
-    monkeypatch.setattr(rl, "train", _fake_train(calls, fails="overtaking"))
-    code = rl.main(["--scenario", "overtaking", "emergency-brake", "--seed", "1", "2", "--runs-dir", str(tmp_path),
-                    "--eval-seeds", "0", "--no-progress"])
+    monkeypatch.setattr(rl_train, "train", _fake_train(calls, fails="overtaking"))
+    code = rl_train.main(["--scenario", "overtaking", "emergency-brake", "--seed", "1", "2", "--runs-dir",
+                          str(tmp_path), "--eval-seeds", "0", "--no-progress"])
     assert code == 1  # a failed run is not a success
     assert calls == [("overtaking", 1, "ppo_overtaking_s1"), ("overtaking", 2, "ppo_overtaking_s2"),
                      ("emergency-brake", 1, "ppo_emergency-brake_s1"), ("emergency-brake", 2, "ppo_emergency-brake_s2")]
@@ -268,14 +268,14 @@ def test_a_grid_of_real_runs_resumes_to_nothing(tmp_path, capsys):
     (tmp_path / "short.yaml").write_text("n_steps: 64\ncheckpoint_every: 0\n")
     argv = ["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
             str(tmp_path / "short.yaml"), "--runs-dir", str(tmp_path), "--eval-seeds", "1", "--no-progress"]
-    assert rl.main(argv) == 0
+    assert rl_train.main(argv) == 0
     first = {s: (tmp_path / f"ppo_emergency-brake_s{s}" / "train_time.json").read_text() for s in (1, 2)}
     assert capsys.readouterr().out.count("trained") == 2
     for s in (1, 2):
         model = tmp_path / f"ppo_emergency-brake_s{s}" / rl.model_name("ppo", "emergency-brake")
         assert rl.read_model_file(model)[0]["num_timesteps"] == 128
         assert (model.parent / "eval.json").is_file()
-    assert rl.main(argv) == 0
+    assert rl_train.main(argv) == 0
     assert {s: (tmp_path / f"ppo_emergency-brake_s{s}" / "train_time.json").read_text() for s in (1, 2)} == first
     assert capsys.readouterr().out.count("trained earlier") == 2
 
@@ -283,7 +283,7 @@ def test_a_grid_of_real_runs_resumes_to_nothing(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_grid_on_two_workers_trains_both_runs(tmp_path):
     (tmp_path / "short.yaml").write_text("n_steps: 64\ncheckpoint_every: 0\n")
-    assert rl.main(["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
+    assert rl_train.main(["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
                     str(tmp_path / "short.yaml"), "--runs-dir", str(tmp_path), "--workers", "2", "--eval-seeds",
                     "0", "--no-progress"]) == 0
     for s in (1, 2):
@@ -293,22 +293,22 @@ def test_a_grid_on_two_workers_trains_both_runs(tmp_path):
 
 def test_one_run_trains_in_this_process_into_its_default_folder(tmp_path, monkeypatch, capsys):
     calls = []
-    monkeypatch.setattr(rl, "train", _fake_train(calls))
+    monkeypatch.setattr(rl_train, "train", _fake_train(calls))
     monkeypatch.chdir(tmp_path)
     (tmp_path / "seeded.yaml").write_text("seed: 7\n")  # a seed from the file, none on the command line
-    assert rl.main(["--scenario", "overtaking", "--config", "seeded.yaml", "--eval-seeds", "0"]) == 0
+    assert rl_train.main(["--scenario", "overtaking", "--config", "seeded.yaml", "--eval-seeds", "0"]) == 0
     assert calls == [("overtaking", 7, "ppo_overtaking_s7")]
     assert (tmp_path / "runs/rl/ppo_overtaking_s7/train_time.json").is_file()
     assert "train wall time: 1.5 s" in capsys.readouterr().out
-    monkeypatch.setattr(rl, "train", _fake_train(calls, fails="overtaking"))
+    monkeypatch.setattr(rl_train, "train", _fake_train(calls, fails="overtaking"))
     with pytest.raises(RuntimeError):  # not a refusal: a bug in training is a traceback, as before
-        rl.main(["--scenario", "overtaking", "--eval-seeds", "0"])
+        rl_train.main(["--scenario", "overtaking", "--eval-seeds", "0"])
 
 
 def test_a_runs_dir_under_a_file_is_named_as_such(tmp_path, capsys):
     (tmp_path / "file").write_text("")
     with pytest.raises(SystemExit):
-        rl.main(["--scenario", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path / "file" / "runs")])
+        rl_train.main(["--scenario", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path / "file" / "runs")])
     assert f"--runs-dir {tmp_path / 'file' / 'runs'} lies under" in capsys.readouterr().err
 
 
@@ -321,10 +321,10 @@ def test_ray_gets_absolute_run_folders_and_a_dead_worker_fails_the_command(tmp_p
             for report in crashed(job, "the worker process running it died twice"):
                 write(report)
 
-    monkeypatch.setattr(rl, "start_backend", lambda *a: None)
-    monkeypatch.setattr(rl, "run_groups", fake_run_groups)
+    monkeypatch.setattr(rl_train, "start_backend", lambda *a: None)
+    monkeypatch.setattr(rl_train, "run_groups", fake_run_groups)
     monkeypatch.chdir(tmp_path)
-    code = rl.main(["--scenario", "overtaking", "--runs-dir", "rel", "--backend", "ray", "--address", "auto",
+    code = rl_train.main(["--scenario", "overtaking", "--runs-dir", "rel", "--backend", "ray", "--address", "auto",
                     "--no-progress"])
     assert code == 1 and "WorkerDied: the worker process running it died twice" in capsys.readouterr().out
     assert [job[1] for job in seen["jobs"]] == [str(tmp_path / "rel" / "ppo_overtaking_s0")]

@@ -68,7 +68,7 @@ def test_a_trial_retried_after_its_process_died_does_not_cost_the_study_a_trial(
     first = _run(tmp_path, 2)
     dead = first.ask()  # the killed process's trial: values drawn, a heartbeat recorded, never told
     for key, distribution in search_space("lane-keep").items():
-        tune_module._suggest(dead, key, distribution)
+        tune_module.suggest(dead, key, distribution)
     first._storage.record_heartbeat(dead._trial_id)
     time.sleep(3)  # past the grace
     study = _run(tmp_path, 4)
@@ -97,7 +97,7 @@ def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_
 def test_a_shipped_value_is_enqueued_only_where_the_space_could_have_drawn_it():
     from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 
-    from bimp.agents.tune import _contains
+    from bimp.agents.tune_space import _contains
 
     assert _contains(IntDistribution(1, 5), 3) and not _contains(IntDistribution(1, 5), True)
     assert _contains(FloatDistribution(0.0, 1.0, step=0.25), 0.5)

@@ -1,0 +1,482 @@
+"""Training the reinforcement-learning baseline (``bimp train-rl``): stable-baselines3 PPO or SAC on a bimp env.
+
+Training (``bimp train-rl``)::
+
+    bimp train-rl --scenario overtaking --algo ppo --timesteps 150000 --seed 0 --vec-env subproc
+
+writes ``{algo}_{scenario}.zip`` (the final model), ``checkpoints/``, ``*.monitor.csv``, ``curve.png`` (episode
+return vs timesteps), ``config.json`` and ``eval.json`` (a quick check against the zero action) to ``--out``
+(default ``runs/rl/{algo}_{scenario}_s{seed}``); a rerun into the same folder resumes from the latest
+checkpoint. Copy the model to ``agents/models/{algo}_{scenario}_s{seed}.zip`` to ship it; the shipped ones and
+how they were made: ``docs/rl.md``.
+
+Several runs at once, the grid of ``--scenario`` x ``--seed``, each in ``--runs-dir`` (default ``runs/rl``) under
+its default name, on a pool of ``--workers`` processes or a Ray cluster (the backends of ``bimp evaluate``)::
+
+    bimp train-rl --scenario cut-in-hard stalled-vehicle-hard --seed 1 2 3 --workers 2
+    bimp train-rl --scenario cut-in-hard stalled-vehicle-hard --seed 1 2 3 --backend ray --address HEAD:6379
+
+Every run's settings and folder are checked before the first trains; a run that fails is reported and the others
+go on; the same command again resumes each unfinished run from its checkpoints and trains no finished one again.
+Ray's workers write the runs' folders: on several machines ``--runs-dir`` must be a disk every node mounts.
+
+The policy that acts with a trained model, its config and the safe reading of model files:
+:mod:`bimp.agents.rl`.
+"""
+
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable, NoReturn
+
+import gymnasium as gym
+import numpy as np
+
+from bimp import envs
+from bimp.agents.backends import BackendError, check_backend, run_groups, start_backend
+from bimp.agents.baselines import ZeroAction
+from bimp.agents.cli import EvaluationError, add_backend_arguments, check_out_dir
+from bimp.agents.records import read_json, write_atomic, write_figure
+from bimp.agents.rl import (
+    ALGOS,
+    PPOFeaturePolicy,
+    RLConfig,
+    SACFeaturePolicy,
+    SB3Policy,
+    buffer_path,
+    error_brief,
+    load_buffer,
+    read_model_file,
+    save_buffer,
+    shipped_name,
+)
+from bimp.agents.rollout import rollout
+from bimp.configs import read_yaml
+from bimp.envs.wrappers import PlanningWrapper
+
+_EARLIER = "delete it to resume from an earlier checkpoint (or train into a new --out)"
+
+
+def _resume(cfg: RLConfig, venv, checkpoint: Path):
+    """The model of ``cfg`` on ``venv`` in the state of ``checkpoint`` (a ``CheckpointCallback`` zip), read
+    without unpickling: a fresh :func:`make_model`, then the checkpoint's state dicts (policy and optimizers),
+    variables (SAC's ``log_ent_coef``) and counters. What SB3's ``load`` restores beyond that is logging
+    (the recent episodes' returns) or settings ``cfg`` gives anyway. SAC: its replay buffer, :func:`load_buffer`."""
+    import torch
+    from stable_baselines3.common.save_util import recursive_getattr
+
+    data, state_dicts, variables = read_model_file(checkpoint, how=_EARLIER)
+    model = make_model(cfg, venv)
+    names, variable_names = model._get_torch_save_params()
+    if set(state_dicts) != set(names) or set(variables) != set(variable_names):
+        raise ValueError(f"{checkpoint} holds {sorted(state_dicts)} and {sorted(variables)}, not the "
+                         f"{cfg.algo.upper()} state {names} and {variable_names}; {_EARLIER}")
+    try:
+        model.set_parameters(state_dicts, exact_match=True, device="cpu")
+        with torch.no_grad():
+            for name in variable_names:  # in place: the entropy optimizer holds this very tensor
+                recursive_getattr(model, name).copy_(variables[name])
+        for counter in ("num_timesteps", "_n_updates", "_episode_num"):
+            setattr(model, counter, int(data[counter]))
+    except (ValueError, KeyError, RuntimeError, TypeError) as err:
+        raise ValueError(f"{checkpoint} does not fit this run ({error_brief(err)}); {_EARLIER}") from None
+    if cfg.algo == "sac":
+        load_buffer(model.replay_buffer, buffer_path(checkpoint))  # without it SAC learns from an empty buffer
+    return model
+
+
+# SB3's ReplayBuffer arrays, each (buffer_size // n_envs, n_envs, ...); next_observations is None when
+# optimize_memory_usage.
+def _checkpoint_callback(cfg: RLConfig, out: Path):
+    """SB3's ``CheckpointCallback`` every ``cfg.checkpoint_every`` timesteps, SAC's replay buffer written by
+    :func:`save_buffer` (no pickle) and before its checkpoint: a checkpoint on disk always has its buffer."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    class Checkpoints(CheckpointCallback):
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq == 0 and getattr(self.model, "replay_buffer", None) is not None:
+                checkpoint = Path(self._checkpoint_path(extension="zip"))
+                save_buffer(self.model.replay_buffer, buffer_path(checkpoint))
+            return super()._on_step()
+
+    return Checkpoints(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1), save_path=str(out / "checkpoints"),
+                       name_prefix=cfg.model_name.removesuffix(".zip"))
+
+
+# --- training ------------------------------------------------------------------------------------------
+def _progress_callback(total: int):
+    """A tqdm bar over timesteps with the mean return of the last episodes (SB3's own bar needs ``rich``)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm import tqdm
+
+    class TqdmCallback(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(total=total, unit="step", dynamic_ncols=True)
+            self.done = 0
+
+        def _on_step(self) -> bool:
+            # PPO rounds the total up to whole rollouts: keep the bar at its total.
+            now = min(self.num_timesteps, total)
+            self.bar.update(now - self.done)
+            self.done = now
+            episodes = self.model.ep_info_buffer
+            if episodes and self.n_calls % 50 == 0:
+                self.bar.set_postfix(ep_return=f"{np.mean([e['r'] for e in episodes]):.1f}", refresh=False)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return TqdmCallback()
+
+
+def make_model(cfg: RLConfig, venv):
+    """The SB3 model of ``cfg`` on the vectorized, wrapped envs ``venv``."""
+    common = dict(learning_rate=cfg.learning_rate, gamma=cfg.gamma, seed=cfg.seed, device="cpu", verbose=0,
+                  policy_kwargs=dict(net_arch=list(cfg.net_arch)))
+    if cfg.algo == "ppo":
+        from stable_baselines3 import PPO
+
+        return PPO(PPOFeaturePolicy, venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size or 64,
+                   n_epochs=cfg.n_epochs, gae_lambda=cfg.gae_lambda, ent_coef=cfg.ent_coef, **common)
+    from stable_baselines3 import SAC
+
+    return SAC(SACFeaturePolicy, venv, buffer_size=cfg.buffer_size, learning_starts=cfg.learning_starts,
+               batch_size=cfg.batch_size or 256, tau=cfg.tau, **common)
+
+
+def _latest_checkpoint(out: Path) -> tuple[int, Path | None]:
+    """``(timesteps, path)`` of the checkpoint with the most timesteps in ``out/checkpoints``
+    (``{name}_{steps}_steps.zip``); ``(0, None)`` when there is none."""
+    found = sorted((int(p.stem.split("_")[-2]), p) for p in (out / "checkpoints").glob("*_steps.zip"))
+    return found[-1] if found else (0, None)
+
+
+# Settings that change how a run is computed, not what it computes: a resume may change them.
+_RESUMABLE_CHANGES = ("vec_env", "checkpoint_every")
+
+
+def _check_same_run(cfg: RLConfig, out: Path) -> None:
+    """Refuse to write into ``out`` when it holds another configuration's run: results never mix."""
+    path = out / "config.json"
+    if not path.is_file():
+        return
+    before = read_json(path)
+    if not isinstance(before, dict):
+        raise EvaluationError(f"{path} is not a training run's config (not a JSON object): train into a new --out")
+    now = json.loads(json.dumps(asdict(cfg)))  # tuples as lists, as they were written
+    differ = sorted(k for k in set(before) | set(now)
+                    if before.get(k) != now.get(k) and k not in _RESUMABLE_CHANGES)
+    if differ:
+        changes = ", ".join(f"{k}: {before.get(k)!r} there, {now.get(k)!r} here" for k in differ)
+        raise ValueError(f"{out} holds a run with other settings ({changes}); choose another folder")
+
+
+def _monitor_files(out: Path) -> list[Path]:
+    return sorted(out.glob("*.monitor.csv"), key=lambda p: int(p.name.split(".")[0]))
+
+
+def _drop_replayed_episodes(out: Path, n_envs: int, segment_start: int, resume_at: int) -> None:
+    """Cut the interrupted segment's monitor logs back to the checkpoint a run resumes from: the steps after it
+    are played again by the resumed run, and would otherwise count twice in the curve. The envs step in lockstep,
+    so at the checkpoint each env had played ``(resume_at - segment_start) / n_envs`` of the segment's steps."""
+    budget = (resume_at - segment_start) / n_envs
+    for log in _monitor_files(out)[-n_envs:]:
+        lines = log.read_text().splitlines(keepends=True)
+        kept, steps = lines[:2], 0  # the JSON header and the column names (r,l,t)
+        for row in lines[2:]:
+            steps += int(row.split(",")[1])
+            if steps > budget:
+                break
+            kept.append(row)
+        write_atomic(log, "".join(kept))
+
+
+def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
+    """Train ``cfg``, writing the model, checkpoints, monitor logs, ``curve.png`` and ``config.json`` to
+    ``out``. Returns the model's path.
+
+    Resumes: when ``out`` holds checkpoints of the same config, training continues from the latest one for the
+    remaining timesteps. The interrupted segment's monitor logs are cut back to that checkpoint (its later
+    episodes are played again), the new segment's logs take the next file numbers, so the curve counts every
+    timestep once, and the algorithm and envs are reseeded from ``seed`` and the checkpoint's timesteps. SAC's
+    checkpoints have its replay buffer beside them (``.npz``). Nothing is unpickled (:func:`_resume`). When the
+    final model is there, nothing is trained. A resumed run is reproducible for a given checkpoint, not identical
+    to an uninterrupted one. ``out`` holding another config's run is an error naming the settings that differ."""
+    import torch
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    path = out / cfg.model_name
+    _check_same_run(cfg, out)
+    if _finished(cfg, out):
+        return path
+    # The nets are tiny: more threads only fight the env processes (and other users) for the cores.
+    torch.set_num_threads(1)
+    out.mkdir(parents=True, exist_ok=True)
+    write_atomic(out / "config.json", json.dumps(asdict(cfg), indent=2) + "\n")
+    segments_file = out / "segments.json"  # the timesteps each segment (run, or resume) started from
+    segments = read_json(segments_file) if segments_file.is_file() else [0]
+    if not (isinstance(segments, list) and segments and all(type(n) is int and n >= 0 for n in segments)):
+        raise EvaluationError(f"{segments_file} is not a list of step counts: train into a new --out")
+    resume_at, checkpoint = _latest_checkpoint(out)
+    if _monitor_files(out):
+        _drop_replayed_episodes(out, cfg.n_envs, segments[-1], resume_at)
+        segments.append(resume_at)
+    write_atomic(segments_file, json.dumps(segments) + "\n")
+    segment = len(_monitor_files(out)) // cfg.n_envs
+    venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, start_index=segment * cfg.n_envs,
+                        monitor_dir=str(out), wrapper_class=PlanningWrapper,
+                        vec_env_cls=SubprocVecEnv if cfg.vec_env == "subproc" else DummyVecEnv)
+    if checkpoint is None:
+        model = make_model(cfg, venv)
+    else:
+        try:
+            model = _resume(cfg, venv, checkpoint)  # reads it without unpickling
+        except ValueError:
+            venv.close()  # subproc envs are processes
+            raise
+        model.set_random_seed(cfg.seed + model.num_timesteps)  # the algorithm's draws and the envs' seeds
+    # Saved with the model as plain JSON in its data entry: a model is refused on another scenario's env, whose
+    # features may have the same length and mean other things.
+    model.bimp = {"scenario": cfg.scenario, "algo": cfg.algo, "n_features": venv.observation_space.shape[0]}
+    done = model.num_timesteps
+    callbacks = [_checkpoint_callback(cfg, out)] if cfg.checkpoint_every else []
+    if progress:
+        callbacks.append(_progress_callback(cfg.timesteps))
+    start = time.perf_counter()
+    model.learn(total_timesteps=max(cfg.timesteps - done, 0), callback=callbacks, reset_num_timesteps=done == 0)
+    wall = time.perf_counter() - start
+    venv.close()
+    model.save(path)
+    write_atomic(out / "train_time.json", json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps,
+                                                      "resumed_at": done or None}) + "\n")
+    plot_curve(out, out / "curve.png", title=f"{cfg.algo.upper()} {cfg.scenario} (seed {cfg.seed})")
+    return path
+
+
+def _finished(cfg: RLConfig, out: Path) -> bool:
+    """Whether ``out`` holds ``cfg``'s finished run: its model and ``train_time.json``, written last."""
+    return (out / cfg.model_name).is_file() and (out / "train_time.json").is_file()
+
+
+def _wall_s(out: Path) -> float:
+    """The training wall time [s] a finished run recorded."""
+    wall = read_json(out / "train_time.json")
+    if not (isinstance(wall, dict) and isinstance(wall.get("wall_s"), (int, float))):
+        raise EvaluationError(f"{out / 'train_time.json'} holds no wall_s")
+    return float(wall["wall_s"])
+
+
+def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
+    """Episode return against timesteps from the Monitor logs in ``monitor_dir``, with a moving mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from stable_baselines3.common.monitor import load_results
+
+    df = load_results(str(monitor_dir))  # episodes of all envs, ordered by wall time
+    steps, returns = np.cumsum(df["l"].to_numpy()), df["r"].to_numpy()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(steps, returns, ".", ms=2, alpha=0.3, label="episode")
+    if len(returns) >= 2:
+        w = max(1, min(50, len(returns) // 10))
+        ax.plot(steps[w - 1:], np.convolve(returns, np.ones(w) / w, mode="valid"), label=f"mean of {w}")
+    ax.set(xlabel="timesteps", ylabel="episode return", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    write_figure(fig, path, dpi=120)
+    plt.close(fig)
+
+
+
+
+def quick_check(env: gym.Env, policy, seed: int) -> dict[str, float]:
+    """One episode of :func:`bimp.agents.rollout.rollout`: ``progress`` (m along the road), ``collision``, ``offroad``,
+    ``return`` and ``steps``. A quick check for training and tests, not the full evaluation."""
+    episode = rollout(env, policy, seed)
+    t = episode.trace
+    return {"progress": t["s"][-1] - t["s"][0], "collision": float(any(t["collision"])),
+            "offroad": float(any(t["offroad"])), "return": episode.total_reward, "steps": episode.steps}
+
+
+def compare_with_zero(env: gym.Env, policy, seeds) -> dict[str, dict[str, float]]:
+    """Means over ``seeds`` of :func:`quick_check` for ``policy`` and for :class:`ZeroAction`."""
+    result = {}
+    for name, pol in (("policy", policy), ("zero", ZeroAction(env))):
+        runs = [quick_check(env, pol, seed) for seed in seeds]
+        result[name] = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+    return result
+
+
+def check_model(cfg: RLConfig, path: Path, out: Path, seeds: int) -> dict[str, dict[str, float]]:
+    """:func:`compare_with_zero` of the model ``path`` on ``seeds`` training seeds (100 on), written to
+    ``out/eval.json``: a quick check that training learned something, not an evaluation."""
+    env = gym.make(cfg.env_id)
+    result = compare_with_zero(env, SB3Policy(env, path, cfg.algo), range(100, 100 + seeds))
+    env.close()
+    write_atomic(out / "eval.json", json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def run_name(cfg: RLConfig) -> str:
+    """A run's default folder name, ``{algo}_{scenario}_s{seed}``: the name its model ships under, less ``.zip``."""
+    return shipped_name(cfg.algo, cfg.scenario, cfg.seed).removesuffix(".zip")
+
+
+def train_job(job: tuple[dict[str, Any], str, int]) -> list[dict[str, Any]]:
+    """One run of a grid, ``(RLConfig values, out, check seeds)``, in a backend's worker: :func:`train` (resuming
+    from ``out``) and :func:`check_model`. Its report in a one-item list (a backend's records): the model, the
+    training wall time, whether it was trained by an earlier command, and the check; or the error that stopped it."""
+    values, out, seeds = job
+    try:
+        cfg = RLConfig.from_mapping(values)
+        finished = _finished(cfg, Path(out))
+        path = train(cfg, Path(out), progress=False)
+        report: dict[str, Any] = {"run": out, "model": str(path), "earlier": finished, "wall_s": _wall_s(Path(out))}
+        if seeds:
+            report["check"] = check_model(cfg, path, Path(out), seeds)
+    except Exception as err:  # noqa: BLE001 -- one run's failure is its report: hours of the others go on
+        return [{"run": out, "error": f"{type(err).__name__}: {err}"}]
+    return [report]
+
+
+def _job_crashed(job: tuple[dict[str, Any], str, int], why: str) -> list[dict[str, Any]]:
+    return [{"run": job[1], "error": f"WorkerDied: {why}"}]
+
+
+def report_line(report: dict[str, Any]) -> str:
+    """One line of a run's report as ``bimp train-rl`` prints it."""
+    if "error" in report:
+        return f"FAILED {report['run']}: {report['error']}"
+    done = "trained earlier" if report.get("earlier") else "trained"
+    line = f"{done} {report['run']}: {report['model']}, {report['wall_s']} s"
+    if "check" in report:
+        mine, zero = report["check"]["policy"], report["check"]["zero"]
+        line += (f"; progress {mine['progress']:.1f} m (zero action {zero['progress']:.1f} m), "
+                 f"collisions {mine['collision']:.2f}")
+    return line
+
+
+# --- command line --------------------------------------------------------------------------------------
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bimp train-rl", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenario", nargs="+", action="extend", required=True,
+                        help=f"one or more of {sorted(envs.SCENARIOS)}")
+    parser.add_argument("--algo", choices=ALGOS, default="ppo")
+    parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: RLConfig's)")
+    parser.add_argument("--seed", type=int, nargs="+", action="extend", default=None,
+                        help="training seed(s) (default: RLConfig's)")
+    parser.add_argument("--n-envs", type=int, default=None)
+    parser.add_argument("--vec-env", choices=("dummy", "subproc"), default=None,
+                        help="step the envs in this process (dummy, one core) or one process each (subproc)")
+    parser.add_argument("--config", type=Path, help="YAML file of RLConfig overrides (unknown keys are errors)")
+    # str, not Path: Path("") is "." and would pass the empty-name check as the current folder.
+    parser.add_argument("--out", help="one run's output folder (default RUNS_DIR/{algo}_{scenario}_s{seed})")
+    parser.add_argument("--runs-dir", default=None, help="where the runs' folders go, each under its "
+                        "default name (default runs/rl); on a Ray cluster of several machines, a disk every node "
+                        "mounts at the same path")
+    parser.add_argument("--workers", type=int, default=1, help="runs trained at once on this machine (default 1)")
+    add_backend_arguments(parser)
+    parser.add_argument("--eval-seeds", type=int, default=5, help="episodes of the final check against the zero "
+                        "action (0: skip)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+
+    def fail(error: object) -> NoReturn:
+        parser.exit(2, f"bimp train-rl: error: {error}\n")
+
+    values: dict[str, Any] = {}
+    if args.config:
+        try:
+            data = read_yaml(args.config)
+        except ValueError as err:
+            fail(err)
+        if data is not None and not isinstance(data, dict):
+            fail(f"{args.config}: expected a mapping of RLConfig overrides, got {type(data).__name__}")
+        values.update(data or {})
+    values["algo"] = args.algo
+    for key in ("timesteps", "n_envs", "vec_env"):
+        if getattr(args, key) is not None:
+            values[key] = getattr(args, key)
+    runs: list[tuple[RLConfig, Path]] = []
+    try:
+        if args.workers < 1 or args.eval_seeds < 0:
+            raise ValueError(f"--workers must be >= 1 and --eval-seeds >= 0, got {args.workers} and "
+                             f"{args.eval_seeds}")
+        if args.out is not None and args.runs_dir is not None:
+            raise ValueError("--out names one run's folder, --runs-dir the folder of the runs' folders: give one")
+        check_backend(args.backend, args.address, args.ray_cpus)
+        runs_dir = (check_out_dir(args.runs_dir, create=False, flag="--runs-dir") if args.runs_dir is not None
+                    else Path("runs/rl"))
+        one_out = check_out_dir(args.out, create=False) if args.out is not None else None
+        for scenario in args.scenario:
+            scenario = envs.scenario_name(envs.env_id(scenario)) or scenario  # one name per scenario, one folder
+            for seed in args.seed or [values.get("seed")]:
+                cfg = RLConfig.from_mapping({**values, "scenario": scenario,
+                                             **({"seed": seed} if seed is not None else {})})
+                runs.append((cfg, one_out or runs_dir / run_name(cfg)))
+        if len(runs) > 1 and one_out:
+            raise ValueError("--out names one run's folder; several runs each go to --runs-dir/"
+                             "{algo}_{scenario}_s{seed}")
+        names = [run_name(cfg) for cfg, _ in runs]
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice:
+            raise ValueError(f"run(s) {twice} named twice: give each scenario and seed once")
+        for cfg, out in runs:  # every run's folder before the first trains: no refusal hours in
+            check_out_dir(out, create=False, flag="--out" if one_out else "--runs-dir")
+            _check_same_run(cfg, out)
+    except (BackendError, EvaluationError, TypeError, ValueError) as err:
+        fail(err)
+    if len(runs) == 1 and args.backend == "local":
+        return _train_one(*runs[0], args, fail)
+    return _train_many(runs, args, fail)
+
+
+def _train_one(cfg: RLConfig, out: Path, args: argparse.Namespace, fail: Callable[[object], NoReturn]) -> int:
+    """One run in this process, with a progress bar over its timesteps."""
+    try:
+        path = train(cfg, out, progress=not args.no_progress)
+    except (EvaluationError, ValueError) as err:  # a checkpoint that does not fit
+        fail(err)
+    print(f"model: {path}\ncurve: {out / 'curve.png'}\n"
+          f"train wall time: {_wall_s(out)} s")
+    if args.eval_seeds:
+        for who, r in check_model(cfg, path, out, args.eval_seeds).items():
+            print(f"{who:>6}: progress {r['progress']:.1f} m, collisions {r['collision']:.2f}, "
+                  f"off-road {r['offroad']:.2f}, return {r['return']:.1f}")
+    return 0
+
+
+def _train_many(runs: list[tuple[RLConfig, Path]], args: argparse.Namespace,
+                fail: Callable[[object], NoReturn]) -> int:
+    """The runs on the backend, a progress bar over runs and a line per run as it ends; 1 when any failed."""
+    from tqdm import tqdm
+
+    try:
+        start_backend(args.backend, args.address, args.ray_cpus)
+    except BackendError as err:
+        fail(err)
+    # Absolute: a Ray worker's working folder is not this one (on a cluster the folder must be on a shared disk).
+    jobs = [(asdict(cfg), str(out.resolve()), args.eval_seeds) for cfg, out in runs]
+    failed = []
+    with tqdm(total=len(jobs), desc="runs", unit="run", disable=args.no_progress) as bar:
+        def write(report: dict[str, Any]) -> None:
+            failed.extend([report] if "error" in report else [])
+            bar.update()
+            tqdm.write(report_line(report))
+
+        run_groups(jobs, train_job, _job_crashed, write, backend=args.backend, workers=args.workers,
+                   address=args.address, cpus=args.ray_cpus)
+    if failed:
+        print(f"{len(failed)} of {len(jobs)} runs failed; the same command trains them again, each from its last "
+              f"checkpoint")
+        return 1
+    return 0
