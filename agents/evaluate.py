@@ -80,7 +80,7 @@ VIDEO_DIR = "videos"
 
 
 @dataclass(frozen=True)
-class Arm:
+class ArmSpec:
     """One row of the table: policy ``policy`` under ``overrides`` on ``scenario``, shown as ``label``;
     ``config`` is the policy's fully resolved config and ``config_hash`` its hash; ``artifacts``: the files the
     policy loaded, by name (its ``artifacts``; shown in ``arms.json``, not hashed: the config names them by content)."""
@@ -114,7 +114,7 @@ class Job:
     ``video_dir``: record an MP4 there; ``version``: the code version to stamp on the record; ``inline``: the
     arm's fields a record repeats because they differ from its ``arms.json`` entry (overrides, seeding)."""
 
-    arm: Arm
+    arm: ArmSpec
     seed: int
     trace: bool = False
     video_dir: str | None = None
@@ -128,8 +128,8 @@ class Job:
 
 # --- resolving and validating a request ----------------------------------------------------------------
 def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | None = None,
-                 labels: dict | None = None) -> list[Arm]:
-    """Validate the whole request and build one :class:`Arm` per scenario and policy, by constructing each
+                 labels: dict | None = None) -> list[ArmSpec]:
+    """Validate the whole request and build one :class:`ArmSpec` per scenario and policy, by constructing each
     policy once on its scenario's env (so every override is checked exactly as an episode would apply it).
     Raises :class:`EvaluationError` naming the first problem."""
     overrides, labels = overrides or {}, labels or {}
@@ -162,7 +162,7 @@ def resolve_arms(scenarios: list[str], policies: list[str], overrides: dict | No
             except (ValueError, TypeError, OSError, ImportError, AttributeError) as err:  # OSError: a model path
                 raise EvaluationError(f"policy {policy!r} on {scenario} with overrides {given}: {err}") from None
             artifacts = json.dumps(getattr(built, "artifacts", {}), sort_keys=True, default=str)
-            arms.append(Arm(scenario, labels.get(policy, policy), policy, json.dumps(given, sort_keys=True),
+            arms.append(ArmSpec(scenario, labels.get(policy, policy), policy, json.dumps(given, sort_keys=True),
                             json.dumps(config, sort_keys=True), config_hash(policy, config), artifacts))
         env.close()
     return arms
@@ -181,7 +181,7 @@ def arm_config(policy, env) -> dict:
     return {**resolved_config(policy), "scenario": definition}
 
 
-def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str | Path = ".",
+def check_conflicts(arms: list[ArmSpec], records: list[tuple[int, dict]], out: str | Path = ".",
                     entries: dict[str, dict] | None = None) -> None:
     """Refuse (:class:`EvaluationError`) when ``records`` (``(line number, record)`` of ``out``'s records) hold
     episodes of an arm's ``(scenario, label)`` made with another config, or a *foreign* record: one carrying the
@@ -200,7 +200,7 @@ def check_conflicts(arms: list[Arm], records: list[tuple[int, dict]], out: str |
             raise EvaluationError(
                 f"{Path(out) / ARMS_FILE}: the entry {arm.config_hash} ({arm.label!r} on {arm.scenario}) does not "
                 f"hash to its key ({'; '.join(diff[:4])}): it is not that config; choose another --out")
-    others: dict[Arm, list[dict]] = {}
+    others: dict[ArmSpec, list[dict]] = {}
     for number, r in records:
         arm = by_row.get((r["scenario"], record_label(r)))
         if arm is None:
@@ -406,11 +406,11 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
     return summary
 
 
-def _keys(arm: Arm, seeds: list[int]) -> set[tuple[str, str, str, int]]:
+def _keys(arm: ArmSpec, seeds: list[int]) -> set[tuple[str, str, str, int]]:
     return {(arm.scenario, arm.label, arm.config_hash, s) for s in seeds}
 
 
-def _inline(arm: Arm, entry: dict) -> tuple:
+def _inline(arm: ArmSpec, entry: dict) -> tuple:
     """The fields of ``arm``'s records that differ from its ``arms.json`` entry (made by another label's
     spelling of the same config, or before the seeding changed): those a record must repeat."""
     mine = arm.entry()
@@ -483,4 +483,4 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["Arm", "DryRun", "EvaluationError", "Job", "evaluate", "latest_records", "read_records", "resolve_arms"]
+__all__ = ["ArmSpec", "DryRun", "EvaluationError", "Job", "evaluate", "latest_records", "read_records", "resolve_arms"]

@@ -71,7 +71,7 @@ INTERVALS = ("Intervals: 95%. Per scenario: Wilson for success, collision, at-fa
 
 
 @dataclass
-class Arm:
+class ArmResults:
     """One row's records: a policy label on one scenario, from one folder."""
 
     scenario: str
@@ -102,7 +102,7 @@ def seed_ranges(seeds) -> str:
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in parts) or "none"
 
 
-def load_arms(folders: list[str | Path]) -> list[Arm]:
+def load_arms(folders: list[str | Path]) -> list[ArmResults]:
     """The arms of ``folders``: per folder, scenario and label, the latest record per seed
     (:func:`bimp.agents.records.latest_records`), the ok ones as results and the errors' seeds.
 
@@ -130,7 +130,7 @@ def load_arms(folders: list[str | Path]) -> list[Arm]:
                                   f"({', '.join(hashes)}): two arms under one name; give each its own --label")
         ok = sorted((r for r in rs if r["status"] == "ok"), key=lambda r: r["seed"])
         done = {r["seed"] for r in ok}
-        arms.append(Arm(scenario=scenario, label=f"{folder}:{label}" if label in qualified else label,
+        arms.append(ArmResults(scenario=scenario, label=f"{folder}:{label}" if label in qualified else label,
                         policy=rs[0]["policy"], folder=folder, config_hash=rs[0].get("config_hash"), results=ok,
                         error_seeds=sorted(r["seed"] for r in rs if r["status"] != "ok" and r["seed"] not in done)))
     return arms
@@ -152,7 +152,7 @@ class Mixing:
         return f"{self.scenario}: {what}: {self.detail}"
 
 
-def find_mixing(arms: list[Arm]) -> list[Mixing]:
+def find_mixing(arms: list[ArmResults]) -> list[Mixing]:
     """Per scenario: the rows that lack some seed another row of the scenario has a result on (a seed set of its
     own, or an episode that raised: its seed has no result), and whether its records come from more than one
     code version (:func:`code_version`), within one arm or between arms (two folders made by different code). A
@@ -182,7 +182,7 @@ def has_all(results: list[dict], metric: str) -> bool:
     return bool(results) and all(r["metrics"].get(metric) is not None for r in results)
 
 
-def ranking_metric(arms: list[Arm], requested: str | None = None) -> tuple[str, str]:
+def ranking_metric(arms: list[ArmResults], requested: str | None = None) -> tuple[str, str]:
     """``(metric, why)``: ``requested``, else the score where every record carries one, else the success rate.
     :class:`EvaluationError` for ``--metric score`` over records some of which lack it (a rank by a score some rows
     do not have would put them anywhere)."""
@@ -223,7 +223,7 @@ def _neighbour(a: dict, b: dict, entry: dict | None) -> dict:
             "collision_rate": entry["collision_rate"], "score": entry["score"] if both_scored else None}
 
 
-def scenario_board(arms: list[Arm], metric: str, marks: dict[str, list[str]]) -> dict:
+def scenario_board(arms: list[ArmResults], metric: str, marks: dict[str, list[str]]) -> dict:
     """One scenario's rows (``summarize``'s statistics for :data:`COLUMNS`, ``None`` for an optional metric some
     record lacks), ranked by ``metric``, and the paired tests of neighbours. ``marks``: ``{label: [kinds]}`` of
     the rows mixed (:func:`find_mixing`)."""
@@ -253,14 +253,14 @@ def scenario_board(arms: list[Arm], metric: str, marks: dict[str, list[str]]) ->
     return {"scenario": scenario, "rows": rows, "neighbours": neighbours}
 
 
-def overall_board(arms: list[Arm], metric: str, marks: dict[tuple[str, str], list[str]]) -> dict:
+def overall_board(arms: list[ArmResults], metric: str, marks: dict[tuple[str, str], list[str]]) -> dict:
     """The policies that ran every scenario, each metric the mean over scenarios of its per-scenario mean (every
     scenario weighted equally) with the stratified bootstrap interval over the seeds, ranked by ``metric``; the
     neighbours' McNemar test on success pooled over every (scenario, seed) both ran, their score difference the
     mean over scenarios of the mean per-seed difference, with the same stratified bootstrap. The others are listed
     in ``left_out`` with the scenarios they lack."""
     scenarios = sorted({a.scenario for a in arms})
-    per_label: dict[str, dict[str, Arm]] = {}
+    per_label: dict[str, dict[str, ArmResults]] = {}
     for a in arms:
         if a.results:
             per_label.setdefault(a.label, {})[a.scenario] = a
@@ -480,5 +480,5 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["Arm", "Mixing", "code_version", "find_mixing", "leaderboard", "load_arms", "overall_board", "plot",
+__all__ = ["ArmResults", "Mixing", "code_version", "find_mixing", "leaderboard", "load_arms", "overall_board", "plot",
            "ranking_metric", "report", "scenario_board", "seed_ranges"]

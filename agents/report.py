@@ -45,7 +45,7 @@ NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc
 
 
 @dataclass
-class Arm:
+class Cell:
     """A column's records on one scenario: one label, or a learning algorithm's training seeds (``runs``)."""
 
     scenario: str
@@ -54,7 +54,7 @@ class Arm:
     marked: list[str]  # the labels made at an unverified older code version (see the module doc)
 
 
-def _arms(folders: list[Path]) -> list[Arm]:
+def _arms(folders: list[Path]) -> list[Cell]:
     """The arms of ``folders`` grouped by scenario and column, marked where their code versions are mixed."""
     grouped: dict[tuple[str, str], dict[str, list[dict]]] = {}
     versions: dict[tuple[str, str], str] = {}  # (scenario, label) -> the code it stands for
@@ -74,7 +74,7 @@ def _arms(folders: list[Path]) -> list[Arm]:
             else:
                 versions.setdefault((r["scenario"], label), code_version(r))
     mixed = len(set(versions.values())) > 1
-    return [Arm(scenario, column, runs, sorted(label for label in runs
+    return [Cell(scenario, column, runs, sorted(label for label in runs
                                                if mixed and (scenario, label) not in verified_same))
             for (scenario, column), runs in sorted(grouped.items())]
 
@@ -84,7 +84,7 @@ def _column_name(column: str, runs: dict) -> str:
     return f"{name} ({len(runs)} seeds)" if len(runs) > 1 and any(SEEDED.match(label) for label in runs) else name
 
 
-def _stat(arm: Arm, metric: str) -> dict | None:
+def _stat(arm: Cell, metric: str) -> dict | None:
     """The arm's ``metric``: its summary statistic with its interval; over training seeds, the mean of the seeds'
     means with their range as the interval."""
     means = []
@@ -104,11 +104,11 @@ def _short(stat: dict | None, digits: int = 2) -> str:
     return f"{stat['mean']:.{digits}f} [{stat['ci_low']:.{digits}f}, {stat['ci_high']:.{digits}f}]"
 
 
-def _mark(arm: Arm) -> str:
+def _mark(arm: Cell) -> str:
     return MARK if arm.marked else ""
 
 
-def _footnote(arms: list[Arm]) -> list[str]:
+def _footnote(arms: list[Cell]) -> list[str]:
     marked = [a for a in arms if a.marked]
     if not marked:
         return []
@@ -116,7 +116,7 @@ def _footnote(arms: list[Arm]) -> list[str]:
             "version, and `bimp verify` has not found these the same at a later one (`bimp report` names them)."]
 
 
-def metrics_table(folders: list[Path]) -> tuple[str, list[Arm]]:
+def metrics_table(folders: list[Path]) -> tuple[str, list[Cell]]:
     """A row per scenario and policy: episodes, success, collision, off road and progress, with their intervals
     (Wilson 95% for rates, bootstrap of the mean for progress; over training seeds, the seeds' range)."""
     arms = _arms(folders)
@@ -132,7 +132,7 @@ def metrics_table(folders: list[Path]) -> tuple[str, list[Arm]]:
     return "\n".join(lines + _footnote(arms)), arms
 
 
-def grid_table(folders: list[Path], with_score: bool) -> tuple[str, list[Arm]]:
+def grid_table(folders: list[Path], with_score: bool) -> tuple[str, list[Cell]]:
     """A row per scenario, a column per policy: success (Wilson 95%; over training seeds their range) and, with
     ``with_score``, the mean closed-loop score after a semicolon; ``-`` where a policy did not run."""
     arms = _arms(folders)
@@ -154,7 +154,7 @@ def grid_table(folders: list[Path], with_score: bool) -> tuple[str, list[Arm]]:
     return "\n".join(lines + _footnote(arms)), arms
 
 
-def overall_table(folder: Path) -> tuple[str, list[Arm]]:
+def overall_table(folder: Path) -> tuple[str, list[Cell]]:
     """``bimp leaderboard``'s overall ranking of ``folder`` (every scenario weighted equally): rank, policy, score
     and success with their stratified bootstrap intervals, the policies that ran every scenario."""
     board = leaderboard([folder], metric="score", allow_mixed=True)["overall"]
@@ -165,15 +165,33 @@ def overall_table(folder: Path) -> tuple[str, list[Arm]]:
     return "\n".join(lines), []
 
 
+def folders_table(root: Path) -> tuple[str, list[Cell]]:
+    """Every evaluation folder under ``root`` (each with an ``episodes.jsonl``): its episodes (the latest record per
+    seed), arms, code versions and the arms ``bimp verify`` found the same; a tuning study's trial folders left out
+    (``bimp tune``'s own, one per sampled config)."""
+    lines = ["| folder | episodes | arms | code versions | verified the same |", "|---|---|---|---|---|"]
+    for path in sorted(root.rglob("episodes.jsonl")):
+        folder = path.parent
+        if "trials" in folder.relative_to(root).parts:
+            continue
+        latest = latest_records(read_records(folder))
+        arms = {(r["scenario"], record_label(r), r.get("config_hash")) for r in latest}
+        same = sum(v["outcome"] == "same" for v in read_verified(folder).values())
+        lines.append(f"| {folder.relative_to(root.parent)} | {len(latest)} | {len(arms)} | "
+                     f"{len({code_version(r) for r in latest})} | {same} |")
+    return "\n".join(lines), []
+
+
 def _results(name: str) -> Path:
     return REPO_ROOT / "results" / name
 
 
-TABLES: dict[str, Callable[[], tuple[str, list[Arm]]]] = {
+TABLES: dict[str, Callable[[], tuple[str, list[Cell]]]] = {
     "paper": lambda: metrics_table([_results("paper"), _results("peers"), _results("rl")]),
     "highway": lambda: grid_table([_results("highway")], with_score=False),
     "suite": lambda: grid_table([_results("suite")], with_score=True),
     "suite-overall": lambda: overall_table(_results("suite")),
+    "folders": lambda: folders_table(REPO_ROOT / "results"),
 }
 
 
@@ -199,7 +217,7 @@ def render(text: str, tables: dict[str, Callable] = TABLES, cache: dict | None =
 
 
 def default_files() -> list[Path]:
-    return [REPO_ROOT / "README.md", *sorted((REPO_ROOT / "docs").rglob("*.md"))]
+    return [REPO_ROOT / "README.md", REPO_ROOT / "results" / "README.md", *sorted((REPO_ROOT / "docs").rglob("*.md"))]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -82,7 +82,7 @@ def test_training_seeds_are_one_column_with_their_range(tmp_path):
     table, arms = report.metrics_table([ROOT / "results/rl"])
     ppo = next(x for x in arms if x.column == "ppo" and x.scenario == "overtaking")
     assert sorted(ppo.runs) == ["ppo-s1", "ppo-s2", "ppo-s3"]
-    means = [report._stat(report.Arm("overtaking", "ppo", {k: v}, []), "success_rate")["mean"]
+    means = [report._stat(report.Cell("overtaking", "ppo", {k: v}, []), "success_rate")["mean"]
              for k, v in ppo.runs.items()]
     stat = report._stat(ppo, "success_rate")
     assert stat["ci_low"] == min(means) and stat["ci_high"] == max(means)
