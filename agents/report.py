@@ -36,8 +36,9 @@ from bimp.agents.provenance import REPO_ROOT
 from bimp.agents.records import format_stat, latest_records, read_records, write_atomic
 from bimp.agents.verification import arm_key, read_verified
 
-BLOCK = re.compile(r"(<!-- report: ([\w-]+) -->\n)(.*?)(<!-- /report -->)", re.S)
-BLOCK_NAMES = re.compile(r"<!-- report: ([\w-]+) -->")
+# A marker starts its line: an indented one (an example in a code block) is text.
+BLOCK = re.compile(r"^(<!-- report: ([\w-]+) -->\n)(.*?)^(<!-- /report -->)", re.S | re.M)
+BLOCK_NAMES = re.compile(r"^<!-- report: ([\w-]+) -->", re.M)
 SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
 NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",

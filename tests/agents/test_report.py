@@ -31,6 +31,8 @@ def test_blocks_are_rendered_in_place_and_unknown_tables_refused():
     out, notes = report.render(text, {"t": _table([1, 2])})
     assert out == "before\n<!-- report: t -->\n| a |\n|---|\n| 1 |\n| 2 |\n<!-- /report -->\nafter\n"
     assert notes == [] and report.render(out, {"t": _table([1, 2])})[0] == out  # a fixed point
+    example = "    <!-- report: t -->\n    kept\n    <!-- /report -->\n"  # indented: an example in a code block
+    assert report.render(example, {"t": _table([1])})[0] == example
     with pytest.raises(EvaluationError, match="names table 'nope'"):
         report.render("<!-- report: nope -->\n<!-- /report -->", {"t": _table([])}, where="x.md")
 
