@@ -7,13 +7,14 @@ nothing heavy and, of bimp, only :mod:`bimp.agents.errors` (what every command r
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
 import sys
 import tempfile
 
-# Re-exported: what the commands raise and check lives where the library can import it (bimp.agents.errors).
+# Re-exported while commands move to bimp.agents.commands: what they raise and check (bimp.agents.errors) and the
+# argument helpers they share (bimp.agents.commands.args).
+from bimp.agents.commands.args import add_backend_arguments, add_set_argument, backend_options  # noqa: F401
 from bimp.agents.errors import EvaluationError, check_out_dir, parse_labels, parse_overrides  # noqa: F401
 
 COMMANDS = {
@@ -59,30 +60,6 @@ def main(argv: list[str] | None = None) -> int:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else err
         print(f"bimp {argv[0]}: error: {where}{reason}", file=sys.stderr)
         return 2
-
-
-# --- argument helpers shared by the commands ------------------------------------------------------------------
-def add_set_argument(parser: argparse.ArgumentParser,
-                     help: str | None = "config override for one policy, e.g. enkts.n_particles=100") -> None:
-    """``--set POLICY.KEY=VALUE ...`` (parsed by :func:`parse_overrides`)."""
-    # extend: a repeated flag adds to the earlier ones instead of silently replacing them
-    parser.add_argument("--set", dest="overrides", nargs="*", action="extend", default=[],
-                        metavar="POLICY.KEY=VALUE", help=help)
-
-
-def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--backend``, ``--address``, ``--ray-cpus`` (read back by :func:`backend_options`)."""
-    parser.add_argument("--backend", default="local", help="where the episodes run: local (a process pool of "
-                        "--workers) or ray (a Ray cluster: docs/scaling.md)")
-    parser.add_argument("--address", default=None, help="with --backend ray: the cluster's head HOST:PORT, "
-                        "ray://HOST:PORT or auto (default: a new local Ray instance)")
-    parser.add_argument("--ray-cpus", type=int, default=None, metavar="N",
-                        help="with --backend ray and no --address: CPUs of the new local instance (default: all)")
-
-
-def backend_options(args: argparse.Namespace) -> dict:
-    """The keyword arguments of ``evaluate`` (and of what calls it) that :func:`add_backend_arguments` parsed."""
-    return {"backend": args.backend, "address": args.address, "ray_cpus": args.ray_cpus}
 
 
 if __name__ == "__main__":
