@@ -1,4 +1,5 @@
-"""``bimp aggregate``: one learning algorithm over its training seeds, with intervals over the seeds.
+"""One learning algorithm over its training seeds, with intervals over the seeds (the ``bimp aggregate`` command:
+:mod:`bimp.agents.commands.aggregate`).
 
 Each training seed's model is evaluated as its own labelled arm of one folder (``bimp evaluate --policy ppo
 --set ppo.model=PATH --label ppo-s1``); this command reports, per scenario and over both, the mean over
@@ -6,23 +7,12 @@ training seeds of each arm's episode mean, with the stratified bootstrap interva
 (:func:`bimp.agents.stats.stratified_bootstrap`), and every seed's own value. A single training seed says little
 about an algorithm (Henderson et al. 2018): the interval is over seeds, not episodes. Every arm must have run
 the same episode seeds, so the seeds compare like with like.
-
-    bimp aggregate results/rl --runs ppo-s1 ppo-s2 ppo-s3 --name ppo
-
-writes ``DIR/aggregate_{name}.{json,md}``.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
-from pathlib import Path
-
 import numpy as np
 
-from bimp.agents.compare import label_results
-from bimp.agents.records import write_atomic
 from bimp.agents.stats import stratified_bootstrap
 
 METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "at_fault_collision_rate", "score",
@@ -99,34 +89,6 @@ def markdown(result: dict, name: str, labels: list[str]) -> str:
                 per = ", ".join(f"{k} {v:.3f}" for k, v in row[m]["per_run"].items())
                 lines.append(f"- {scenario} {m}: {per}")
     return "\n".join(lines) + "\n"
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp aggregate", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folder", metavar="DIR", help="an evaluation folder holding every run's arm")
-    parser.add_argument("--runs", nargs="+", required=True, metavar="LABEL", help="one label per training seed")
-    parser.add_argument("--name", required=True, help="the algorithm's name in the output files")
-    args = parser.parse_args(argv)
-    folder = Path(args.folder)
-    try:
-        per_run = {label: label_results(folder, label) for label in args.runs}
-        missing = [label for label, got in per_run.items() if not got]
-        if missing:
-            raise ValueError(f"no results of {missing} in {folder}")
-        result = aggregate(per_run)
-    except ValueError as err:
-        print(f"bimp aggregate: error: {err}", file=sys.stderr)
-        return 2
-    text = markdown(result, args.name, args.runs)
-    try:
-        write_atomic(folder / f"aggregate_{args.name}.json", json.dumps(result, indent=2) + "\n")
-        write_atomic(folder / f"aggregate_{args.name}.md", text)
-    except OSError as err:
-        print(f"bimp aggregate: error: cannot write into {folder}: {err.strerror or err}", file=sys.stderr)
-        return 2
-    print(text)
-    return 0
 
 
 __all__ = ["aggregate", "markdown"]

@@ -40,10 +40,7 @@ the same recorded step, so a load that comes and goes falls on all alike. ``--qu
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -52,11 +49,8 @@ import gymnasium as gym
 from bimp import envs
 from bimp.agents import bench_env
 from bimp.agents.backends import one_thread
-from bimp.agents.errors import EvaluationError, check_out_dir
-from bimp.agents.records import write_atomic
 from bimp.agents.registry import POLICIES, make_policy
 from bimp.agents.rollout import rollout
-from bimp.envs.highway.adapter import SUPPORTED as HIGHWAY_IDS
 from bimp.planners.dynamics import load_model
 
 SCENARIO = "overtaking"
@@ -418,60 +412,3 @@ def report_device(result: dict) -> str:
         lines.append(f"  N={r['n_particles']:>7}: {r['median_ms']:9.2f} ({r['p95_ms']:.2f}) ms, "
                      f"first call {r['first_call_ms']:.0f} ms")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp bench", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=None, help="timed calls per planner (default 30, quick 5)")
-    parser.add_argument("--quick", action="store_true",
-                        help="N in {50, 500} and 5 repeats (--scenario ID: K in {2, 8}, P in {40, 160})")
-    parser.add_argument("--steps", type=int, default=5,
-                        help="env steps before the timed ones (driven by EnKTS; by IDM with --scenario ID)")
-    parser.add_argument("--device", action="store_true", help="EnKTS alone on JAX's default device, N up to 10^5")
-    parser.add_argument("--scenario", default=SCENARIO, choices=(SCENARIO, *HIGHWAY_IDS),
-                        help="overtaking (the paper's, default) or a wrapped highway-env id: EnKTS and EnKS on its "
-                             "road, with K and P sweeps")
-    parser.add_argument("--env", nargs="*", default=None, metavar="SCENARIO",
-                        help="env steps per second of these scenarios (none named: every one), bimp's fast traffic "
-                             "core beside highway-env's own (bimp.agents.bench_env); --out also writes a .md beside")
-    parser.add_argument("--env-steps", type=int, default=50, help="with --env: steps per round (3 rounds a core)")
-    parser.add_argument("--note", default=None, help="a remark stored in the JSON (e.g. what else loaded the machine)")
-    parser.add_argument("--out", type=Path, default=None, help="also write the result as JSON here")
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
-    repeats = args.repeats if args.repeats is not None else (5 if args.quick else 30)
-    if repeats < 1 or args.steps < 0:
-        parser.error("--repeats must be >= 1 and --steps >= 0")
-    if args.device and args.scenario != SCENARIO:
-        parser.error("--device times the overtaking scenario only")
-    if args.out is not None:  # before minutes of timing, not after
-        try:
-            if args.out.is_dir() or not args.out.name:
-                raise EvaluationError(f"--out {args.out} is a folder: name the JSON file to write")
-            check_out_dir(args.out.parent, create=False)
-        except EvaluationError as err:
-            print(f"bimp bench: error: {err}", file=sys.stderr)
-            return 2
-    progress = lambda s: print(s, flush=True)  # noqa: E731
-    if args.env is not None:
-        return bench_env.command(args.env, args.env_steps, args.quick, args.out, args.note, progress)
-    print(f"timing {'quick ' if args.quick else ''}benchmark ({repeats} repeats per planner)...", flush=True)
-    if args.device:
-        result, render = run_device(repeats, args.steps, progress=progress), report_device
-    elif args.scenario != SCENARIO:
-        result, render = run_highway(args.scenario, repeats, args.quick, args.steps, progress=progress), report_highway
-    else:
-        result, render = run(repeats, args.quick, args.steps, progress=progress), report
-    if args.note:
-        result["note"] = args.note
-    text = render(result) + (f"\nnote: {args.note}" if args.note and render is not report_highway else "")
-    print()
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(args.out, json.dumps(result, indent=2))
-        print(f"wrote {args.out}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -19,20 +19,16 @@ round's times. On a shared machine the times move with the load: read the ratios
 
 from __future__ import annotations
 
-import json
 import os
 import platform
-import sys
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 
 from bimp import envs
 from bimp.agents.backends import one_thread
-from bimp.agents.records import write_atomic
 from bimp.envs.highway.adapter import HighwayAdapter
 
 CORES = ("fast", "highway-env")
@@ -162,28 +158,4 @@ def report_env(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def command(scenarios: Sequence[str], steps: int, quick: bool, out: Path | None, note: str | None,
-            progress: Callable[[str], None]) -> int:
-    """``bimp bench --env``: :func:`run_env` printed (and written to ``out`` as JSON, with the markdown beside it as
-    ``.md``); the exit status (2: a bad request, refused before any timing)."""
-    if steps < 1:
-        print("bimp bench: error: --env-steps must be >= 1", file=sys.stderr)
-        return 2
-    try:
-        result = run_env(scenarios, steps=steps, rounds=1 if quick else 3, progress=progress)
-    except ValueError as err:  # an unknown scenario
-        print(f"bimp bench: error: {err}", file=sys.stderr)
-        return 2
-    if note:
-        result["note"] = note
-    text = report_env(result) + (f"\nnote: {note}\n" if note else "")
-    print()
-    print(text)
-    if out is not None:
-        write_atomic(out, json.dumps(result, indent=2))
-        write_atomic(out.with_suffix(".md"), text)
-        print(f"wrote {out} and {out.with_suffix('.md')}")
-    return 0
-
-
-__all__ = ["CORES", "command", "machine", "report_env", "run_env", "scenario_names", "time_scenario"]
+__all__ = ["CORES", "machine", "report_env", "run_env", "scenario_names", "time_scenario"]

@@ -1,7 +1,4 @@
-"""``bimp compare``: two arms on the same episode seeds, paired.
-
-    bimp compare runs/eval --policies enkts enks
-    bimp compare runs/a runs/b --policies enkts enkts       # A from the first folder, B from the second
+"""Two arms on the same episode seeds, paired (the ``bimp compare`` command: :mod:`bimp.agents.commands.compare`).
 
 For every scenario both arms ran, on the seeds where both have a result: the exact McNemar test of each episode
 outcome (success, collision, off-road) with the seeds where the two disagree, and a paired bootstrap 95% interval
@@ -13,14 +10,10 @@ change), a note first names them: a difference may then be the code's.
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from pathlib import Path
 
-from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import BINARY, METRICS, code_version
-from bimp.agents.records import latest_records, read_records, record_label, write_atomic
+from bimp.agents.records import latest_records, read_records, record_label
 from bimp.agents.stats import mcnemar_exact, paired_bootstrap
 from bimp.agents.verification import as_current
 
@@ -125,43 +118,6 @@ def report(result: dict, label_a: str, label_b: str, note: str | None = None) ->
                              f"{m['n']} |")
         lines.append("")
     return "\n".join(lines) if lines else "no scenario where both arms have results on the same seeds\n"
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp compare", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folders", nargs="+", metavar="DIR", help="one folder, or two (A from the first)")
-    parser.add_argument("--policies", nargs=2, required=True, metavar=("A", "B"), help="the two labels")
-    parser.add_argument("--json", default=None, help="also write the comparison to this JSON file")
-    args = parser.parse_args(argv)
-    if len(args.folders) > 2:
-        parser.error("give one or two folders")
-    folder_a, folder_b = Path(args.folders[0]), Path(args.folders[-1])
-    label_a, label_b = args.policies
-    if folder_a == folder_b and label_a == label_b:
-        parser.error("comparing an arm with itself: name two labels, or two folders")
-    try:
-        a, b = label_records(folder_a, label_a), label_records(folder_b, label_b)
-    except ValueError as err:
-        print(f"bimp compare: error: {err}", file=sys.stderr)
-        return 2
-    for label, folder, got in ((label_a, folder_a, a), (label_b, folder_b, b)):
-        if not got:
-            print(f"bimp compare: error: no results of {label!r} in {folder}", file=sys.stderr)
-            return 2
-    result = compare({k: r["metrics"] for k, r in a.items()}, {k: r["metrics"] for k, r in b.items()})
-    versions = paired_code_versions(result, a, b)
-    note = code_version_note(versions, label_a, label_b)
-    print(report(result, label_a, label_b, note))
-    if args.json:
-        # Beside the scenarios: the code versions of the paired records per arm, and the note when they are mixed.
-        kept = {**result, "code_versions": {**versions, "note": note}}
-        try:
-            write_atomic(args.json, json.dumps(kept, indent=2))
-        except EvaluationError as err:
-            print(f"bimp compare: error: --json: {err}", file=sys.stderr)
-            return 2
-    return 0 if result else 1
 
 
 __all__ = ["code_version_note", "compare", "label_records", "label_results", "paired_code_versions",

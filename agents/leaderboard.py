@@ -1,7 +1,5 @@
-"""``bimp leaderboard DIR [DIR ...]``: every policy of one or more evaluation folders ranked per scenario and overall.
-
-    bimp leaderboard results/highway
-    bimp leaderboard results/suite results/suite-rl --metric success_rate --json lb.json --plot lb.png
+"""Every policy of one or more evaluation folders ranked per scenario and overall (the ``bimp leaderboard`` command:
+:mod:`bimp.agents.commands.leaderboard`).
 
 Per scenario (a suite family, a highway-env road or a paper scenario), one row per policy label: success, collision,
 at-fault collision and off-road rates with their Wilson 95% intervals, the closed-loop score with its bootstrap 95%
@@ -26,10 +24,7 @@ scenario is refused always, as ``bimp compare`` refuses it: that is two arms und
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import sys
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,15 +32,13 @@ from pathlib import Path
 import numpy as np
 
 from bimp.agents.compare import compare
-from bimp.agents.errors import EvaluationError, check_out_dir
+from bimp.agents.errors import EvaluationError
 from bimp.agents.metrics import code_version, summarize
 from bimp.agents.records import (
-    finite,
     format_stat,
     latest_records,
     read_records,
     record_label,
-    write_atomic,
     write_figure,
 )
 from bimp.agents.registry import policy_color
@@ -434,50 +427,6 @@ def plot(board: dict, path: str | Path) -> Path:
     write_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
-
-
-def _check_file(value: str, flag: str) -> Path:
-    """``value`` as a file this command can write, checked before anything is computed."""
-    path = Path(value)
-    if not value.strip() or path.is_dir():
-        raise EvaluationError(f"{flag} {value!r} is not a file name")
-    check_out_dir(path.parent, create=False, flag=flag)
-    return path
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp leaderboard", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folders", nargs="+", metavar="DIR", help="evaluation folders (written by bimp evaluate)")
-    parser.add_argument("--metric", choices=RANKABLE, default=None,
-                        help="rank by this (default: score where every record carries one, else success_rate)")
-    parser.add_argument("--allow-mixed", action="store_true",
-                        help="rank scenarios whose policies ran different seeds or code versions, marking the rows")
-    parser.add_argument("--json", default=None, metavar="FILE", help="also write the leaderboard to this JSON file")
-    parser.add_argument("--plot", default=None, metavar="FILE.png", help="also draw it into this PNG")
-    args = parser.parse_args(argv)
-    if len({Path(f).resolve() for f in args.folders}) < len(args.folders):
-        parser.error("a folder is given twice")
-    try:
-        outputs = [(_check_file(value, flag), flag) for value, flag in ((args.json, "--json"), (args.plot, "--plot"))
-                   if value is not None]
-        board = leaderboard(args.folders, args.metric, args.allow_mixed)
-        for path, flag in outputs:
-            check_out_dir(path.parent, flag=flag)
-    except EvaluationError as err:
-        print(f"bimp leaderboard: error: {err}", file=sys.stderr)
-        return 2
-    print(report(board), end="")
-    for path, flag in outputs:
-        try:
-            if flag == "--json":
-                write_atomic(path, json.dumps(finite(board), indent=1) + "\n")
-            else:
-                plot(board, path)
-        except OSError as err:
-            print(f"bimp leaderboard: error: cannot write {flag} {path}: {err.strerror or err}", file=sys.stderr)
-            return 2
-    return 0
 
 
 __all__ = ["ArmResults", "Mixing", "code_version", "find_mixing", "leaderboard", "load_arms", "overall_board", "plot",

@@ -1,8 +1,6 @@
-"""``bimp merge SRC [SRC ...] --into DIR``: copy evaluation folders' records into one, so that runs made apart (on two
-machines, in two worktrees, a family rerun into a folder of its own) are read, resumed and ranked as one folder.
-
-    bimp merge runs/a runs/b --into runs/all --dry-run                   # what would be copied; writes nothing
-    bimp merge results/suite-more --into results/suite --label idm lane-keep --scenario dense-highway-hard
+"""Evaluation folders' records copied into one, so that runs made apart (on two machines, in two worktrees, a family
+rerun into a folder of its own) are read, resumed and ranked as one folder (the ``bimp merge`` command:
+:mod:`bimp.agents.commands.merge`).
 
 SRC come first (``--scenario`` and ``--label`` take every name after them). A record is copied when its scenario is
 one of ``--scenario`` and its label one of ``--label`` (either left out: every one), as its line, byte for byte, with
@@ -24,8 +22,6 @@ nothing is written).
 
 from __future__ import annotations
 
-import argparse
-import sys
 from collections import Counter
 from pathlib import Path
 
@@ -153,28 +149,3 @@ def _entry(source: Path, source_arms: dict[str, dict], key: str, held: dict | No
         raise EvaluationError(f"{source}: the arms.json entry {key} differs from the merged folder's in its "
                               f"{', '.join(differ)}: its records would be read with the other's")
     return held
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="bimp merge", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
-        usage="bimp merge SRC [SRC ...] --into DIR [--scenario S [S ...]] [--label L [L ...]] [--dry-run]")
-    parser.add_argument("sources", nargs="+", metavar="SRC", help="evaluation folders to copy records from")
-    parser.add_argument("--into", required=True, metavar="DIR", help="the folder they are copied into")
-    parser.add_argument("--scenario", nargs="+", default=None, metavar="S", help="the scenarios whose records go")
-    parser.add_argument("--label", nargs="+", default=None, metavar="L", help="the labels whose records go")
-    parser.add_argument("--dry-run", action="store_true", help="print what would be copied; write nothing")
-    args = parser.parse_args(argv)
-    try:
-        copied, skipped, added = merge(args.sources, args.into, args.scenario, args.label, dry_run=args.dry_run)
-    except EvaluationError as err:
-        print(f"bimp merge: error: {err}", file=sys.stderr)
-        return 2
-    verb = "would copy" if args.dry_run else "copied"
-    for scenario, label in sorted(set(copied) | set(skipped)):
-        print(f"{verb} {copied[scenario, label]:>5} record(s) of {label} on {scenario}"
-              + (f" ({skipped[scenario, label]} already there)" if skipped[scenario, label] else ""))
-    if added and not copied:  # entries only: a merge cut between arms.json and its records, mended
-        print(f"{'would add' if args.dry_run else 'added'} {len(added)} config(s) to arms.json that records there name")
-    print(f"{args.into}: {verb} {sum(copied.values())} record(s), {sum(skipped.values())} already there")
-    return 0

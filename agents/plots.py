@@ -1,4 +1,5 @@
-"""``bimp plot DIR``: figures like the paper's from the traced episodes of an evaluation folder.
+"""Figures like the paper's from the traced episodes of an evaluation folder (:func:`plot_all`; the command
+``bimp plot DIR``: :mod:`bimp.agents.commands.plot`).
 
 Per scenario, comparing the policies on the first traced seed they share:
 - ``trajectories_<scenario>.png``: the EV paths on the road with the OVs (paper Fig. 1 and 3);
@@ -9,7 +10,6 @@ Per scenario, comparing the policies on the first traced seed they share:
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import sys
@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bimp import envs  # noqa: E402
-from bimp.agents.errors import EvaluationError, check_out_dir  # noqa: E402
+from bimp.agents.errors import check_out_dir  # noqa: E402
 from bimp.agents.records import EPISODES_FILE, numbered_records, record_label, write_figure  # noqa: E402
 from bimp.agents.registry import make_policy, policy_color, policy_label  # noqa: E402
 from bimp.agents.rollout import rollout  # noqa: E402
@@ -301,7 +301,7 @@ def render_episode(scenario: str, policy: str, seed: int, path: str | Path, ever
 
 def plot_all(folder: str | Path, out: str | Path | None = None) -> list[Path]:
     """Draw every figure for the evaluation in ``folder`` into ``out`` (default ``folder/figures``), made only when
-    there is something to draw. :class:`bimp.agents.cli.EvaluationError` for a folder or ``out`` that cannot be
+    there is something to draw. :class:`bimp.agents.errors.EvaluationError` for a folder or ``out`` that cannot be
     read or written. A record whose trace cannot be drawn is skipped with a warning (:func:`drawable_records`)."""
     folder = Path(folder)
     flag = "--out" if out is not None else "the figures folder"
@@ -315,23 +315,3 @@ def plot_all(folder: str | Path, out: str | Path | None = None) -> list[Path]:
         written += [plot_trajectories(scenario, runs, out), plot_controls(scenario, runs, out),
                     plot_safety(scenario, runs, out)]
     return written
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp plot", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folder", help="an evaluation folder (holding episodes.jsonl)")
-    parser.add_argument("--out", default=None, help="where to write the PNGs (default FOLDER/figures)")
-    args = parser.parse_args(argv)
-    try:
-        written = plot_all(args.folder, args.out)
-    except EvaluationError as err:
-        print(f"bimp plot: error: {err}", file=sys.stderr)
-        return 2
-    if not written:
-        print(f"no traced episodes in {args.folder} (bimp evaluate keeps no per-step trace unless asked): run "
-              "`bimp evaluate --traces 1 ...` into it first")
-        return 1
-    for path in written:
-        print(path)
-    return 0

@@ -1,14 +1,11 @@
-"""``bimp report``: the results tables of the README and the manual, rendered from the committed folders.
+"""The results tables of the README and the manual, rendered from the committed folders (the ``bimp report``
+command: :mod:`bimp.agents.commands.report`).
 
 A table lives in a markdown file between two markers, its name in the first::
 
     <!-- report: suite -->
     (rendered: never edited by hand)
     <!-- /report -->
-
-    bimp report                      # rewrite every block of README.md and docs/*.md from results/
-    bimp report --check              # write nothing; exit 1 naming each block that differs from its folders
-    bimp report docs/suite.md        # only these files
 
 Every number a reader sees in such a table comes from the records of its folders (``episodes.jsonl``: the latest
 record per seed, :func:`bimp.agents.records.latest_records`), through the same statistics as ``bimp evaluate``'s
@@ -20,9 +17,7 @@ each arm that ``bimp verify`` did not find the same at a later one, and the comm
 
 from __future__ import annotations
 
-import argparse
 import re
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,12 +28,12 @@ from bimp.agents.errors import EvaluationError
 from bimp.agents.leaderboard import leaderboard
 from bimp.agents.metrics import code_version, record_label, summarize
 from bimp.agents.provenance import REPO_ROOT
-from bimp.agents.records import format_stat, latest_records, read_records, write_atomic
+from bimp.agents.records import format_stat, latest_records, read_records
 from bimp.agents.verification import arm_key, read_verified
 
 # A marker starts its line: an indented one (an example in a code block) is text.
 BLOCK = re.compile(r"^(<!-- report: ([\w-]+) -->\n)(.*?)^(<!-- /report -->)", re.S | re.M)
-BLOCK_NAMES = re.compile(r"^<!-- report: ([\w-]+) -->", re.M)
+BLOCK_NAMES = re.compile(r"^<!-- report: ([\w-]+) -->", re.M)  # any opening marker, paired or not
 SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
 NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",
@@ -56,27 +51,30 @@ class Cell:
 
 
 def _arms(folders: list[Path]) -> list[Cell]:
-    """The arms of ``folders`` grouped by scenario and column, marked where their code versions are mixed."""
+    """The arms of ``folders`` grouped by scenario and column, marked where their code versions are mixed.
+
+    Each record stands for its code version, or for the commit ``bimp verify`` found its arm the same at (in a
+    checkout without uncommitted changes, from that record's version). The table is mixed when its records stand for
+    more than one code; then every arm with a record not so verified is marked."""
     grouped: dict[tuple[str, str], dict[str, list[dict]]] = {}
-    versions: dict[tuple[str, str], str] = {}  # (scenario, label) -> the code it stands for
-    verified_same: set[tuple[str, str]] = set()
+    stands_for: set[str] = set()  # the codes the table's records stand for
+    unverified: set[tuple[str, str]] = set()  # (scenario, label) with a record bimp verify did not find the same
     for folder in folders:
         verified = read_verified(folder)
         for r in latest_records(read_records(folder)):
             if r["status"] != "ok":
                 continue
             label = record_label(r)
-            column = SEEDED.sub(r"\1", label)
-            grouped.setdefault((r["scenario"], column), {}).setdefault(label, []).append(r)
+            grouped.setdefault((r["scenario"], SEEDED.sub(r"\1", label)), {}).setdefault(label, []).append(r)
             found = verified.get(arm_key(r["scenario"], label, r.get("config_hash")))
-            if found and found["outcome"] == "same" and code_version(r) in (found.get("versions") or ()):
-                verified_same.add((r["scenario"], label))
-                versions[(r["scenario"], label)] = found["commit"]
+            if (found and found["outcome"] == "same" and found.get("dirty") is False
+                    and code_version(r) in (found.get("versions") or ())):
+                stands_for.add(found["commit"])
             else:
-                versions.setdefault((r["scenario"], label), code_version(r))
-    mixed = len(set(versions.values())) > 1
-    return [Cell(scenario, column, runs, sorted(label for label in runs
-                                               if mixed and (scenario, label) not in verified_same))
+                stands_for.add(code_version(r))
+                unverified.add((r["scenario"], label))
+    mixed = len(stands_for) > 1
+    return [Cell(scenario, column, runs, sorted(label for label in runs if mixed and (scenario, label) in unverified))
             for (scenario, column), runs in sorted(grouped.items())]
 
 
@@ -157,12 +155,19 @@ def grid_table(folders: list[Path], with_score: bool) -> tuple[str, list[Cell]]:
 
 def overall_table(folder: Path) -> tuple[str, list[Cell]]:
     """``bimp leaderboard``'s overall ranking of ``folder`` (every scenario weighted equally): rank, policy, score
-    and success with their stratified bootstrap intervals, the policies that ran every scenario."""
+    and success with their stratified bootstrap intervals, the policies that ran every scenario; a row whose records
+    are of mixed code versions (the leaderboard's own check) marked."""
     board = leaderboard([folder], metric="score", allow_mixed=True)["overall"]
     lines = ["| rank | policy | score | success | episodes |", "|---|---|---|---|---|"]
+    marked = 0
     for row in board["rows"]:
-        lines.append(f"| {row['rank']} | {NAMES.get(row['label'], row['label'])} | {_short(row['score'], 3)} | "
-                     f"{_short(row['success_rate'], 3)} | {row['episodes']} |")
+        mark = MARK if row["mixed"] else ""
+        marked += bool(mark)
+        lines.append(f"| {row['rank']} | {NAMES.get(row['label'], row['label'])}{mark} | "
+                     f"{_short(row['score'], 3)} | {_short(row['success_rate'], 3)} | {row['episodes']} |")
+    if marked:
+        lines += ["", f"{MARK} {marked} of {len(board['rows'])} rows: their scenarios' records are of more than one "
+                  "code version (`bimp leaderboard --allow-mixed` says which)."]
     return "\n".join(lines), []
 
 
@@ -210,33 +215,19 @@ def render(text: str, tables: dict[str, Callable] = TABLES, cache: dict | None =
         if name not in cache:
             cache[name] = tables[name]()
         table, arms = cache[name]
-        notes.extend(f"{where}: table {name}: {a.scenario} {label}: made at an older code version, not verified "
-                     "since" for a in arms for label in a.marked)
+        notes.extend(f"table {name}: {a.scenario} {label}: not verified, in a table of mixed code versions"
+                     for a in arms for label in a.marked)
         return match.group(1) + table + "\n" + match.group(4)
 
-    return BLOCK.sub(block, text), notes
+    rendered = BLOCK.sub(block, text)
+    # Every opening marker must have been a block: one left open would swallow the next block up to its end.
+    opened, closed = len(BLOCK_NAMES.findall(text)), len(re.findall(r"^<!-- /report -->$", text, re.M))
+    if opened != len(BLOCK.findall(text)) or closed != opened or BLOCK_NAMES.findall(
+            "".join(m.group(3) for m in BLOCK.finditer(text))):
+        raise EvaluationError(f"{where}: report markers do not pair: each `<!-- report: NAME -->` line needs its "
+                              "own `<!-- /report -->` line before the next block")
+    return rendered, notes
 
 
 def default_files() -> list[Path]:
     return [REPO_ROOT / "README.md", REPO_ROOT / "results" / "README.md", *sorted((REPO_ROOT / "docs").rglob("*.md"))]
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp report", description=__doc__.split("\n\n")[0])
-    parser.add_argument("files", nargs="*", type=Path, help="markdown files (default: README.md and docs/)")
-    parser.add_argument("--check", action="store_true", help="write nothing; exit 1 where a block differs")
-    args = parser.parse_args(argv)
-    cache: dict = {}
-    stale = []
-    for path in args.files or default_files():
-        text = path.read_text()
-        rendered, notes = render(text, TABLES, cache, where=str(path))
-        for note in dict.fromkeys(notes):
-            print(f"bimp report: {note}", file=sys.stderr)
-        if rendered != text:
-            stale.append(path)
-            if not args.check:
-                write_atomic(path, rendered)
-    for path in stale:
-        print(f"{path}: {'differs from its folders (run bimp report)' if args.check else 'rendered'}")
-    return 1 if args.check and stale else 0

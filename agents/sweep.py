@@ -1,9 +1,6 @@
-"""``bimp sweep`` and ``bimp frontier``: policies evaluated along one axis of their configs.
-
-    bimp sweep --param enkts.problem.sigma_barrier=0.05,0.1,0.2 --scenario overtaking --episodes 20 --seed 200 --out DIR
-    bimp sweep --policy enkts enks --n 10 20 50 100 200 --episodes 10 --out DIR        # N, for each policy
-    bimp frontier --scenario overtaking --policies enkts enks mppi nmpc ppo --n 10 20 50 100 200 500 1000 2000 \\
-                  --iters 5 10 20 40 --episodes 20 --seed 2000 --out DIR
+"""Policies evaluated along one axis of their configs: the points of a sweep or a frontier, run (:func:`run_points`),
+tabled and drawn (the commands ``bimp sweep`` and ``bimp frontier``: :mod:`bimp.agents.commands.sweep`,
+:mod:`bimp.agents.commands.frontier`).
 
 A sweep is a list of *points* (a policy under one set of overrides, shown as a label such as ``enkts N=50``), each
 an ordinary evaluation (:func:`bimp.agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
@@ -28,9 +25,7 @@ for a run, then one line per arm (episodes done, to run) and ``dry run: N episod
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,17 +34,10 @@ import matplotlib
 import yaml
 
 from bimp import envs
-from bimp.agents.cli import (
-    EvaluationError,
-    add_backend_arguments,
-    add_set_argument,
-    backend_options,
-    check_out_dir,
-    parse_overrides,
-)
+from bimp.agents.errors import EvaluationError, check_out_dir
 from bimp.agents.evaluate import DryRun, check_conflicts, evaluate, resolve_arms
 from bimp.agents.records import format_stat, numbered_records, write_atomic, write_figure, write_summary
-from bimp.agents.registry import is_policy_name, make_policy, policy_color, policy_label, policy_spec
+from bimp.agents.registry import make_policy, policy_color, policy_label
 from bimp.agents.tune_space import TuneError, factory_kwargs, overrides_for
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
@@ -218,71 +206,6 @@ def write(rows: list[dict], out: Path, name: str) -> list[Path]:
     write_atomic(out / f"{name}.json", json.dumps(rows, indent=2, default=str))
     write_atomic(out / f"{name}.md", table(rows))
     return [out / f"{name}.json", out / f"{name}.md", plot(rows, out / f"{name}.png", frontier=name == "frontier")]
-
-
-# --- command line ---------------------------------------------------------------------------------------------
-def _common(parser: argparse.ArgumentParser, seed: int) -> None:
-    parser.add_argument("--scenario", nargs="+", default=envs.default_scenarios())
-    parser.add_argument("--episodes", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=seed, help="first episode seed (seeds by role: docs/evaluation.md)")
-    add_set_argument(parser, help="overrides under every point (as bimp evaluate --set)")
-    parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--dry-run", action="store_true",
-                        help="check every point against the folder and list what would run; write nothing")
-    add_backend_arguments(parser)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp sweep", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    _common(parser, seed=0)
-    parser.add_argument("--param", nargs="*", action="extend", default=[], metavar="POLICY.KEY=V1,V2,...")
-    parser.add_argument("--policy", nargs="+", default=["enkts", "enks"], help="the policies --n sweeps")
-    parser.add_argument("--n", nargs="*", type=int, default=[], help="sweep n_particles of every --policy")
-    parser.add_argument("--batch", type=int, default=1)
-    args = parser.parse_args(argv)
-    if bool(args.param) == bool(args.n):
-        parser.error("give either --param or --n")
-    return _run("sweep", args, lambda base: param_points(args.param, base) if args.param
-                else axis_points(args.policy, {p: ("n_particles", args.n) for p in args.policy}, base), args.batch)
-
-
-def frontier_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp frontier", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    _common(parser, seed=2000)
-    parser.add_argument("--policies", nargs="+", default=["enkts", "enks", "mppi", "nmpc", "ppo"])
-    parser.add_argument("--n", nargs="+", type=int, default=[10, 20, 50, 100, 200, 500, 1000, 2000])
-    parser.add_argument("--iters", nargs="+", type=int, default=[5, 10, 20, 40], help="NMPC's iteration caps")
-    args = parser.parse_args(argv)
-    values = {"n_particles": args.n, "max_iter": args.iters}
-    axes = {p: policy_spec(p).frontier_axis for p in args.policies if is_policy_name(p)}
-    axis = {p: (key, values[key]) for p, key in axes.items() if key in values}
-    return _run("frontier", args, lambda base: axis_points(args.policies, axis, base))
-
-
-def _run(name: str, args: argparse.Namespace, points_of, batch: int = 1) -> int:
-    """The points ``points_of(--set overrides)`` run into ``--out`` and reported; exit status 2 with the reason,
-    before any episode, for a request that cannot run."""
-    try:
-        base = parse_overrides(args.overrides)
-        points = points_of(base)
-        stray = sorted(set(base) - {p.policy for p in points})
-        if stray:
-            raise EvaluationError(f"--set names {stray}, which no point evaluates")
-        rows = run_points(points, args.scenario, args.episodes, args.seed, args.out, workers=args.workers,
-                          batch=batch, dry_run=args.dry_run, **backend_options(args))
-    except EvaluationError as err:
-        print(f"bimp {name}: error: {err}", file=sys.stderr)
-        return 2
-    if isinstance(rows, DryRun):
-        print("\n".join(rows.lines()))
-        return 0
-    for path in write(rows, Path(args.out), name):
-        print(path)
-    print(table(rows))
-    return 0
 
 
 __all__ = ["Point", "axis_points", "param_points", "run_points", "table"]

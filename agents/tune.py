@@ -1,9 +1,5 @@
-"""``bimp tune``: a policy's config tuned by Optuna on training seeds, the same budget for every method.
-
-    bimp tune --policy mppi --scenario overtaking emergency-brake --trials 40 --episodes 20 --seed 100 \\
-              --out runs/tune/mppi
-    # study: runs/tune/mppi/study.db; best config: runs/tune/mppi/best.yaml, loaded by
-    # make_policy("mppi", env, config="runs/tune/mppi/best.yaml"); --yaml configs/tuned/mppi.yaml ships it
+"""A policy's config tuned by Optuna on training seeds, the same budget for every method (:func:`tune`; the
+command ``bimp tune``: :mod:`bimp.agents.commands.tune`).
 
 Search space. Each tunable policy's :class:`~bimp.agents.registry.PolicySpec` names a ``search_space`` function
 beside its config: ``{key: optuna distribution}``, keys as its config names them (``temperature``;
@@ -45,10 +41,8 @@ and ``--out`` on a disk every node sees (``docs/scaling.md``).
 
 from __future__ import annotations
 
-import argparse
 import functools
 import math
-import sys
 import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -57,9 +51,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from bimp import envs
 from bimp.agents.backends import BackendError, connect_ray, in_worker, ray_options, start_backend
-from bimp.agents.cli import EvaluationError, add_backend_arguments, backend_options, check_out_dir
+from bimp.agents.errors import EvaluationError, check_out_dir
 from bimp.agents.evaluate import evaluate
 from bimp.agents.provenance import config_hash
 from bimp.agents.records import read_records, write_atomic
@@ -358,44 +351,6 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
     write_atomic(path, f"# Written by `bimp tune`; load with make_policy({policy!r}, env, config=<this file>).\n"
                  + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))
     return path
-
-
-# --- command line -------------------------------------------------------------------------------------------
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp tune", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", required=True)
-    parser.add_argument("--scenario", nargs="+", default=envs.default_scenarios())
-    parser.add_argument("--trials", type=int, default=30, help="the study's total number of trials")
-    parser.add_argument("--episodes", type=int, default=20, help="episodes per scenario and trial")
-    parser.add_argument("--seed", type=int, default=100, help="first training seed (100-199 by convention)")
-    parser.add_argument("--rung", type=int, default=None, help="seeds per pruning step (default: no pruning)")
-    parser.add_argument("--storage", default=None, help="Optuna RDB URL (default sqlite:///OUT/study.db)")
-    parser.add_argument("--out", default="runs/tune")
-    parser.add_argument("--yaml", default=None, help="where the best config goes (default OUT/best.yaml; "
-                        "configs/tuned/POLICY.yaml makes it the policy's default)")
-    parser.add_argument("--batch", type=int, default=1)
-    parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--sampler-seed", type=int, default=0)
-    parser.add_argument("--objective", choices=OBJECTIVES, default="success",
-                        help="what a trial maximizes: success (safety-first ties) or the closed-loop score")
-    add_backend_arguments(parser)
-    parser.add_argument("--parallel", type=int, default=None, metavar="N", help="with --backend ray: trials at "
-                        "once, each on its own worker (default: the cluster's CPUs // --workers)")
-    args = parser.parse_args(argv)
-    try:
-        study = tune(args.policy, args.scenario, args.trials, args.episodes, args.seed, out=args.out,
-                     storage=args.storage, yaml_path=args.yaml, rung=args.rung, batch=args.batch,
-                     workers=args.workers, sampler_seed=args.sampler_seed, parallel=args.parallel,
-                     objective=args.objective,
-                     **backend_options(args))
-    except TuneError as err:
-        print(f"bimp tune: error: {err}", file=sys.stderr)
-        return 2
-    for t in study.get_trials(deepcopy=False):
-        shown = "-" if t.value is None else f"{t.value:.4f}"
-        print(f"trial {t.number:>3} {t.state.name:<8} {shown:>8} {t.params} {t.user_attrs.get('error', '')}")
-    return 0
 
 
 __all__ = ["Study", "TrialError", "TuneError", "check_space", "objective_value", "search_space", "tune"]

@@ -146,7 +146,7 @@ def _contains(distribution, value) -> bool:
     return step is None or math.isclose((value - distribution.low) / step, round((value - distribution.low) / step))
 
 
-def suggest(trial, key: str, distribution):
+def suggest(trial: Any, key: str, distribution: Any) -> Any:
     """``trial.suggest_*`` for an optuna distribution."""
     from optuna.distributions import CategoricalDistribution, IntDistribution
 

@@ -1,8 +1,5 @@
-"""``bimp verify DIR [DIR ...]``: rerun a sample of each arm's seeds at the current code and compare every recorded
-metric but timings; what it found goes into ``DIR/verified.json``.
-
-    bimp verify results/suite --sample 2 --dry-run     # which arms, which seeds; refuses what it cannot rerun
-    bimp verify results/suite --sample 1 --workers 2
+"""A sample of each arm's seeds rerun at the current code and every recorded metric but timings compared; what it
+found goes into ``DIR/verified.json`` (the ``bimp verify`` command: :mod:`bimp.agents.commands.verify`).
 
 Per arm (a scenario, a label and its config hash), the policy is rebuilt from the policy table with the overrides
 the arm was run with (a ``module:factory`` policy only when named with ``--trust-policy``: a folder never names code
@@ -23,10 +20,8 @@ found the same as made by the current code (:mod:`bimp.agents.verification`).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
 import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -237,40 +232,6 @@ def verify_folder(folder: str | Path, sample: int = 2, workers: int = 1, trusted
 
 def _dumps(verified: dict) -> str:
     return json.dumps(verified, indent=1, sort_keys=True) + "\n"
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="bimp verify", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("folders", nargs="+", metavar="DIR", help="evaluation folders (each holding episodes.jsonl)")
-    parser.add_argument("--sample", type=int, default=2, metavar="K", help="seeds rerun per arm (default 2)")
-    parser.add_argument("--workers", type=int, default=1, help="processes the episodes run in")
-    parser.add_argument("--trust-policy", action="append", default=[], metavar="MODULE:FACTORY",
-                        help="rerun arms of this policy outside the policy table (code: only one you trust)")
-    parser.add_argument("--dry-run", action="store_true", help="say what would be rerun; run and write nothing")
-    args = parser.parse_args(argv)
-    if args.sample < 1 or args.workers < 1:
-        parser.error("--sample and --workers must be >= 1")
-    status = 0
-    try:
-        plans = {d: verify_folder(d, args.sample, args.workers, args.trust_policy, dry_run=True)
-                 for d in dict.fromkeys(args.folders)}  # every folder checked before anything runs
-        for folder in plans:
-            checks = plans[folder] if args.dry_run else verify_folder(folder, args.sample, args.workers,
-                                                                     args.trust_policy)
-            for c in checks:
-                found = ("would rerun" if args.dry_run else c.outcome if not c.differences
-                         else f"{c.outcome.upper()}: " + "; ".join(c.differences[:5]))
-                batches = f" (batches {c.groups})" if c.batch > 1 else ""
-                print(f"{folder}: {c.name}: seeds {c.seeds}{batches}: {found}")
-                status = max(status, 1 if c.differences else 0)
-            if not args.dry_run:
-                counts = {k: sum(c.outcome == k for c in checks) for k in ("same", "drift", "different")}
-                print(f"{folder}: {len(checks)} arm(s): " + ", ".join(f"{n} {k}" for k, n in counts.items()))
-    except EvaluationError as err:
-        print(f"bimp verify: error: {err}", file=sys.stderr)
-        return 2
-    return status
 
 
 __all__ = ["ArmCheck", "differences", "plan", "verify_folder"]

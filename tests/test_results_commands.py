@@ -25,7 +25,7 @@ import pytest
 from bimp.agents.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]  # docs/studies/ too: their commands resume
 HEADLINE = {"results/paper", "results/rl"}
 RESULTS_COMMAND = re.compile(r"\bbimp\s+(evaluate|sweep|frontier|merge)\b")
 VARIABLE = re.compile(r"\$(?:\{(\w+)\}|(\w+))")

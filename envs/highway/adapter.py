@@ -7,8 +7,8 @@
   and ``simulation_frequency`` 10 Hz (or a multiple of 10 that the config names, e.g. 20);
 - **scene**: a new :class:`bimp.envs.scene.Scene` at every reset and step, published as ``env.unwrapped.scene``:
   the road ahead of the EV (:func:`bimp.envs.highway.lanes.build_route`: the EV's lane continued along its route,
-  from 30 m behind to at least 250 m ahead, edges from the lanes beside it; built 100 m longer and kept while it
-  serves, :class:`bimp.envs.highway.lanes.RouteCache`) and the id's planning bounds (:data:`PROFILES`);
+  from at least 30 m behind to at least 250 m ahead, edges from the lanes beside it; built 100 m longer and kept
+  while it serves, :class:`bimp.envs.highway.lanes.RouteCache`) and the id's planning bounds (:data:`PROFILES`);
 - **observation**: bimp's layout (:func:`bimp.envs.scene.join_obs`) with ``n_obstacles`` OV slots (default 8): the
   nearest vehicles and road objects (merge-v0's end-of-ramp obstacle) by centre distance, absent slots zeros; an
   OV's acceleration is its speed change over the last step; the reference ``[v_ref, a_ref, l_ref]`` comes from the

@@ -209,7 +209,8 @@ class RouteCache:
         self._points: dict[tuple, np.ndarray] = {}
         self._s_built = 0.0
 
-    def get(self, network, index, position, route=None) -> tuple[Route, int]:
+    def get(self, network: RoadNetwork, index: tuple, position: np.ndarray,
+            route: list | None = None) -> tuple[Route, int]:
         """The route along lane ``index`` through ``position (2,)`` (:func:`build_route`'s arguments) and the index
         of its point nearest to ``position`` among lane ``index``'s points."""
         position = np.asarray(position, float)

@@ -3,7 +3,7 @@ ranges and a difficulty, driven by every bimp policy through the highway-env ada
 
 One module per family (its env class, a :class:`bimp.envs.suite.family.Family`), and one entry per family in
 :data:`FAMILIES` below. From that entry the adapter takes the family's class and its per-env numbers
-(:data:`bimp.envs.highway.adapter.PROFILES` under the family's ``ID``), and the scenario table registers it as
+(:data:`bimp.envs.highway.profiles.PROFILES` under the family's ``ID``), and the scenario table registers it as
 ``bimp/ID`` under the family's name (``bimp evaluate --scenario stalled-vehicle``,
 ``gym.make("bimp/stalled-vehicle-v0")``).
 

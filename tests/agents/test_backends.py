@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from bimp.agents import evaluate as ev
 from bimp.agents.backends import THREADS, BackendError, connect_ray, one_thread
 from bimp.agents.cli import EvaluationError
+from bimp.agents.commands import evaluate as ev
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import read_records
 from tests.agents.test_evaluate import ARGS, FAULTY, deadline
@@ -130,10 +130,11 @@ def test_an_address_where_no_cluster_answers_is_named_at_once(tmp_path):
 
 def test_tune_refuses_a_bad_backend_request_before_any_trial(tmp_path, monkeypatch, capsys):
     from bimp.agents import tune
+    from bimp.agents.commands import tune as tune_command
 
     argv = ["--policy", "lane-keep", "--scenario", "emergency-brake", "--trials", "1", "--episodes", "1"]
     for extra, message in ((["--parallel", "2"], "with --backend ray"), (["--backend", "dask"], "'dask'")):
-        assert tune.main([*argv, *extra, "--out", str(tmp_path / "out")]) == 2
+        assert tune_command.main([*argv, *extra, "--out", str(tmp_path / "out")]) == 2
         assert message in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "ray", None)
     with pytest.raises(tune.TuneError, match=r'pip install -e "\.\[ray\]"'):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bimp.agents import bench
+from bimp.agents.commands import bench as bench_command
 
 
 def synthetic_result() -> dict:
@@ -45,7 +46,7 @@ def test_report_lists_every_planner_and_ratio():
                                   ["--device", "--scenario", "highway-v0"]])
 def test_bad_arguments_exit(argv):
     with pytest.raises(SystemExit):
-        bench.main(argv)
+        bench_command.main(argv)
 
 
 def synthetic_highway_result() -> dict:
@@ -115,7 +116,7 @@ def test_env_bench_times_both_cores_on_the_same_steps_and_writes_json_and_markdo
     from bimp.agents import bench_env
 
     out = tmp_path / "env.json"
-    assert bench.main(["--env", "highway-fast-v0", "emergency-brake", "plain:highway-v0", "--env-steps", "3",
+    assert bench_command.main(["--env", "highway-fast-v0", "emergency-brake", "plain:highway-v0", "--env-steps", "3",
                        "--quick", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     assert set(result["scenarios"]) == {"highway-fast-v0", "emergency-brake", "plain:highway-v0"}
@@ -130,5 +131,5 @@ def test_env_bench_times_both_cores_on_the_same_steps_and_writes_json_and_markdo
     assert result["scenarios"]["plain:highway-v0"]["adapter_ms"] is None
     assert result["adapter_ms_max"] == adapter
     assert "| highway-fast-v0 |" in out.with_suffix(".md").read_text()
-    assert bench.main(["--env", "no-such-road"]) == 2
+    assert bench_command.main(["--env", "no-such-road"]) == 2
     assert "unknown scenario" in capsys.readouterr().err

@@ -6,7 +6,7 @@ import shutil
 
 import pytest
 
-from bimp.agents import compare
+from bimp.agents.commands import compare
 from bimp.agents.evaluate import evaluate
 from bimp.agents.metrics import code_version
 from bimp.agents.records import EPISODES_FILE, read_records

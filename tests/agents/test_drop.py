@@ -6,9 +6,9 @@ import json
 import pytest
 
 from bimp.agents import drop as dr
-from bimp.agents import evaluate as ev
 from bimp.agents import records
 from bimp.agents.cli import EvaluationError, main
+from bimp.agents.commands import evaluate as ev
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import ARMS_FILE, EPISODES_FILE, folder_lock, read_arms, read_records
 

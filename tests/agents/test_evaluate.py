@@ -6,8 +6,8 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from bimp.agents import evaluate as ev
 from bimp.agents.cli import EvaluationError
+from bimp.agents.commands import evaluate as ev
 from bimp.agents.evaluate import evaluate
 from bimp.agents.metrics import METRICS
 from bimp.agents.plots import plot_all
@@ -229,7 +229,7 @@ def test_a_changed_behaviour_rule_is_another_config(tmp_path, monkeypatch):
 
 
 def test_compare_pairs_two_arms_across_both_scenarios(tmp_path, capsys):
-    from bimp.agents import compare
+    from bimp.agents.commands import compare
 
     args = {**ARGS, "scenarios": ["emergency-brake", "overtaking"], "policies": ["lane-keep", "zero"],
             "episodes": 2, "traces": 0}
@@ -270,10 +270,10 @@ def test_a_dry_run_lists_the_missing_seeds_and_writes_nothing(tmp_path, capsys):
 
 
 def test_a_record_without_its_trace_still_summarizes_and_plot_says_there_is_none(tmp_path, capsys):
-    from bimp.agents import plots
+    from bimp.agents.commands import plot as plot_command
 
     summary = evaluate(out=tmp_path, **{**ARGS, "traces": 0})
     assert summary["lane-keep/emergency-brake"]["episodes"] == 3
     assert not any("trace" in r for r in read_records(tmp_path))
-    assert plots.main([str(tmp_path)]) == 1
+    assert plot_command.main([str(tmp_path)]) == 1
     assert "no traced episodes" in capsys.readouterr().out

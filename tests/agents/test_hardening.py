@@ -4,10 +4,10 @@ and a bad record, a device behind a symlink or a full disk is one line, never a 
 from __future__ import annotations
 
 import errno
+import importlib
 import json
 import math
 import os
-import sys
 import time
 
 import gymnasium as gym
@@ -15,7 +15,7 @@ import pytest
 
 from bimp import envs
 from bimp.agents import migrate, record_check, records, rl
-from bimp.agents.cli import EvaluationError, main
+from bimp.agents.cli import EvaluationError, command_module, main
 from bimp.agents.evaluate import evaluate
 from bimp.agents.metrics import METRICS, summarize
 from bimp.agents.records import (
@@ -287,7 +287,7 @@ def test_an_os_error_escaping_a_command_is_one_line(monkeypatch, capsys):
     def boom(argv):
         raise OSError(errno.EIO, "Input/output error", "some/file")
 
-    monkeypatch.setattr(sys.modules["bimp.agents.compare"], "main", boom)
+    monkeypatch.setattr(importlib.import_module(command_module("compare")), "main", boom)  # the module cli runs
     assert main(["compare", "x", "--policies", "a", "b"]) == 2
     assert one_line_error(capsys).strip() == "bimp compare: error: some/file: Input/output error"
 

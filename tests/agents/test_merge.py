@@ -5,10 +5,10 @@ import json
 
 import pytest
 
-from bimp.agents import evaluate as ev
 from bimp.agents import merge as mg
 from bimp.agents import records
 from bimp.agents.cli import EvaluationError, main
+from bimp.agents.commands import evaluate as ev
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import ARMS_FILE, EPISODES_FILE, folder_lock, latest_records, read_arms, read_records
 

@@ -19,6 +19,7 @@ import pytest
 from bimp import envs
 from bimp.agents import rl, rl_train
 from bimp.agents.cli import main as bimp
+from bimp.agents.commands import train_rl
 from bimp.agents.records import read_arms, read_records, record_config
 from bimp.agents.registry import make_policy
 
@@ -247,7 +248,7 @@ def test_a_crafted_or_missing_replay_buffer_is_refused_and_runs_no_code(tmp_path
     overrides.write_text(json.dumps({k: v for k, v in dataclasses.asdict(cfg).items()
                                      if k not in ("scenario", "algo", "net_arch")}))
     with pytest.raises(SystemExit) as exit_:
-        rl_train.main(["--scenario", "emergency-brake", "--algo", "sac", "--config", str(overrides), "--out", str(out),
+        train_rl.main(["--scenario", "emergency-brake", "--algo", "sac", "--config", str(overrides), "--out", str(out),
                  "--no-progress"])
     assert exit_.value.code == 2 and "is not a replay buffer of this run" in capsys.readouterr().err
     assert not marker.exists()

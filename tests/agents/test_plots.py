@@ -8,6 +8,7 @@ import math
 import pytest
 
 from bimp.agents import plots
+from bimp.agents.commands import plot as plot_command
 from bimp.agents.evaluate import evaluate
 from bimp.agents.records import EPISODES_FILE
 from bimp.envs.road import RoadGeometry
@@ -112,7 +113,7 @@ def test_a_malformed_trace_is_skipped_by_name_and_the_rest_drawn(good, tmp_path,
         assert warning.startswith(f"bimp plot: warning: {tmp_path / EPISODES_FILE} line {number}: skipped the trace "
                                   f"of emergency-brake, bad-{name} (policy lane-keep), seed 5: ")
         assert fault in warning, (name, warning)
-    assert plots.main([str(tmp_path)]) == 0
+    assert plot_command.main([str(tmp_path)]) == 0
     captured = capsys.readouterr()
     assert len(captured.err.strip().splitlines()) == len(MALFORMED) and "Traceback" not in captured.err
     assert captured.out.split() == [str(p) for p in written]
@@ -121,7 +122,7 @@ def test_a_malformed_trace_is_skipped_by_name_and_the_rest_drawn(good, tmp_path,
 def test_only_malformed_traces_is_nothing_to_draw_not_a_traceback(good, tmp_path, capsys):
     bad = {**copy.deepcopy(good), "trace": "x"}
     (tmp_path / EPISODES_FILE).write_text(json.dumps(bad) + "\n")
-    assert plots.main([str(tmp_path)]) == 1
+    assert plot_command.main([str(tmp_path)]) == 1
     captured = capsys.readouterr()
     assert "no traced episodes" in captured.out and "trace is 'x', not an object" in captured.err
     assert "Traceback" not in captured.err

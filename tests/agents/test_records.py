@@ -8,9 +8,12 @@ import shutil
 
 import pytest
 
-from bimp.agents import aggregate, compare, plots, records
 from bimp.agents import evaluate as ev
+from bimp.agents import records
 from bimp.agents.cli import EvaluationError
+from bimp.agents.commands import aggregate, compare
+from bimp.agents.commands import evaluate as ev_command
+from bimp.agents.commands import plot as plot_command
 from bimp.agents.evaluate import evaluate, resolve_arms
 from bimp.agents.records import (
     ARMS_FILE,
@@ -42,7 +45,7 @@ def test_a_record_whose_config_does_not_hash_to_its_config_hash_is_refused_namin
     before = (out / EPISODES_FILE).read_bytes()
     with pytest.raises(EvaluationError, match=r"episodes\.jsonl line 1: .*k_lat: 0\.01 -> 0\.004"):
         evaluate(out=out, policies=["lane-keep"], **ARGS)
-    assert ev.main(["--policy", "lane-keep", *CLI, "--out", str(out)]) == 2
+    assert ev_command.main(["--policy", "lane-keep", *CLI, "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "line 1" in err and "k_lat" in err and "Traceback" not in err
     assert (out / EPISODES_FILE).read_bytes() == before  # refused: nothing ran, nothing written
@@ -113,10 +116,10 @@ def test_a_line_that_is_not_a_record_is_reported_and_skipped_by_every_reader(fol
     assert [r["seed"] for r in read_records(out)] == [r["seed"] for r in read_records(folder)]
     warned = capsys.readouterr().err
     assert "skipped 1 line(s)" in warned and f"line {n} (" in warned
-    assert ev.main(["--policy", "lane-keep", "zero", *CLI, "--out", str(out)]) == 0  # resumed: nothing reran
+    assert ev_command.main(["--policy", "lane-keep", "zero", *CLI, "--out", str(out)]) == 0  # resumed: nothing reran
     assert compare.main([str(out), "--policies", "lane-keep", "zero"]) == 0
     assert aggregate.main([str(out), "--runs", "lane-keep", "zero", "--name", "x"]) == 0
-    assert plots.main([str(out)]) == 0
+    assert plot_command.main([str(out)]) == 0
     assert "Traceback" not in capsys.readouterr().err
     data = (out / EPISODES_FILE).read_bytes()
     assert data.startswith(good + line + b"\n") and data.count(b"\n") == n + 1  # appended to only, nothing lost

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from bimp.agents import report
+from bimp.agents.commands import report as report_command
 from bimp.agents.errors import EvaluationError
 from bimp.agents.verification import arm_key
 
@@ -17,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_every_committed_table_is_what_its_folders_render(capsys):
     """A hand edit of a rendered table, or a folder changed without `bimp report`, fails here."""
-    assert report.main(["--check"]) == 0, capsys.readouterr().out
+    assert report_command.main(["--check"]) == 0, capsys.readouterr().out
     rendered = {name for path in report.default_files() for name in report.BLOCK_NAMES.findall(path.read_text())}
     assert set(report.TABLES) <= rendered  # every table is shown somewhere
 
@@ -37,14 +38,24 @@ def test_blocks_are_rendered_in_place_and_unknown_tables_refused():
         report.render("<!-- report: nope -->\n<!-- /report -->", {"t": _table([])}, where="x.md")
 
 
+@pytest.mark.parametrize("text", [
+    "<!-- report: t -->\nopen\n<!-- report: t -->\nx\n<!-- /report -->\n",  # the first never closed
+    "<!-- report: t --> \nx\n<!-- /report -->\n",  # a trailing space: not a marker line
+    "<!-- report: t -->\nx\n<!-- /report -->\n<!-- /report -->\n",  # a stray closing marker
+])
+def test_unpaired_markers_are_refused_before_anything_is_written(text):
+    with pytest.raises(EvaluationError, match="markers do not pair"):
+        report.render(text, {"t": _table([1])}, where="x.md")
+
+
 def test_check_writes_nothing_and_fails_where_a_block_differs(tmp_path, monkeypatch, capsys):
     page = tmp_path / "page.md"
     page.write_text("<!-- report: t -->\nold\n<!-- /report -->\n")
-    monkeypatch.setattr(report, "TABLES", {"t": _table(["new"])})
-    assert report.main(["--check", str(page)]) == 1
+    monkeypatch.setattr(report_command, "TABLES", {"t": _table(["new"])})  # where the command looks it up
+    assert report_command.main(["--check", str(page)]) == 1
     assert "old" in page.read_text() and "differs" in capsys.readouterr().out
-    assert report.main([str(page)]) == 0 and "| new |" in page.read_text()
-    assert report.main(["--check", str(page)]) == 0
+    assert report_command.main([str(page)]) == 0 and "| new |" in page.read_text()
+    assert report_command.main(["--check", str(page)]) == 0
 
 
 def _folder(tmp_path, commits: dict[str, str]) -> Path:
@@ -68,8 +79,8 @@ def test_arms_of_mixed_unverified_code_versions_are_marked_and_named(tmp_path):
     assert table.count(report.MARK) == 3 and "2 of 2 cells" in table  # two cells and the footnote
     _, notes = report.render("<!-- report: g -->\n<!-- /report -->",
                              {"g": lambda: report.grid_table([folder], with_score=False)}, where="p.md")
-    assert notes == ["p.md: table g: highway-v0 idm: made at an older code version, not verified since",
-                     "p.md: table g: highway-v0 lane-keep: made at an older code version, not verified since"]
+    assert notes == ["table g: highway-v0 idm: not verified, in a table of mixed code versions",
+                     "table g: highway-v0 lane-keep: not verified, in a table of mixed code versions"]
     # lane-keep found the same at the code idm was made at: one code version, nothing marked.
     lane = next(json.loads(x) for x in (folder / "episodes.jsonl").read_text().splitlines()
                 if json.loads(x)["label"] == "lane-keep")
@@ -78,6 +89,20 @@ def test_arms_of_mixed_unverified_code_versions_are_marked_and_named(tmp_path):
     (folder / "verified.json").write_text(json.dumps(verified))
     table, arms = report.grid_table([folder], with_score=False)
     assert all(not x.marked for x in arms) and report.MARK not in table
+
+
+def test_an_arm_of_two_code_versions_is_marked_whatever_the_order(tmp_path):
+    a, b = "a" * 40, "b" * 40
+    folder = _folder(tmp_path, {"idm": a, "lane-keep": a})
+    lines = (folder / "episodes.jsonl").read_text().splitlines()
+    records = [json.loads(x) for x in lines]
+    half = [r for r in records if r["label"] == "lane-keep"][::2]
+    for r in half:
+        r["git_commit"] = b
+    for order in (records, records[::-1]):
+        (folder / "episodes.jsonl").write_text("\n".join(json.dumps(r) for r in order) + "\n")
+        _, arms = report.grid_table([folder], with_score=False)
+        assert {(x.column, tuple(x.marked)) for x in arms} == {("idm", ("idm",)), ("lane-keep", ("lane-keep",))}
 
 
 def test_training_seeds_are_one_column_with_their_range(tmp_path):

@@ -11,6 +11,7 @@ import pytest
 
 from bimp import envs
 from bimp.agents import rl, rl_train
+from bimp.agents.commands import train_rl
 from bimp.agents.policy import Policy
 from bimp.agents.registry import make_policy
 from bimp.envs.wrappers import features, n_features
@@ -113,7 +114,7 @@ def test_short_training_writes_a_loadable_model(algo, tmp_path):
     overrides = {"ppo": "n_steps: 64\n", "sac": "learning_starts: 64\n"}[algo] + "checkpoint_every: 128\n"
     (tmp_path / "overrides.yaml").write_text(overrides)
     out = tmp_path / algo
-    code = rl_train.main(["--scenario", "emergency-brake", "--algo", algo, "--timesteps", "256", "--seed", "1",
+    code = train_rl.main(["--scenario", "emergency-brake", "--algo", algo, "--timesteps", "256", "--seed", "1",
                     "--config", str(tmp_path / "overrides.yaml"), "--out", str(out), "--eval-seeds", "1",
                     "--no-progress"])
     assert code == 0
@@ -223,7 +224,7 @@ def test_a_grid_is_refused_before_any_run_trains(tmp_path, monkeypatch, capsys, 
     monkeypatch.setattr(rl_train, "train", _fake_train(calls))
     argv = ["--scenario", "emergency-brake", "overtaking", "--runs-dir", str(tmp_path), "--no-progress"]
     with pytest.raises(SystemExit) as exit_:
-        rl_train.main(argv + extra)
+        train_rl.main(argv + extra)
     assert exit_.value.code == 2 and message in capsys.readouterr().err
     assert calls == []
 
@@ -233,7 +234,7 @@ def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, monk
     monkeypatch.setattr(rl_train, "train", _fake_train(calls))
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_:
-        rl_train.main(["--scenario", "overtaking", "--out", "", "--no-progress"])
+        train_rl.main(["--scenario", "overtaking", "--out", "", "--no-progress"])
     assert exit_.value.code == 2 and "--out is empty" in capsys.readouterr().err
     assert calls == [] and list(tmp_path.iterdir()) == []
 
@@ -245,7 +246,7 @@ def test_a_grid_refuses_a_folder_of_another_run_before_the_first_trains(tmp_path
     (tmp_path / rl_train.run_name(other)).mkdir()
     (tmp_path / rl_train.run_name(other) / "config.json").write_text(json.dumps(dataclasses.asdict(other)))
     with pytest.raises(SystemExit):  # the second scenario's second seed: after three runs that would have trained
-        rl_train.main(["--scenario", "emergency-brake", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path)])
+        train_rl.main(["--scenario", "emergency-brake", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path)])
     assert "timesteps: 999 there, 150000 here" in capsys.readouterr().err
     assert calls == []
 
@@ -253,7 +254,7 @@ def test_a_grid_refuses_a_folder_of_another_run_before_the_first_trains(tmp_path
 def test_a_grid_trains_every_scenario_and_seed_and_a_failed_run_stops_no_other(tmp_path, monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(rl_train, "train", _fake_train(calls, fails="overtaking"))
-    code = rl_train.main(["--scenario", "overtaking", "emergency-brake", "--seed", "1", "2", "--runs-dir",
+    code = train_rl.main(["--scenario", "overtaking", "emergency-brake", "--seed", "1", "2", "--runs-dir",
                           str(tmp_path), "--eval-seeds", "0", "--no-progress"])
     assert code == 1  # a failed run is not a success
     assert calls == [("overtaking", 1, "ppo_overtaking_s1"), ("overtaking", 2, "ppo_overtaking_s2"),
@@ -268,14 +269,14 @@ def test_a_grid_of_real_runs_resumes_to_nothing(tmp_path, capsys):
     (tmp_path / "short.yaml").write_text("n_steps: 64\ncheckpoint_every: 0\n")
     argv = ["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
             str(tmp_path / "short.yaml"), "--runs-dir", str(tmp_path), "--eval-seeds", "1", "--no-progress"]
-    assert rl_train.main(argv) == 0
+    assert train_rl.main(argv) == 0
     first = {s: (tmp_path / f"ppo_emergency-brake_s{s}" / "train_time.json").read_text() for s in (1, 2)}
     assert capsys.readouterr().out.count("trained") == 2
     for s in (1, 2):
         model = tmp_path / f"ppo_emergency-brake_s{s}" / rl.model_name("ppo", "emergency-brake")
         assert rl.read_model_file(model)[0]["num_timesteps"] == 128
         assert (model.parent / "eval.json").is_file()
-    assert rl_train.main(argv) == 0
+    assert train_rl.main(argv) == 0
     assert {s: (tmp_path / f"ppo_emergency-brake_s{s}" / "train_time.json").read_text() for s in (1, 2)} == first
     assert capsys.readouterr().out.count("trained earlier") == 2
 
@@ -283,7 +284,7 @@ def test_a_grid_of_real_runs_resumes_to_nothing(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_grid_on_two_workers_trains_both_runs(tmp_path):
     (tmp_path / "short.yaml").write_text("n_steps: 64\ncheckpoint_every: 0\n")
-    assert rl_train.main(["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
+    assert train_rl.main(["--scenario", "emergency-brake", "--seed", "1", "2", "--timesteps", "128", "--config",
                     str(tmp_path / "short.yaml"), "--runs-dir", str(tmp_path), "--workers", "2", "--eval-seeds",
                     "0", "--no-progress"]) == 0
     for s in (1, 2):
@@ -296,19 +297,19 @@ def test_one_run_trains_in_this_process_into_its_default_folder(tmp_path, monkey
     monkeypatch.setattr(rl_train, "train", _fake_train(calls))
     monkeypatch.chdir(tmp_path)
     (tmp_path / "seeded.yaml").write_text("seed: 7\n")  # a seed from the file, none on the command line
-    assert rl_train.main(["--scenario", "overtaking", "--config", "seeded.yaml", "--eval-seeds", "0"]) == 0
+    assert train_rl.main(["--scenario", "overtaking", "--config", "seeded.yaml", "--eval-seeds", "0"]) == 0
     assert calls == [("overtaking", 7, "ppo_overtaking_s7")]
     assert (tmp_path / "runs/rl/ppo_overtaking_s7/train_time.json").is_file()
     assert "train wall time: 1.5 s" in capsys.readouterr().out
     monkeypatch.setattr(rl_train, "train", _fake_train(calls, fails="overtaking"))
     with pytest.raises(RuntimeError):  # not a refusal: a bug in training is a traceback, as before
-        rl_train.main(["--scenario", "overtaking", "--eval-seeds", "0"])
+        train_rl.main(["--scenario", "overtaking", "--eval-seeds", "0"])
 
 
 def test_a_runs_dir_under_a_file_is_named_as_such(tmp_path, capsys):
     (tmp_path / "file").write_text("")
     with pytest.raises(SystemExit):
-        rl_train.main(["--scenario", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path / "file" / "runs")])
+        train_rl.main(["--scenario", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path / "file" / "runs")])
     assert f"--runs-dir {tmp_path / 'file' / 'runs'} lies under" in capsys.readouterr().err
 
 
@@ -321,10 +322,10 @@ def test_ray_gets_absolute_run_folders_and_a_dead_worker_fails_the_command(tmp_p
             for report in crashed(job, "the worker process running it died twice"):
                 write(report)
 
-    monkeypatch.setattr(rl_train, "start_backend", lambda *a: None)
-    monkeypatch.setattr(rl_train, "run_groups", fake_run_groups)
+    monkeypatch.setattr(train_rl, "start_backend", lambda *a: None)
+    monkeypatch.setattr(train_rl, "run_groups", fake_run_groups)
     monkeypatch.chdir(tmp_path)
-    code = rl_train.main(["--scenario", "overtaking", "--runs-dir", "rel", "--backend", "ray", "--address", "auto",
+    code = train_rl.main(["--scenario", "overtaking", "--runs-dir", "rel", "--backend", "ray", "--address", "auto",
                     "--no-progress"])
     assert code == 1 and "WorkerDied: the worker process running it died twice" in capsys.readouterr().out
     assert [job[1] for job in seen["jobs"]] == [str(tmp_path / "rel" / "ppo_overtaking_s0")]

@@ -14,16 +14,15 @@ import numpy as np
 import pytest
 import torch
 
+from bimp.agents.commands import train_dynamics
 from bimp.configs import load_config
-from bimp.planners import dynamics, dynamics_train
+from bimp.planners import dynamics
 from bimp.planners.dynamics import BicycleModel, LearnedDynamics, load_model, model_from_name, save_model
 from bimp.planners.dynamics_train import (
-    DEFAULT_OUT,
     DataConfig,
     TrainConfig,
     generate_data,
     open_loop_errors,
-    parser,
     rollout_scenarios,
     simulate_vehicle,
     train,
@@ -230,10 +229,11 @@ def test_planner_config_rejects_a_bad_weights_file_when_built(tmp_path):
 
 
 def test_train_dynamics_writes_under_runs_by_default_not_the_shipped_file():
-    out = parser().parse_args([]).out
-    assert out == DEFAULT_OUT and Path(out).parts[0] == "runs"
+    out = train_dynamics.parser().parse_args([]).out
+    assert out == train_dynamics.DEFAULT_OUT and Path(out).parts[0] == "runs"
     assert Path(out).resolve() != dynamics.WEIGHTS_PATH.resolve()
-    assert parser().parse_args(["--out", "planners/weights/mlp.pt"]).out == Path("planners/weights/mlp.pt")
+    shipped = Path("planners/weights/mlp.pt")
+    assert train_dynamics.parser().parse_args(["--out", str(shipped)]).out == shipped
 
 
 def test_train_dynamics_main_writes_the_default_path_and_leaves_the_shipped_weights(tmp_path, monkeypatch, capsys):
@@ -241,14 +241,14 @@ def test_train_dynamics_main_writes_the_default_path_and_leaves_the_shipped_weig
     shipped = hashlib.sha256(dynamics.WEIGHTS_PATH.read_bytes()).hexdigest()
     small = generate_data(np.random.default_rng(0), DataConfig(n_sequences=2, sequence_steps=5, n_uniform=50,
                                                                n_stop=10))
-    monkeypatch.setattr(dynamics_train, "generate_data", lambda rng, config: small)
-    monkeypatch.setattr(dynamics_train, "accuracy_report", lambda model, rng, episodes: "(report)")
+    monkeypatch.setattr(train_dynamics, "generate_data", lambda rng, config: small)
+    monkeypatch.setattr(train_dynamics, "accuracy_report", lambda model, rng, episodes: "(report)")
     monkeypatch.chdir(tmp_path)
-    assert dynamics_train.main(["--steps", "2", "--batch-size", "8"]) == 0
+    assert train_dynamics.main(["--steps", "2", "--batch-size", "8"]) == 0
     written = tmp_path / "runs" / "dynamics" / "mlp.pt"
     assert isinstance(load_model(written), LearnedDynamics)
     assert capsys.readouterr().out.rstrip().splitlines()[-1].startswith(
         f"weights: {written.relative_to(tmp_path)}")
-    assert dynamics_train.main(["--steps", "2", "--batch-size", "8", "--out", "elsewhere/m.pt"]) == 0
+    assert train_dynamics.main(["--steps", "2", "--batch-size", "8", "--out", "elsewhere/m.pt"]) == 0
     assert (tmp_path / "elsewhere" / "m.pt").is_file()
     assert hashlib.sha256(dynamics.WEIGHTS_PATH.read_bytes()).hexdigest() == shipped

@@ -373,7 +373,7 @@ def test_actions_are_finite_and_in_the_action_space(scenario, factory):
 
 @pytest.mark.parametrize("policy", ["nmpc", "nmpc-t"])
 def test_a_highway_env_road_is_refused_when_the_policy_is_built_not_in_its_episodes(policy, tmp_path):
-    from bimp.agents.evaluate import main as evaluate_main
+    from bimp.agents.commands.evaluate import main as evaluate_main
     from bimp.agents.registry import make_policy
 
     with pytest.raises(ValueError, match="closed-form road"):
