@@ -27,7 +27,7 @@ import io
 import json
 import pickle
 import zipfile
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +37,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.sac.policies import SACPolicy
 
 from bimp import envs
-from bimp.configs import check_fields, file_sha256
+from bimp.configs import ConfigError, check_fields, file_sha256
 from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
@@ -50,7 +50,9 @@ class RLConfig:
     """One training run. ``batch_size=None`` takes the algorithm's usual value (PPO 64, SAC 256);
     ``n_steps``, ``n_epochs``, ``ent_coef`` and ``gae_lambda`` are PPO's, ``buffer_size``, ``learning_starts``
     and ``tau`` SAC's. ``vec_env``: ``"dummy"`` steps the envs in this process (one core), ``"subproc"`` one
-    process each. ``checkpoint_every``: timesteps between checkpoints (0: none)."""
+    process each. ``checkpoint_every``: timesteps between checkpoints (0: none). Built and checked as every config
+is (``load_config(RLConfig, FILE, **overrides)``: unknown keys refused by name, :class:`ConfigError` for a bad
+value)."""
 
     scenario: str = "overtaking"
     algo: str = "ppo"
@@ -74,33 +76,23 @@ class RLConfig:
     def __post_init__(self) -> None:
         check_fields(self)  # types and lengths, errors naming the key
         envs.env_id(self.scenario)  # raises ValueError naming the choices
-        if self.algo not in ALGOS:
-            raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
-        if self.vec_env not in ("dummy", "subproc"):
-            raise ValueError(f"vec_env must be 'dummy' or 'subproc', got {self.vec_env!r}")
-        positive = {"timesteps": self.timesteps, "n_envs": self.n_envs, "n_steps": self.n_steps,
-                    "n_epochs": self.n_epochs, "buffer_size": self.buffer_size,
-                    "learning_rate": self.learning_rate, "tau": self.tau}
-        for key, value in positive.items():
-            if not value > 0:
-                raise ValueError(f"{key} must be > 0, got {value}")
+        for key, allowed in (("algo", ALGOS), ("vec_env", ("dummy", "subproc"))):
+            if getattr(self, key) not in allowed:
+                raise ConfigError(key, f"one of {allowed}", getattr(self, key))
+        for key in ("timesteps", "n_envs", "n_steps", "n_epochs", "buffer_size", "learning_rate", "tau"):
+            if not getattr(self, key) > 0:
+                raise ConfigError(key, "> 0", getattr(self, key))
+        for key in ("ent_coef", "learning_starts", "checkpoint_every"):
+            if getattr(self, key) < 0:
+                raise ConfigError(key, ">= 0", getattr(self, key))
         if self.batch_size is not None and self.batch_size < 2:
-            raise ValueError(f"batch_size must be >= 2, got {self.batch_size}")
+            raise ConfigError("batch_size", "None or an int >= 2", self.batch_size)
         if not self.net_arch or min(self.net_arch) < 1:
-            raise ValueError(f"net_arch must be a non-empty list of positive widths, got {self.net_arch}")
-        if not (0.0 < self.gamma <= 1.0 and 0.0 <= self.gae_lambda <= 1.0):
-            raise ValueError("gamma must lie in (0, 1] and gae_lambda in [0, 1]")
-        if self.ent_coef < 0 or self.learning_starts < 0 or self.checkpoint_every < 0:
-            raise ValueError("ent_coef, learning_starts and checkpoint_every must be >= 0")
-
-    @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> RLConfig:
-        """Build from a mapping (YAML overrides); an unknown key raises ``ValueError`` naming it."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown RLConfig key(s) {unknown}; known keys are {sorted(known)}")
-        return cls(**values)
+            raise ConfigError("net_arch", "a non-empty list of positive widths", self.net_arch)
+        if not 0.0 < self.gamma <= 1.0:
+            raise ConfigError("gamma", "in (0, 1]", self.gamma)
+        if not 0.0 <= self.gae_lambda <= 1.0:
+            raise ConfigError("gae_lambda", "in [0, 1]", self.gae_lambda)
 
     @property
     def env_id(self) -> str:

@@ -52,6 +52,7 @@ from bimp.agents.rl import (
     shipped_name,
 )
 from bimp.agents.rollout import rollout
+from bimp.configs import load_config
 from bimp.envs.wrappers import PlanningWrapper
 
 _EARLIER = "delete it to resume from an earlier checkpoint (or train into a new --out)"
@@ -332,7 +333,7 @@ def train_job(job: tuple[dict[str, Any], str, int]) -> list[dict[str, Any]]:
     training wall time, whether it was trained by an earlier command, and the check; or the error that stopped it."""
     values, out, seeds = job
     try:
-        cfg = RLConfig.from_mapping(values)
+        cfg = load_config(RLConfig, None, **values)
         finished = _finished(cfg, Path(out))
         path = train(cfg, Path(out), progress=False)
         report: dict[str, Any] = {"run": out, "model": str(path), "earlier": finished, "wall_s": wall_s(Path(out))}

@@ -29,7 +29,7 @@ from bimp.agents.rl_train import (
     train_job,
     wall_s,
 )
-from bimp.configs import read_yaml
+from bimp.configs import load_config, read_yaml
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         for scenario in args.scenario:
             scenario = envs.scenario_name(envs.env_id(scenario)) or scenario  # one name per scenario, one folder
             for seed in args.seed or [values.get("seed")]:
-                cfg = RLConfig.from_mapping({**values, "scenario": scenario,
+                cfg = load_config(RLConfig, None, **{**values, "scenario": scenario,
                                              **({"seed": seed} if seed is not None else {})})
                 runs.append((cfg, one_out or runs_dir / run_name(cfg)))
         if len(runs) > 1 and one_out:

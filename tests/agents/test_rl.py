@@ -14,6 +14,7 @@ from bimp.agents import rl, rl_train
 from bimp.agents.commands import train_rl
 from bimp.agents.policy import Policy
 from bimp.agents.registry import make_policy
+from bimp.configs import load_config
 from bimp.envs.wrappers import features, n_features
 
 SHIPPED = sorted(
@@ -37,7 +38,7 @@ def test_some_model_is_shipped_for_each_scenario():
 def test_config_validates():
     assert rl.RLConfig().net_arch == (64, 64)
     with pytest.raises(ValueError, match="n_stepz"):
-        rl.RLConfig.from_mapping({"n_stepz": 8})
+        load_config(rl.RLConfig, None, n_stepz=8)
     for bad in ({"algo": "dqn"}, {"scenario": "parking"}, {"timesteps": 0}, {"gamma": 1.5}, {"vec_env": "ray"},
                 {"timesteps": 1.5}, {"net_arch": [64, "x"]}, {"ent_coef": True}, {"gamma": float("nan")}):
         key = next(iter(bad))
