@@ -32,7 +32,7 @@ from bimp.agents.records import format_stat, latest_records, read_records
 from bimp.agents.verification import arm_key, read_verified
 
 # A marker starts its line: an indented one (an example in a code block) is text.
-BLOCK = re.compile(r"^(<!-- report: ([\w-]+) -->\n)(.*?)^(<!-- /report -->)", re.S | re.M)
+BLOCK = re.compile(r"^(<!-- report: ([\w-]+) -->\n)(.*?)^(<!-- /report -->)$", re.S | re.M)
 BLOCK_NAMES = re.compile(r"^<!-- report: ([\w-]+) -->", re.M)  # any opening marker, paired or not
 SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
@@ -219,14 +219,13 @@ def render(text: str, tables: dict[str, Callable] = TABLES, cache: dict | None =
                      for a in arms for label in a.marked)
         return match.group(1) + table + "\n" + match.group(4)
 
-    rendered = BLOCK.sub(block, text)
-    # Every opening marker must have been a block: one left open would swallow the next block up to its end.
-    opened, closed = len(BLOCK_NAMES.findall(text)), len(re.findall(r"^<!-- /report -->$", text, re.M))
+    # Every marker must pair, checked before any table is built: one left open would swallow the next block.
+    opened, closed = len(BLOCK_NAMES.findall(text)), len(re.findall(r"^<!-- /report -->", text, re.M))
     if opened != len(BLOCK.findall(text)) or closed != opened or BLOCK_NAMES.findall(
             "".join(m.group(3) for m in BLOCK.finditer(text))):
-        raise EvaluationError(f"{where}: report markers do not pair: each `<!-- report: NAME -->` line needs its "
-                              "own `<!-- /report -->` line before the next block")
-    return rendered, notes
+        raise EvaluationError(f"{where}: report markers do not pair: each `<!-- report: NAME -->` needs its own "
+                              "`<!-- /report -->` before the next block, each marker the whole of its line")
+    return BLOCK.sub(block, text), notes
 
 
 def default_files() -> list[Path]:

@@ -51,8 +51,8 @@ class RLConfig:
     ``n_steps``, ``n_epochs``, ``ent_coef`` and ``gae_lambda`` are PPO's, ``buffer_size``, ``learning_starts``
     and ``tau`` SAC's. ``vec_env``: ``"dummy"`` steps the envs in this process (one core), ``"subproc"`` one
     process each. ``checkpoint_every``: timesteps between checkpoints (0: none). Built and checked as every config
-is (``load_config(RLConfig, FILE, **overrides)``: unknown keys refused by name, :class:`ConfigError` for a bad
-value)."""
+    is (``load_config(RLConfig, FILE, **overrides)``): an unknown key refused by name, a bad value by
+    :class:`ConfigError` (an unknown scenario by ``ValueError`` naming the choices)."""
 
     scenario: str = "overtaking"
     algo: str = "ppo"

@@ -23,16 +23,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     cache: dict = {}
     stale, notes = [], {}
-    for path in args.files or default_files():
+    for path in args.files or default_files():  # every file rendered before any is written: all or nothing
         text = path.read_text()
         rendered, found = render(text, TABLES, cache, where=str(path))
         notes.update(dict.fromkeys(found))  # a table shown in several files is named once
         if rendered != text:
-            stale.append(path)
-            if not args.check:
-                write_atomic(path, rendered)
+            stale.append((path, rendered))
+    if not args.check:
+        for path, rendered in stale:
+            write_atomic(path, rendered)
     for note in notes:
         print(f"bimp report: {note}", file=sys.stderr)
-    for path in stale:
+    for path, _ in stale:
         print(f"{path}: {'differs from its folders (run bimp report)' if args.check else 'rendered'}")
     return 1 if args.check and stale else 0

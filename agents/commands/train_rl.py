@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bimp train-rl", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", nargs="+", action="extend", required=True,
                         help=f"one or more of {sorted(envs.SCENARIOS)}")
-    parser.add_argument("--algo", choices=ALGOS, default="ppo")
+    parser.add_argument("--algo", choices=ALGOS, default=None, help="ppo (default) or sac; or algo: in --config")
     parser.add_argument("--timesteps", type=int, default=None, help="total env steps (default: RLConfig's)")
     parser.add_argument("--seed", type=int, nargs="+", action="extend", default=None,
                         help="training seed(s) (default: RLConfig's)")
@@ -67,8 +67,11 @@ def main(argv: list[str] | None = None) -> int:
             fail(err)
         if data is not None and not isinstance(data, dict):
             fail(f"{args.config}: expected a mapping of RLConfig overrides, got {type(data).__name__}")
-        values.update(data or {})
-    values["algo"] = args.algo
+        values.update({str(k): v for k, v in (data or {}).items()})  # YAML's `1:` or `yes:` named as the others
+    if args.algo is not None:
+        if values.get("algo", args.algo) != args.algo:  # neither may win silently
+            fail(f"{args.config} sets algo: {values['algo']}, and --algo is {args.algo}: give it once")
+        values["algo"] = args.algo
     for key in ("timesteps", "n_envs", "vec_env"):
         if getattr(args, key) is not None:
             values[key] = getattr(args, key)

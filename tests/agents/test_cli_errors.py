@@ -113,6 +113,9 @@ def test_demo_and_bench_refuse_a_bad_out_before_running(tmp_path, monkeypatch, c
     (None, None, "cannot be read"),
     (b"timesteps: 100\n", "afile", "is a file"),
     (b"timesteps: 100\n", "afile/sub", "under"),
+    (b"n_stepz: 8\n", None, "n_stepz"),  # an unknown key, named
+    (b"1: 8\n", None, "['1']"),  # a key YAML reads as no string, named as the others
+    (b"gamma: 1.5\n", None, "gamma must be in (0, 1]"),
 ])
 def test_train_rl_file_errors_exit_2_in_one_line(tmp_path, monkeypatch, capsys, config, out, named):
     """train-rl read its --config with a bare yaml.safe_load and never checked --out (review finding)."""
@@ -126,6 +129,16 @@ def test_train_rl_file_errors_exit_2_in_one_line(tmp_path, monkeypatch, capsys, 
     assert exit_.value.code == 2
     one_line_error(capsys, named)
     assert sorted(tree(tmp_path)) == sorted(["afile"] + (["rl.yaml"] if config is not None else []))
+
+
+def test_train_rl_refuses_two_algorithms(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "rl.yaml").write_text("algo: sac\n")
+    with pytest.raises(SystemExit) as exit_:
+        main(["train-rl", "--scenario", "overtaking", "--config", "rl.yaml", "--algo", "ppo", "--out", "run"])
+    assert exit_.value.code == 2
+    one_line_error(capsys, "algo: sac", "--algo is ppo")
+    assert sorted(tree(tmp_path)) == ["rl.yaml"]
 
 
 @pytest.mark.parametrize("backend", [["--backend", "bogus"], ["--ray-cpus", "2"]])

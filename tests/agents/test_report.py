@@ -42,10 +42,21 @@ def test_blocks_are_rendered_in_place_and_unknown_tables_refused():
     "<!-- report: t -->\nopen\n<!-- report: t -->\nx\n<!-- /report -->\n",  # the first never closed
     "<!-- report: t --> \nx\n<!-- /report -->\n",  # a trailing space: not a marker line
     "<!-- report: t -->\nx\n<!-- /report -->\n<!-- /report -->\n",  # a stray closing marker
+    "<!-- report: t -->\nx\n<!-- /report --><!-- report: t -->\ny\n<!-- /report -->\n",  # two on a line
 ])
 def test_unpaired_markers_are_refused_before_anything_is_written(text):
     with pytest.raises(EvaluationError, match="markers do not pair"):
         report.render(text, {"t": _table([1])}, where="x.md")
+
+
+def test_a_bad_file_stops_the_run_before_any_file_is_written(tmp_path, monkeypatch):
+    good, bad = tmp_path / "a.md", tmp_path / "b.md"
+    good.write_text("<!-- report: t -->\nold\n<!-- /report -->\n")
+    bad.write_text("<!-- report: t -->\nnever closed\n")
+    monkeypatch.setattr(report_command, "TABLES", {"t": _table(["new"])})
+    with pytest.raises(EvaluationError, match="do not pair"):
+        report_command.main([str(good), str(bad)])
+    assert "old" in good.read_text()
 
 
 def test_check_writes_nothing_and_fails_where_a_block_differs(tmp_path, monkeypatch, capsys):
