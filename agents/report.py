@@ -17,6 +17,7 @@ each arm that ``bimp verify`` did not find the same at a later one, and the comm
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -48,6 +49,12 @@ class Cell:
     column: str
     runs: dict[str, list[dict]]  # label -> its latest ok records
     marked: list[str]  # the labels made at an unverified older code version (see the module doc)
+
+    @functools.cached_property
+    def summaries(self) -> dict[str, dict]:
+        """Each label's summary (:func:`bimp.agents.metrics.summarize`), computed once for every metric read."""
+        return {label: summarize([{**r, "label": label} for r in records])[f"{label}/{self.scenario}"]
+                for label, records in self.runs.items()}
 
 
 def _arms(folders: list[Path]) -> list[Cell]:
@@ -87,8 +94,8 @@ def _stat(arm: Cell, metric: str) -> dict | None:
     """The arm's ``metric``: its summary statistic with its interval; over training seeds, the mean of the seeds'
     means with their range as the interval."""
     means = []
-    for label, records in arm.runs.items():
-        entry = summarize([{**r, "label": label} for r in records])[f"{label}/{arm.scenario}"].get(metric)
+    for summary in arm.summaries.values():
+        entry = summary.get(metric)
         if not entry or entry.get("mean") is None:
             return None
         if len(arm.runs) == 1:

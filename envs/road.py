@@ -217,8 +217,7 @@ class Route:
         """Least signed distance [m] of the four body corners to the drivable area's edges, ``(...)`` for states
         ``(..., >=3)`` ``[x, y, heading, ..]``: > 0 inside. Exact for the rectangle, up to the polyline."""
         states = np.asarray(states, float)
-        p = self.project(body_corners(states[..., :2], states[..., 2], length, width))
-        return np.minimum(p.right - p.l, p.l - p.left).min(axis=-1)
+        return corner_edge_margin(self.project(body_corners(states[..., :2], states[..., 2], length, width)))
 
 
 class Projection(NamedTuple):
@@ -231,6 +230,11 @@ class Projection(NamedTuple):
     curvature: np.ndarray
     left: np.ndarray
     right: np.ndarray
+
+
+def corner_edge_margin(corners: Projection) -> np.ndarray:
+    """Least signed distance [m] ``(...)`` of projected body corners ``(..., 4)`` to the edges: > 0 inside."""
+    return np.minimum(corners.right - corners.l, corners.l - corners.left).min(axis=-1)
 
 
 COARSE = 8  # every COARSE-th point first, then the 2 COARSE points around the nearest: (P / 8 + 16) distances

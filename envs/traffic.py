@@ -185,8 +185,7 @@ def _fast_class(cls: type) -> type:
 
 
 def _unpickle(base: type) -> Road:
-    road = object.__new__(_fast_class(base))
-    return road
+    return object.__new__(_fast_class(base))
 
 
 def make_fast(road: Road) -> Road:

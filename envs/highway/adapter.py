@@ -62,7 +62,7 @@ from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import RouteCache, route_from
 from bimp.envs.highway.profiles import PROFILES, SUPPORTED
 from bimp.envs.overlay import draw_lines
-from bimp.envs.road import Projection, Route, body_corners
+from bimp.envs.road import Projection, Route, body_corners, corner_edge_margin
 from bimp.envs.scene import (
     ACTUATOR_ACCEL,
     OBS_BOUND,
@@ -406,18 +406,17 @@ class HighwayAdapter(gym.Wrapper):
                 self.progress += float(s_after - s_before)
         self._ev_s = float(p.s[0])  # where the next step's progress starts
         ref = self._reference(p)
-        return self._observe(rows, ref), self._safety(rows, ref, crashed, p)
+        return self._observe(state, rows, ref), self._safety(state, rows, ref, crashed, p)
 
-    def _observe(self, rows: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    def _observe(self, state: np.ndarray, rows: np.ndarray, ref: np.ndarray) -> np.ndarray:
         ovs = np.zeros((self.n_obstacles, len(OV_FIELDS)))
         ovs[:min(len(rows), self.n_obstacles)] = rows[:self.n_obstacles]
-        obs = join_obs(self._ev_state(), self.last_input, ovs, ref)
+        obs = join_obs(state, self.last_input, ovs, ref)
         return np.clip(obs, -OBS_BOUND, OBS_BOUND).astype(np.float32)
 
-    def _safety(self, rows: np.ndarray, ref: np.ndarray, crashed: np.ndarray, p) -> dict:
+    def _safety(self, state: np.ndarray, rows: np.ndarray, ref: np.ndarray, crashed: np.ndarray, p) -> dict:
         base, scene = self.env.unwrapped, self.scene
         ev = base.vehicle
-        state = self._ev_state()
         # Footprint gaps of the slots, of any vehicle near enough to touch (centres within the two half-diagonals)
         # and, once highway-env has crashed the EV, of all (the contact may be one it pushed apart).
         gaps_all = np.full(len(rows), np.inf)
@@ -429,7 +428,7 @@ class HighwayAdapter(gym.Wrapper):
             gaps_all[near] = scene.ov_gaps(state, rows[near])
         gaps = np.full(self.n_obstacles, np.inf)
         gaps[:min(len(rows), self.n_obstacles)] = gaps_all[:self.n_obstacles]
-        edge = float(np.minimum(p.right[2:6] - p.l[2:6], p.l[2:6] - p.left[2:6]).min())  # Route.edge_distance's
+        edge = float(corner_edge_margin(Projection(*(field[2:6] for field in p))))
         e = Projection(*(field[0] for field in p))
         slots = rows[:self.n_obstacles]
         if len(slots):
