@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import gymnasium as gym
+import yaml
 
 from bimp import envs
 from bimp.agents.errors import EvaluationError
@@ -64,8 +65,9 @@ from bimp.agents.records import (
     write_atomic,
 )
 from bimp.agents.registry import POLICIES, load, make_policy, policy_spec
-from bimp.configs import file_sha256, trust_switch
-from bimp.planners.problem import ProblemConfig
+from bimp.agents.verification import VERIFIED_FILE, arm_key, read_verified
+from bimp.configs import file_sha256, is_old_tuned, read_yaml, trust_switch, tuning_path, write_tuned
+from bimp.planners.problem import RENAMED, ProblemConfig
 
 # sha256 of planners/weights/mlp.pt as committed at ad50d20 and never changed since (git log): every planner record
 # that names "mlp" was made with it.
@@ -110,6 +112,7 @@ def new_shape(policy: str, config: dict) -> dict:
         own["problem"] = {key: own.pop(key) for key in PROBLEM_KEYS if key in own}
     if "model_sha256" in own:  # PPO, SAC: the file is its sha256; where it lay is no part of the config
         own.pop("model_path", None)
+    own = renamed(own)
     config["config"] = _with_neutral(own, neutral_config(policy))
     dynamics = own.get("problem", {}).get("dynamics") if isinstance(own.get("problem"), dict) else None
     if dynamics is not None and "files" not in config:  # a planner: its weights by content (issue 28)
@@ -121,6 +124,19 @@ def new_shape(policy: str, config: dict) -> dict:
     stray = sorted(set(config) - {"config", "files", "scenario"})
     if stray:
         raise MigrationError(f"the config holds {stray}, which no current config has")
+    return config
+
+
+def renamed(config: dict) -> dict:
+    """``config`` (a planner's factory kwargs, nested) with each setting :data:`RENAMED` names under its new name."""
+    config = copy.deepcopy(config)
+    for old, new in RENAMED.items():
+        *where, key = old.split(".")
+        node = functools.reduce(lambda d, k: d.get(k) if isinstance(d, dict) else None, where, config)
+        if isinstance(node, dict) and key in node:
+            value = node.pop(key)
+            *there, name = new.split(".")
+            functools.reduce(lambda d, k: d.setdefault(k, {}), there, config)[name] = value
     return config
 
 
@@ -151,6 +167,9 @@ def new_overrides(old_config: dict, overrides: dict) -> dict:
             key = "problem.barrier.bound_margin"
         elif flat and head in PROBLEM_KEYS:
             key = f"problem.{key}"
+        for old, new in RENAMED.items():
+            if key == old or key.startswith(old + "."):
+                key = new + key[len(old):]
         out[key] = value
     return out
 
@@ -219,6 +238,35 @@ def _infinities(value: object, default: object) -> object:
             return default.get(key) if isinstance(default, dict) else getattr(default, key, None)
         return {key: _infinities(item, child(key)) for key, item in value.items()}
     return math.inf if value is None and isinstance(default, float) else value
+
+
+# --- one config file -----------------------------------------------------------------------------------------
+def migrate_config_file(path: str | Path, dry_run: bool = False) -> str:
+    """Bring the YAML config ``path`` to today's shape: a tuned config in the old envelope (``policy``, ``tuning``
+    and ``config`` around the config, :func:`bimp.configs.is_old_tuned`) split into the config alone and its tuning
+    beside it (:func:`bimp.configs.write_tuned`), and each renamed setting (:data:`RENAMED`) under its new name. The
+    values are kept as they were, so a policy loads the same config from the file. A plain file that needs a rename
+    is written again without its comments. Returns a line saying what changed; ``MigrationError`` for a file that is
+    not a YAML mapping."""
+    path = Path(path)
+    try:
+        doc = read_yaml(path)
+    except ValueError as err:
+        raise MigrationError(str(err)) from None
+    if not isinstance(doc, dict):
+        raise MigrationError(f"{path}: not a config (a YAML mapping)")
+    old = is_old_tuned(doc)
+    config = doc["config"] if old else doc
+    new = renamed(config)
+    if not old and new == config:
+        return f"{path}: nothing to change"
+    what = ("split: the config alone, its tuning in " + tuning_path(path).name) if old else "settings renamed"
+    if not dry_run:
+        if old:
+            write_tuned(path, new, doc["policy"], doc.get("tuning"))
+        else:
+            write_atomic(path, yaml.safe_dump(new, sort_keys=False, default_flow_style=None, width=110))
+    return f"{path}: {'would be ' if dry_run else ''}{what}"
 
 
 # --- one folder ----------------------------------------------------------------------------------------------
@@ -305,6 +353,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
         arms.setdefault((r["policy"], json.dumps(config, sort_keys=True)), []).append(number)
 
     new_lines, entries, referenced = list(lines), {}, set()
+    rehashed: dict[tuple[str, str | None], str] = {}  # (scenario, old hash) -> new hash
     for (policy, old_json), numbers in arms.items():
         first = parsed[numbers[0] - 1]
         name = f"{record_label(first)!r} ({policy}) on {first['scenario']}, hash {first.get('config_hash')}"
@@ -334,6 +383,7 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             report.problem = f"arm {name}: its config cannot be read ({type(err).__name__}: {err})"
             return report
         key = config_hash(policy, config)  # the current hash, whatever it leaves out: never copied
+        rehashed[(first["scenario"], first.get("config_hash"))] = key
         if note:
             report.notes.append(f"{name}: {note}")
         for number in numbers:
@@ -358,6 +408,8 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
     if dry_run or (new_data == data and final == old_entries):
         return report
     try:
+        verified = read_verified(folder)
+        carried = _rehashed_verified(verified, rehashed)
         with folder_lock(folder, hint="wait for it to end"):
             if episode_bytes(folder) != data:
                 report.problem = "the folder changed while it was migrated (a run writing into it?): try again"
@@ -366,9 +418,22 @@ def migrate_folder(folder: str | Path, dry_run: bool = False, drop_traces: bool 
             write_arms(folder, {**old_entries, **final})
             write_atomic(path, new_data)
             write_arms(folder, final)
+            if carried != verified:
+                write_atomic(folder / VERIFIED_FILE, json.dumps(carried, indent=1, sort_keys=True) + "\n")
     except EvaluationError as err:  # locked by a run, or a write refused (a full disk): one line, not a traceback
         report.problem = str(err)
     return report
+
+
+def _rehashed_verified(verified: dict, rehashed: dict) -> dict:
+    """``verified`` (a folder's ``verified.json``) with each arm's key under its new config hash: a verification
+    is of the config's content, which a migration keeps (it checks the migrated config resolves the same)."""
+    out = {}
+    for key, value in verified.items():
+        scenario, label, old = key.split("|", 2)
+        new = rehashed.get((scenario, old))
+        out[arm_key(scenario, label, new) if new else key] = value
+    return out
 
 
 def _gate_goal(record: dict) -> bool:

@@ -13,6 +13,7 @@ A new policy is one module plus one table entry::
 
 from __future__ import annotations
 
+import functools
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +21,7 @@ from types import MappingProxyType
 from typing import Any
 
 from bimp.agents.policy import Policy, missing_members
-from bimp.configs import TUNED_DIR, load_tuned, merged, read_overrides
+from bimp.configs import TUNED_DIR, check_tuned_for, merged, read_overrides
 from bimp.envs.scene import Scene
 
 
@@ -169,26 +170,25 @@ def check_env(env) -> None:
 
 
 def make_policy(name: str, env, config: str | Path | None = None, **overrides) -> Policy:
-    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package). ``config``: a YAML written by
-    ``bimp tune`` for this policy (default: ``configs/tuned/<name>.yaml`` if one ships), or a plain YAML of
-    overrides, which goes on top of the shipped tuned config where one ships (else it is handed to the factory as
-    its own ``config``, on top of the shipped defaults); ``overrides`` go on top, a nested mapping merged key by
-    key (``problem={"horizon": 30}`` keeps the rest of a tuned problem), and an unknown key raises.
+    """Build the policy ``name`` for ``env`` (a ``gym.make`` env of this package), configured in layers, each a
+    YAML of overrides over the one before: the policy's shipped tuned config (``configs/tuned/<name>.yaml``) where
+    one ships, ``config`` (one written by ``bimp tune``, or any file of overrides), then ``overrides``; nested
+    mappings merge key by key (``problem={"horizon": 30}`` keeps the rest of a tuned problem) and an unknown key
+    raises. Without a shipped tuned config the factory takes ``config`` as its own layer, on top of its defaults.
     ``name`` is a key of ``POLICIES`` or ``"module:factory"``. ``ValueError`` for an unknown name, or a ``config``
-    tuned for another policy; ``TypeError`` for a factory whose policy lacks a member of :class:`Policy`."""
+    tuned for another policy (its ``NAME.tuning.yaml`` says so); ``TypeError`` for a factory whose policy lacks a
+    member of :class:`Policy`."""
     factory = policy_factory(name)
     check_env(env)
-    shipped = TUNED_DIR / f"{name}.yaml"
-    base = load_tuned(name, shipped) if shipped.is_file() else None  # a shipped tuned config is the default
     if config is not None:
-        tuned = load_tuned(name, config)
-        if tuned is not None:  # a tuned config of its own replaces the shipped one
-            base = tuned
-        elif base is not None:  # a plain file of overrides goes on top of the shipped tuned config, never instead
-            base = merged(base, read_overrides(config))
-        else:
-            overrides = {"config": config, **overrides}
-    policy = factory(env, **(merged(base, overrides) if base is not None else overrides))
+        check_tuned_for(name, config)
+    shipped = TUNED_DIR / f"{name}.yaml"
+    if shipped.is_file():  # a shipped tuned config is the default; a config file goes on top of it, never instead
+        layers = [read_overrides(shipped)] + ([read_overrides(config)] if config is not None else [])
+        overrides = merged(functools.reduce(merged, layers, {}), overrides)
+    elif config is not None:
+        overrides = {"config": config, **overrides}
+    policy = factory(env, **overrides)
     missing = missing_members(policy)
     if missing:  # refused here, where the name is known, not as an AttributeError inside an episode
         raise TypeError(f"policy {name!r} ({type(policy).__name__}) lacks {', '.join(missing)} of the Policy "

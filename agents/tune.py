@@ -49,13 +49,12 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from bimp.agents.backends import BackendError, connect_ray, in_worker, ray_options, start_backend
 from bimp.agents.errors import EvaluationError, check_out_dir
 from bimp.agents.evaluate import evaluate
 from bimp.agents.provenance import config_hash
-from bimp.agents.records import read_records, write_atomic
+from bimp.agents.records import read_records
 
 # The search space and the config edits (their names re-exported here, where bimp sweep and the tests find them).
 from bimp.agents.tune_space import (  # noqa: F401  (re-exported: the names of `bimp tune`'s space)
@@ -70,6 +69,7 @@ from bimp.agents.tune_space import (  # noqa: F401  (re-exported: the names of `
     suggest,
     with_params,
 )
+from bimp.configs import write_tuned
 
 # optuna (a second or so to load) is imported inside the functions that run a study, as in tune_space: the config
 # editing there (bimp sweep's) needs none of it.
@@ -327,9 +327,9 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
 
 
 def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
-    """The best trial's config as a YAML that ``make_policy(policy, env, config=path)`` loads: ``policy``, the
-    full ``config`` (factory kwargs) and, for the reader, ``tuning`` (the study, its budget and the chosen values).
-    """
+    """The best trial's config (factory kwargs) as a YAML of overrides that ``make_policy(policy, env,
+    config=path)`` loads, and beside it (:func:`bimp.configs.write_tuned`) the policy and the tuning (the study, its
+    budget and the chosen values)."""
     best = study.best_trial
     request = study.user_attrs.get("request", {})
     params = {k: best.params[k] for k in space if k in best.params}
@@ -337,20 +337,13 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
     counts: dict[str, int] = {}
     for t in study.get_trials(deepcopy=False):
         counts[t.state.name.lower()] = counts.get(t.state.name.lower(), 0) + 1
-    doc = {
-        "policy": policy,
-        "tuning": {"study": study.study_name, "trial": best.number, "objective": best.value,
-                   "objective_of": request.get("objective", "success"), "trials": counts,
-                   "scenarios": request.get("scenarios"), "episodes_per_scenario": request.get("episodes"),
-                   "first_seed": request.get("seed"), "params": params,
-                   "success_rate": best.user_attrs.get("success_rate"), "score": best.user_attrs.get("score"),
-                   "written": datetime.now(timezone.utc).isoformat(timespec="seconds")},
-        "config": config,
-    }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, f"# Written by `bimp tune`; load with make_policy({policy!r}, env, config=<this file>).\n"
-                 + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110))
-    return path
+    tuning = {"study": study.study_name, "trial": best.number, "objective": best.value,
+              "objective_of": request.get("objective", "success"), "trials": counts,
+              "scenarios": request.get("scenarios"), "episodes_per_scenario": request.get("episodes"),
+              "first_seed": request.get("seed"), "params": params,
+              "success_rate": best.user_attrs.get("success_rate"), "score": best.user_attrs.get("score"),
+              "written": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    return write_tuned(path, config, policy, tuning)
 
 
 __all__ = ["Study", "TrialError", "TuneError", "check_space", "objective_value", "search_space", "tune"]

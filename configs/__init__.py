@@ -117,14 +117,71 @@ def _parse_yaml(path: str | Path) -> Any:
 
 def read_overrides(source: str | Path) -> dict[str, Any]:
     """The mapping of a YAML file of overrides, ``source`` a path or a file name under ``configs/`` (an empty file:
-    ``{}``). ``ValueError`` naming the file when it is not YAML (:func:`read_yaml`) or not a mapping."""
+    ``{}``). ``ValueError`` naming the file when it is not YAML (:func:`read_yaml`), not a mapping, or a tuned config
+    in the old envelope (``policy``, ``tuning`` and ``config`` around the config), naming the command that splits it.
+    """
     path = Path(source)
     if not path.is_file():
         path = CONFIG_DIR / path
     data = read_yaml(path) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping of overrides, got {type(data).__name__}")
+    if is_old_tuned(data):
+        raise ValueError(f"{path} is a tuned config in the old shape (policy, tuning and config around the config): "
+                         f"`bimp migrate {path}` writes it as today's (the config alone, its tuning beside it in "
+                         f"{tuning_path(path).name})")
     return data
+
+
+def is_old_tuned(doc: Any) -> bool:
+    """Whether ``doc`` (a parsed YAML) is a tuned config in the envelope ``bimp tune`` wrote before the tuning
+    moved beside the config: ``{policy, tuning, config}``."""
+    return isinstance(doc, dict) and {"policy", "config"} <= set(doc) and isinstance(doc["config"], dict) \
+        and set(doc) <= {"policy", "tuning", "config"}
+
+
+# --- tuned configs ----------------------------------------------------------------------------------------------
+# A tuned config is a YAML of overrides like any other (the full config ``bimp tune`` chose); what the tuning was
+# (the policy, the study, its budget and the chosen values) lies beside it in NAME.tuning.yaml, read by people and
+# by the check that a config tuned for one policy is not loaded for another.
+TUNING_SUFFIX = ".tuning.yaml"
+
+
+def tuning_path(path: str | Path) -> Path:
+    """Where the tuning record of the config ``path`` lies: ``best.yaml`` -> ``best.tuning.yaml``."""
+    path = Path(path)
+    return path.with_name(path.name.removesuffix(".yaml").removesuffix(".yml") + TUNING_SUFFIX)
+
+
+def check_tuned_for(policy: str, path: str | Path) -> None:
+    """``ValueError`` if the config ``path`` was tuned for a policy other than ``policy`` (its tuning record beside
+    it says which); nothing for a config without one."""
+    record = tuning_path(path)
+    if record.is_file():
+        doc = read_yaml(record)
+        tuned = doc.get("policy") if isinstance(doc, dict) else None
+        if tuned != policy:
+            raise ValueError(f"{path} holds a config tuned for {tuned!r}, not {policy!r} ({record.name})")
+
+
+def write_tuned(path: str | Path, config: Mapping[str, Any], policy: str, tuning: Mapping[str, Any] | None) -> Path:
+    """Write a tuned config: ``path`` the ``config`` alone (a YAML of overrides), ``NAME.tuning.yaml`` beside it the
+    ``policy`` and the ``tuning`` (the study, its budget and the chosen values). Each file replaced whole."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record = {"policy": policy, **({"tuning": dict(tuning)} if tuning is not None else {})}
+    _write(tuning_path(path), f"# What `bimp tune` chose {path.name} by: the study, its budget, the values.\n"
+           + yaml.safe_dump(record, sort_keys=False, default_flow_style=None, width=110))
+    _write(path, f"# Tuned by `bimp tune` for {policy}; its tuning: {tuning_path(path).name}. Load with "
+           f"make_policy({policy!r}, env, config=<this file>).\n"
+           + yaml.safe_dump(dict(config), sort_keys=False, default_flow_style=None, width=110))
+    return path
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)
 
 
 def merged(base: dict, top: Mapping) -> dict:
@@ -158,19 +215,45 @@ def load_config(cls: type[T], source: str | Path | Sequence[str | Path] | None =
     return cls(**values)
 
 
-def load_tuned(policy: str, path: str | Path) -> dict | None:
-    """The factory kwargs of a YAML written by ``bimp tune`` (its ``policy`` and ``config``), or None for any other
-    YAML (a plain file of overrides); ``ValueError`` if it was tuned for another policy, ``FileNotFoundError`` if
-    there is no file."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no config file at {path}")
-    doc = read_yaml(path)  # ValueError naming the file for one that is not YAML text
-    if not (isinstance(doc, dict) and {"policy", "config"} <= set(doc) and isinstance(doc["config"], dict)):
-        return None
-    if doc["policy"] != policy:
-        raise ValueError(f"{path} holds a config tuned for {doc['policy']!r}, not {policy!r}")
-    return doc["config"]
+def load_layered(cls: type[T], *layers: str | Path | Mapping[str, Any] | None, base: Mapping[str, Any] | None = None,
+                 moved: Mapping[str, str] | None = None) -> T:
+    """``cls`` built in layers, each over the one before: ``cls``'s defaults, ``base`` (a mapping), then ``layers``
+    in order, each a YAML file of overrides (a path, or a name under ``configs/``), a mapping, or None (skipped).
+    Nested mappings merge key by key, so ``problem: {horizon: 30}`` keeps the rest of the problem, and a dotted key
+    is the nested one (``{"problem.horizon": 30}``: what ``--set POLICY.problem.horizon=30`` gives).
+
+    ``moved``: ``{old dotted key: new dotted key}`` of renamed settings; a layer that sets an old key (or one under
+    it), nested or dotted, raises ``ValueError`` naming its new place: one name per setting, no aliases. Other
+    unknown keys and bad values raise as :func:`load_config` does."""
+    tree: dict[str, Any] = merged({}, base or {})
+    moved = dict(moved or {})
+    for layer in layers:
+        if layer is None:
+            continue
+        if not isinstance(layer, Mapping):
+            layer = read_overrides(layer)
+        for key, value in _leaves(layer):
+            for old, new in moved.items():
+                if key == old or key.startswith(old + "."):
+                    renamed = new + key[len(old):]
+                    raise ValueError(f"{key} is now {renamed}" + (
+                        " (a planner's problem settings sit under problem: --set POLICY."
+                        f"{renamed}=...)" if renamed.startswith("problem.") and "." not in old else ""))
+            for name in reversed(key.split(".")):
+                value = {name: value}
+            tree = merged(tree, value)
+    return load_config(cls, None, **tree)
+
+
+def _leaves(layer: Mapping) -> list[tuple[str, Any]]:
+    """``layer``'s settings as ``(dotted key, value)``, nested mappings walked (an empty one kept as a value)."""
+    out = []
+    for key, value in layer.items():
+        if isinstance(value, Mapping) and value:
+            out += [(f"{key}.{k}", v) for k, v in _leaves(value)]
+        else:
+            out.append((str(key), value))
+    return out
 
 
 # --- field check ----------------------------------------------------------------------------------------------
@@ -339,5 +422,6 @@ def neutral_values(cls: type) -> dict[str, Any]:
     return out
 
 
-__all__ = ["CONFIG_DIR", "TUNED_DIR", "ConfigError", "added_field", "check_fields", "file_sha256", "load_config",
-           "load_tuned", "merged", "neutral_values", "read_overrides", "read_yaml"]
+__all__ = ["CONFIG_DIR", "TUNED_DIR", "TUNING_SUFFIX", "ConfigError", "added_field", "check_fields",
+           "check_tuned_for", "file_sha256", "is_old_tuned", "load_config", "load_layered", "merged", "neutral_values",
+           "read_overrides", "read_yaml", "tuning_path", "write_tuned"]

@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
-from bimp.configs import ConfigError, check_fields, load_config, merged, read_overrides
+from bimp.configs import ConfigError, check_fields, load_config, load_layered
 from bimp.envs.road import Route, array_module, project, wrap_angle
 from bimp.envs.scene import Scene, bound_constraints
 from bimp.planners.dynamics import check_dynamics
@@ -60,18 +60,20 @@ NU_MIN = 2.1
 class BarrierShape:
     """Margins and widths of the barriers.
 
-    headway [s]: time gap added to ``d_min`` behind (or ahead of) an OV; brake_decel [m/s^2]: deceleration
-    the braking room behind an OV is reckoned with; lateral_clearance [m]: least side gap between footprints;
-    edge_margin [m]: least corner distance to the edge the planner aims for; bound_margin: fraction by which the
-    planner tightens the input and rate bounds (the barriers are soft: the ensemble mean settles a little past
-    where they start to read); widths: the constraint violation that makes a barrier read 1, per family, in its
-    own units [share of the keep-out box, m, m/s^2, rad, m/s^2, rad]; sharpness: softplus sharpness in those
-    normalized units. Checked by :func:`bimp.configs.check_fields`, then headway, lateral_clearance >= 0, brake_decel,
-    widths, sharpness > 0, bound_margin in [0, 1): a bad value raises :class:`bimp.configs.ConfigError` naming it.
+    headway [s]: time gap added to ``d_min`` behind (or ahead of) an OV; follower_decel [m/s^2]: the braking
+    the follower (the EV behind an OV, or an OV behind the EV) is assumed to shed its closing speed with, which
+    sets the braking room (not an OV's braking in a scenario: that is the env's ``brake_decel``);
+    lateral_clearance [m]: least side gap between footprints; edge_margin [m]: least corner distance to the edge
+    the planner aims for; bound_margin: fraction by which the planner tightens the input and rate bounds (the
+    barriers are soft: the ensemble mean settles a little past where they start to read); widths: the constraint
+    violation that makes a barrier read 1, per family, in its own units [share of the keep-out box, m, m/s^2, rad,
+    m/s^2, rad]; sharpness: softplus sharpness in those normalized units. Checked by
+    :func:`bimp.configs.check_fields`, then headway, lateral_clearance >= 0, follower_decel, widths, sharpness > 0,
+    bound_margin in [0, 1): a bad value raises :class:`bimp.configs.ConfigError` naming it.
     """
 
     headway: float = 0.6
-    brake_decel: float = 6.0
+    follower_decel: float = 6.0
     lateral_clearance: float = 1.0
     edge_margin: float = 0.3
     widths: tuple[float, float, float, float, float, float] = (0.1, 0.5, 1.0, 0.01, 0.5, 0.002)
@@ -83,7 +85,7 @@ class BarrierShape:
         for key in ("headway", "lateral_clearance"):
             if getattr(self, key) < 0:
                 raise ConfigError(key, ">= 0", getattr(self, key))
-        for key in ("brake_decel", "sharpness"):
+        for key in ("follower_decel", "sharpness"):
             if not getattr(self, key) > 0:
                 raise ConfigError(key, "> 0", getattr(self, key))
         if min(self.widths) <= 0:
@@ -192,7 +194,7 @@ class Barrier(NamedTuple):
     """:class:`BarrierShape` as numbers; ``widths (6,)``."""
 
     headway: float
-    brake_decel: float
+    follower_decel: float
     lateral_clearance: float
     edge_margin: float
     widths: np.ndarray
@@ -244,36 +246,25 @@ C = TypeVar("C")
 Layer = str | Path | Mapping[str, Any] | None
 
 
+# Settings renamed since results were recorded: {old dotted key: new}, refused under the old name when loaded
+# (naming the new one) and renamed by `bimp migrate` in the records.
+RENAMED = {"problem.barrier.brake_decel": "problem.barrier.follower_decel"}
+
+
 def load_planner_config(cls: type[C], *layers: Layer) -> C:
-    """A planner's config ``cls`` (its own fields and ``problem``, a :class:`ProblemConfig`) built in layers, each
-    over the one before: ``cls``'s defaults, the shared problem (``configs/problem.yaml``) as its ``problem``, then
-    ``layers`` in order, each a YAML file of overrides (a path, or a name under ``configs/``), a mapping, or None
-    (skipped). Nested mappings merge key by key, so ``problem: {horizon: 30}`` keeps the rest of the problem, and a
-    dotted key is the nested one (``{"problem.horizon": 30}``: what ``--set POLICY.problem.horizon=30`` gives).
+    """A planner's config ``cls`` (its own fields and ``problem``, a :class:`ProblemConfig`) built in layers by
+    :func:`bimp.configs.load_layered`: ``cls``'s defaults, the shared problem (``configs/problem.yaml``) as its
+    ``problem``, then ``layers`` in order (YAML files of overrides, mappings or None), nested mappings merged key by
+    key and dotted keys nested (``{"problem.horizon": 30}``: what ``--set POLICY.problem.horizon=30`` gives).
 
     A key of the problem given at the top level (``horizon``, ``nu``, ``sigma_du``, ..., the flat keys of EnKTS's
-    old config) or one that ``cls.MOVED`` names (``{old key: new dotted key}``) raises ``ValueError`` naming its
-    new place: one name per setting, no aliases. Other unknown keys and bad values raise as
+    old config), one that ``cls.MOVED`` names (``{old key: new dotted key}``) or one :data:`RENAMED` names raises
+    ``ValueError`` naming its new place: one name per setting, no aliases. Other unknown keys and bad values raise as
     :func:`bimp.configs.load_config` does (:class:`bimp.configs.ConfigError` naming the dotted key)."""
-    tree: dict[str, Any] = {"problem": dataclasses.asdict(load_problem())}
     own = {f.name for f in dataclasses.fields(cls)}
     moved = {f.name: f"problem.{f.name}" for f in dataclasses.fields(ProblemConfig) if f.name not in own}
-    moved.update(getattr(cls, "MOVED", {}))
-    for layer in layers:
-        if layer is None:
-            continue
-        if not isinstance(layer, Mapping):
-            layer = read_overrides(layer)
-        for key, value in layer.items():
-            head, dot, rest = str(key).partition(".")
-            if head in moved:
-                new = moved[head] + dot + rest
-                raise ValueError(f"{key} is now {new} (a planner's problem settings sit under problem: "
-                                 f"--set POLICY.{new}=...)")
-            for name in reversed(str(key).split(".")):
-                value = {name: value}
-            tree = merged(tree, value)
-    return load_config(cls, None, **tree)
+    moved.update(getattr(cls, "MOVED", {}), **RENAMED)
+    return load_layered(cls, *layers, base={"problem": dataclasses.asdict(load_problem())}, moved=moved)
 
 
 def road_window(route: Route, ego_xy: np.ndarray, config: ProblemConfig) -> Road:
@@ -294,7 +285,7 @@ def make_problem(scene: Scene, config: ProblemConfig, model: tuple = (), ego_xy:
         road=road_window(scene.road, scene.road.xy[0] if ego_xy is None else ego_xy, config),
         limits=Limits(np.array(b.accel, float), f(b.steer), f(b.accel_rate), f(b.steer_rate), f(b.d_min),
                       f(scene.vehicle_length), f(scene.vehicle_width), f(scene.dt), lo, hi),
-        barrier=Barrier(f(shape.headway), f(shape.brake_decel), f(shape.lateral_clearance), f(shape.edge_margin),
+        barrier=Barrier(f(shape.headway), f(shape.follower_decel), f(shape.lateral_clearance), f(shape.edge_margin),
                         np.array(shape.widths, float), f(shape.sharpness), f(shape.bound_margin)),
         noise=measurement_noise(config, scene.n_obstacles),
         model=model,
@@ -387,9 +378,9 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     v_lead = xp.where(behind, v_o, v[:, None])
     # Braking room: to match a leader that holds speed, closing^2 / 2b; behind an OV predicted to brake to a stop,
     # the difference of the stopping distances (the danger the 2 s horizon alone would see too late).
-    room = xp.maximum(v_follow - v_lead, 0.0) ** 2 / (2 * bar.brake_decel)
+    room = xp.maximum(v_follow - v_lead, 0.0) ** 2 / (2 * bar.follower_decel)
     a_lead = xp.where(behind, a_o, 0.0)
-    stop = v_follow**2 / (2 * bar.brake_decel) - v_lead**2 / (2 * xp.maximum(-a_lead, 1e-6))
+    stop = v_follow**2 / (2 * bar.follower_decel) - v_lead**2 / (2 * xp.maximum(-a_lead, 1e-6))
     room = xp.maximum(room, xp.where(a_lead < -0.5, stop, 0.0))
     semi_s = lim.length + lim.d_min + bar.headway * xp.maximum(v_follow, 0.0) + room
     semi_l = lim.width + bar.lateral_clearance

@@ -166,7 +166,7 @@ def test_inf_only_where_documented():
     (EnKTSConfig, "n_particles", 1), (ProblemConfig, "horizon", 0), (ProblemConfig, "nu", 2.0),
     (EnKTSConfig, "iterations", 0), (EnKTSConfig, "max_spread", 0.5), (EnKTSConfig, "max_innovation", 0.0),
     (EnKTSConfig, "relaxation", 1.0), (ProblemConfig, "sigma_ref", (1.0, 0.0, 1.0)),
-    (ProblemConfig, "sigma_barrier", -0.1), (BarrierShape, "bound_margin", 1.0), (BarrierShape, "brake_decel", 0.0),
+    (ProblemConfig, "sigma_barrier", -0.1), (BarrierShape, "bound_margin", 1.0), (BarrierShape, "follower_decel", 0.0),
     (MPPIConfig, "n_particles", 1), (MPPIConfig, "temperature", 0.0), (MPPIConfig, "control_cost", -1.0),
     (NMPCConfig, "keep_out_power", 3), (NMPCConfig, "hessian", "bfgs"), (NMPCConfig, "max_iter", -1),
     (ProblemConfig, "nu", 0.0), (DataConfig, "sequence_steps", 0), (DataConfig, "n_stop", -1),

@@ -14,6 +14,7 @@ from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents.baselines import LaneKeeping
 from bimp.agents.registry import POLICIES, TUNED_DIR, make_policy
 from bimp.agents.tune import TuneError, check_space, get_value, objective_value, search_space, set_value, tune
+from bimp.configs import TUNING_SUFFIX, tuning_path
 
 EB = ["emergency-brake"]
 SMALL = dict(scenarios=EB, episodes=2, progress=False)
@@ -31,7 +32,10 @@ def test_a_two_trial_study_writes_a_study_and_a_config_that_make_policy_loads(tm
     # The study records each trial's folder relative to itself: no path of the machine it ran on (issue 28).
     assert all((tmp_path / "study" / t.user_attrs["folder"] / "episodes.jsonl").is_file()
                and str(tmp_path) not in t.user_attrs["folder"] for t in study.trials)
-    doc = yaml.safe_load((tmp_path / "best.yaml").read_text())
+    (tmp_path / "study" / "best.tuning.yaml").rename(tmp_path / "best.tuning.yaml")
+    # One shape: the file is the config alone (what any file of overrides is); its tuning lies beside it.
+    assert yaml.safe_load((tmp_path / "best.yaml").read_text()) == pytest.approx(study.best_trial.params)
+    doc = yaml.safe_load((tmp_path / "best.tuning.yaml").read_text())
     assert doc["policy"] == "lane-keep" and doc["tuning"]["trial"] == study.best_trial.number
     policy = make_policy("lane-keep", gym.make("bimp/EmergencyBrake-v0"), config=tmp_path / "best.yaml")
     assert dataclasses.asdict(policy.config) == pytest.approx(study.best_trial.params)
@@ -86,7 +90,7 @@ def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_
     # A shipped tuned config is what users run, so it is the first trial; a value outside the space is sampled.
     monkeypatch.setattr(bimp.agents.registry, "TUNED_DIR", tmp_path)
     tuned = {**shipped, "k_lat": 0.015, "k_head": 5.0}
-    (tmp_path / "lane-keep.yaml").write_text(yaml.safe_dump({"policy": "lane-keep", "config": tuned}))
+    (tmp_path / "lane-keep.yaml").write_text(yaml.safe_dump(tuned))
     first = _run(tmp_path / "tuned", 2).trials
     assert first[0].params["k_lat"] == 0.015 and first[0].params["k_head"] <= 0.5
     assert first[0].params["k_speed"] == pytest.approx(shipped["k_speed"])
@@ -137,6 +141,7 @@ def test_a_shipped_tuned_config_is_the_default_and_a_study_does_not_drift_with_i
     study = _run(tmp_path, 2)
     monkeypatch.setattr(bimp.agents.registry, "TUNED_DIR", tmp_path)
     (tmp_path / "best.yaml").rename(tmp_path / "lane-keep.yaml")
+    (tmp_path / "best.tuning.yaml").rename(tmp_path / "lane-keep.tuning.yaml")
     env = gym.make("bimp/EmergencyBrake-v0")
     assert dataclasses.asdict(make_policy("lane-keep", env).config) == pytest.approx(study.best_trial.params)
     # The study's base is the factory's own defaults: a resumed study runs its trials as before.
@@ -154,9 +159,7 @@ def test_make_policy_refuses_a_config_tuned_for_another_policy_and_passes_a_plai
 
 
 def test_an_override_of_a_nested_entry_keeps_the_rest_of_the_tuned_config():
-    from bimp.configs import load_tuned
-
-    tuned = load_tuned("mppi", TUNED_DIR / "mppi.yaml")["problem"]
+    tuned = yaml.safe_load((TUNED_DIR / "mppi.yaml").read_text())["problem"]
     policy = make_policy("mppi", gym.make("bimp/Overtaking-v0"), problem={"horizon": 30})
     assert policy.config.problem.horizon == 30
     assert policy.config.problem.sigma_barrier == tuned["sigma_barrier"] != 0.1  # tuned, not the shared problem's
@@ -217,17 +220,18 @@ def test_the_score_objective_is_the_pooled_mean_score_and_its_own_study(tmp_path
     for t in score.trials:
         scores = t.user_attrs["score"]
         assert t.value == pytest.approx(sum(scores.values()) / len(scores))  # one scenario, equal episodes
-    doc = yaml.safe_load((tmp_path / "score" / "best.yaml").read_text())
+    doc = yaml.safe_load((tmp_path / "score" / "best.tuning.yaml").read_text())
     assert doc["tuning"]["objective_of"] == "score" and doc["tuning"]["objective"] == score.best_value
     with pytest.raises(TuneError, match="objective 'comfort'"):
         _run(tmp_path / "bad", 1, objective="comfort")
 
 
-@pytest.mark.parametrize("path", sorted(TUNED_DIR.glob("*.yaml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", sorted(p for p in TUNED_DIR.glob("*.yaml") if not p.name.endswith(TUNING_SUFFIX)),
+                         ids=lambda p: p.stem)
 def test_every_shipped_tuned_config_is_its_policys_and_drives(path):
     import numpy as np
 
-    assert yaml.safe_load(path.read_text())["policy"] == path.stem  # configs/tuned/NAME.yaml is NAME's
+    assert yaml.safe_load(tuning_path(path).read_text())["policy"] == path.stem  # configs/tuned/NAME.yaml is NAME's
     env = gym.make("bimp/EmergencyBrake-v0")
     policy = make_policy(path.stem, env)
     assert policy.config == make_policy(path.stem, env, config=path).config  # and its default

@@ -53,6 +53,8 @@ def migrate(old: dict) -> dict:
         config["problem"] = {f.name: config.pop(f.name) for f in dataclasses.fields(ProblemConfig) if f.name in config}
     if "problem" in config:  # issue 26 added the general road's window: plain fields, at their defaults
         config["problem"].update(road_points=ProblemConfig.road_points, road_spacing=ProblemConfig.road_spacing)
+        # one name per meaning: the barrier's braking of a follower is follower_decel (the env's is brake_decel)
+        config["problem"]["barrier"]["follower_decel"] = config["problem"]["barrier"].pop("brake_decel")
     return {"config": config}
 
 
@@ -144,8 +146,9 @@ def test_lane_keeping_has_a_frozen_checked_config(env):
 
 @pytest.mark.parametrize("name", ["mppi", "nmpc-t"])
 def test_the_shipped_tuned_configs_load_in_the_new_shape(env, name):
-    from bimp.agents.registry import TUNED_DIR, load_tuned
+    from bimp.agents.registry import TUNED_DIR
+    from bimp.configs import read_overrides
 
-    tuned = load_tuned(name, TUNED_DIR / f"{name}.yaml")
+    tuned = read_overrides(TUNED_DIR / f"{name}.yaml")
     assert "horizon" not in tuned and "nu" not in tuned and "bound_tightening" not in tuned
     assert resolved_config(make_policy(name, env))["config"] == json.loads(json.dumps(tuned))
