@@ -569,3 +569,22 @@ def test_a_score_that_missed_its_goal_is_zeroed_whether_its_arm_migrates_or_stay
     assert (policy in " ".join(report.left)) == (make is old_records)  # the case the parametrization means
     before = tree(tmp_path)
     assert migrate.migrate_folder(tmp_path).gated == 0 and tree(tmp_path) == before  # a second run: nothing
+
+
+def test_renamed_settings_take_their_new_name_and_verifications_follow_the_new_hashes(tmp_path):
+    folder = tmp_path / "renamed"
+    records = synthetic_records()
+    write(folder, records)
+    old = {r["scenario"] + "|" + r["label"] + "|" + r["config_hash"]: r for r in records if r["policy"] in PLANNERS}
+    verified = {key: {"commit": AFTER_MPPI_SEEDING, "outcome": "same", "seeds": [1000]} for key in old}
+    (folder / "verified.json").write_text(json.dumps(verified))
+    assert migrate.migrate_folder(folder).problem is None
+    arms = read_arms(folder)
+    for entry in arms.values():
+        barrier = entry["config"]["config"].get("problem", {}).get("barrier")
+        if barrier is not None:  # the barrier's brake_decel is follower_decel, its value kept
+            assert "brake_decel" not in barrier and barrier["follower_decel"] == 6.0
+    carried = json.loads((folder / "verified.json").read_text())
+    assert len(carried) == len(verified) and set(carried).isdisjoint(verified)
+    assert {key.rsplit("|", 1)[1] for key in carried} <= set(arms)  # each under its arm's new hash
+    assert sorted(carried.values(), key=json.dumps) == sorted(verified.values(), key=json.dumps)
