@@ -180,11 +180,13 @@ def make_policy(name: str, env, config: str | Path | None = None, **overrides) -
     member of :class:`Policy`."""
     factory = policy_factory(name)
     check_env(env)
-    if config is not None:
+    given = None
+    if config is not None:  # read here, whatever the factory does with it: a bad file is refused naming it
         check_tuned_for(name, config)
+        given = read_overrides(config)
     shipped = TUNED_DIR / f"{name}.yaml"
     if shipped.is_file():  # a shipped tuned config is the default; a config file goes on top of it, never instead
-        layers = [read_overrides(shipped)] + ([read_overrides(config)] if config is not None else [])
+        layers = [read_overrides(shipped)] + ([given] if given is not None else [])
         overrides = merged(functools.reduce(merged, layers, {}), overrides)
     elif config is not None:
         overrides = {"config": config, **overrides}

@@ -2,7 +2,7 @@
 machines, in two worktrees, a family rerun into a folder of its own) are read, resumed and ranked as one folder.
 
     bimp merge runs/a runs/b --into runs/all --dry-run                   # what would be copied; writes nothing
-    bimp merge results/suite-ensemble-size --into results/suite --label enkts-n20 --scenario cut-in-hard
+    bimp merge runs/cut-in --into runs/all --label idm lane-keep --scenario cut-in-hard   # only these arms
 """
 
 from __future__ import annotations
