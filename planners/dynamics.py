@@ -20,6 +20,7 @@ highway-env's acceleration cap above ``max_speed`` is applied to the input, and 
 
 from __future__ import annotations
 
+import functools
 import pickle
 import re
 import warnings
@@ -365,29 +366,77 @@ def check_dynamics(name: str, key: str = "dynamics") -> None:
         raise ConfigError(key, requirement, name, str(err)) from None
 
 
-def dynamics_files(name: str) -> tuple[dict[str, str], dict[str, str]]:
-    """``(files, artifacts)`` of the model a planner config's ``problem.dynamics`` names (:func:`model_from_name`),
-    keyed by that config key: ``files`` its weights file by content, ``{"problem.dynamics": sha256}`` (``{}`` for the
-    exact bicycle, which loads no file), so a policy's config hash follows the weights, not where they lie
-    (:func:`bimp.agents.provenance.config_hash`); ``artifacts`` the file by name (``bimp:planners/weights/mlp.pt``
-    for the shipped weights, else the path as given), shown apart, not hashed."""
+# The shipped learned models, narrowest envelope first: "mlp" is the first whose steering range covers the road's
+# planning bound (the paper's ±0.3 rad model on the straight roads and the 0.3 rad curves, the ±0.8 rad one on the
+# racetrack's and the intersection's tighter curves), so a road's planners never plan past what their model knows.
+SHIPPED_WEIGHTS = (WEIGHTS_PATH, WEIGHTS_PATH.with_name("mlp-wide.pt"))
+
+
+def _steer_cover(path: Path) -> float:
+    """The steering [rad] either way that the weights at ``path`` cover (read once per file version)."""
+    return _cover(str(Path(path).resolve()), Path(path).stat().st_mtime_ns if Path(path).is_file() else 0)
+
+
+@functools.lru_cache(maxsize=None)
+def _cover(path: str, _version: int) -> float:
+    low, high = load_model(path).steer_range
+    return min(-low, high)
+
+
+def weights_for(name: str, steer_bound: float = 0.0) -> Path | None:
+    """The weights file a config's ``dynamics`` names on a road whose planning steering bound is ``steer_bound``
+    [rad] (None for the exact bicycle): for ``"mlp"`` the first of :data:`SHIPPED_WEIGHTS` whose steering range
+    covers it; for a path, that file. ``ValueError`` naming both when the model's range does not cover the bound: a
+    planner would plan steering its model clips (a road whose curves need more than any model covers is refused)."""
     if name == "bicycle":
+        return None
+    if name == "mlp":
+        for path in SHIPPED_WEIGHTS:
+            if _steer_cover(path) >= steer_bound - 1e-9:
+                return path
+        raise ValueError(f"no shipped dynamics model covers this road's steering bound of {steer_bound:g} rad (the "
+                         f"widest covers {_steer_cover(SHIPPED_WEIGHTS[-1]):g}): train one with `bimp train-dynamics "
+                         "--steer-limit RAD` and name it in problem.dynamics")
+    cover = _steer_cover(Path(name))
+    if cover < steer_bound - 1e-9:
+        raise ValueError(f"dynamics {name} covers steering up to {cover:g} rad, but this road's planning bound is "
+                         f"{steer_bound:g} rad: use problem.dynamics=mlp (the shipped model that covers it) or a model "
+                         f"trained with `bimp train-dynamics --steer-limit {steer_bound:g}` or more")
+    return Path(name)
+
+
+def dynamics_files(name: str, steer_bound: float = 0.0) -> tuple[dict[str, str], dict[str, str]]:
+    """``(files, artifacts)`` of the model a planner config's ``problem.dynamics`` names on a road with planning
+    steering bound ``steer_bound`` (:func:`weights_for`), keyed by that config key: ``files`` its weights file by
+    content, ``{"problem.dynamics": sha256}`` (``{}`` for the exact bicycle, which loads no file), so a policy's
+    config hash follows the weights, not where they lie (:func:`bimp.agents.provenance.config_hash`); ``artifacts``
+    the file by name (``bimp:planners/weights/mlp.pt`` for shipped weights, else the path as given), shown apart,
+    not hashed."""
+    path = weights_for(name, steer_bound)
+    if path is None:
         return {}, {}
-    path = WEIGHTS_PATH if name == "mlp" else Path(name)
-    shown = "bimp:planners/weights/mlp.pt" if name == "mlp" else name
+    shown = f"bimp:planners/weights/{path.name}" if name == "mlp" else name
     return {"problem.dynamics": file_sha256(path)}, {"problem.dynamics": shown}
 
 
-def model_from_name(name: str) -> BicycleModel | LearnedDynamics:
-    """The model a planner config's ``dynamics`` names: ``"mlp"`` the shipped weights (:func:`load_model`),
-    ``"bicycle"`` the exact :class:`BicycleModel`, anything else the path of a weights file written by
-    ``bimp train-dynamics`` (relative to the working directory; errors of :func:`load_model` name the file)."""
-    if name == "mlp":
-        return load_model()
-    if name == "bicycle":
-        return BicycleModel()
-    return load_model(name)
+def model_from_name(name: str, steer_bound: float = 0.0) -> BicycleModel | LearnedDynamics:
+    """The model a planner config's ``dynamics`` names on a road with planning steering bound ``steer_bound``:
+    ``"mlp"`` the shipped weights that cover it (:func:`weights_for`), ``"bicycle"`` the exact
+    :class:`BicycleModel` (its steering clipped at the paper's actuator range or the bound, the wider), anything else
+    the path of a weights file written by ``bimp train-dynamics`` (relative to the working directory; errors of
+    :func:`load_model` name the file, and one whose range does not cover the bound is refused naming both)."""
+    path = weights_for(name, steer_bound)
+    if path is None:
+        reach = max(ACTUATOR_STEER[1], steer_bound)
+        return BicycleModel() if reach == ACTUATOR_STEER[1] else BicycleModel(steer_range=(-reach, reach))
+    return load_model(path)
 
 
-__all__ = ["BicycleModel", "LearnedDynamics", "MLP", "WEIGHTS_PATH", "apply_change", "dynamics_files", "features",
-           "load_model", "model_from_name", "save_model"]
+def steer_bound(scenes) -> float:
+    """The widest planning steering bound [rad] of a scene or scenes (what the planner's model must cover)."""
+    scenes = scenes if isinstance(scenes, (list, tuple)) else [scenes]
+    return max(float(scene.bounds.steer) for scene in scenes)
+
+
+__all__ = ["BicycleModel", "LearnedDynamics", "MLP", "SHIPPED_WEIGHTS", "WEIGHTS_PATH", "apply_change",
+           "dynamics_files", "features", "load_model", "model_from_name", "save_model", "steer_bound", "weights_for"]

@@ -37,16 +37,20 @@ STATE_NAMES = ("x [m]", "y [m]", "heading [rad]", "speed [m/s]")
 class DataConfig:
     """Size of the generated training set. ``n_sequences`` input sequences of ``sequence_steps`` steps each,
     ``n_uniform`` independent transitions drawn uniformly over the envelope, ``n_stop`` transitions at speed 0
-    or braking through 0; speeds up to ``max_speed`` m/s."""
+    or braking through 0; speeds up to ``max_speed`` m/s; steering over ``steer_limit`` rad either way (the model's
+    envelope: it clips its steering input there), half the sequences near the straight roads' planning bounds."""
 
     n_sequences: int = 1200
     sequence_steps: int = 50
     n_uniform: int = 40_000
     n_stop: int = 8_000
     max_speed: float = MAX_SPEED
+    steer_limit: float = ACTUATOR_STEER[1]
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if not self.steer_limit > 0:
+            raise ConfigError("steer_limit", "a finite number > 0", self.steer_limit)
         for key in ("n_sequences", "n_uniform", "n_stop"):
             if getattr(self, key) < 0:
                 raise ConfigError(key, "an int >= 0", getattr(self, key))
@@ -119,7 +123,8 @@ def generate_data(rng: np.random.Generator, config: DataConfig = DataConfig()
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Transitions of the env's vehicle: states ``x (K, 4)``, inputs ``u (K, 2)``, next states ``(K, 4)``."""
     xs, us, ys = [], [], []
-    full = (ACTUATOR_ACCEL, ACTUATOR_STEER)
+    steer = (-config.steer_limit, config.steer_limit)
+    full = (ACTUATOR_ACCEL, steer)
     # Near the planning bounds (accel -7..3 m/s^2, |steer| <= 0.05 rad) with some room around them.
     near = ((-9.0, 5.0), (-0.08, 0.08))
     n_seq, t_seq = config.n_sequences, config.sequence_steps
@@ -145,7 +150,7 @@ def generate_data(rng: np.random.Generator, config: DataConfig = DataConfig()
     for v, a in singles:
         m = v.size
         x0 = np.column_stack([_random_poses(rng, m), v])
-        u = np.column_stack([a, rng.uniform(*ACTUATOR_STEER, m)])[:, None]
+        u = np.column_stack([a, rng.uniform(*steer, m)])[:, None]
         traj = simulate_vehicle(x0, u)
         xs.append(x0)
         us.append(u[:, 0])
@@ -162,12 +167,12 @@ def body_change(x: np.ndarray, x_next: np.ndarray) -> np.ndarray:
 
 # --- training ------------------------------------------------------------------------------------------------
 def train(x: np.ndarray, u: np.ndarray, x_next: np.ndarray, config: TrainConfig = TrainConfig(),
-          log_every: int = 0) -> tuple[LearnedDynamics, np.ndarray]:
+          log_every: int = 0, steer_range: tuple[float, float] = ACTUATOR_STEER) -> tuple[LearnedDynamics, np.ndarray]:
     """Fit an :class:`MLP` to transitions ``x (K, 4), u (K, 2) -> x_next (K, 4)``; returns the model and the loss
     per step ``(steps,)`` (normalized MSE). Same seed, same weights (single-threaded; the last bits may differ
     between CPU types)."""
     gen = torch.Generator().manual_seed(config.seed)
-    model_limits = dict(max_speed=MAX_SPEED, accel_range=ACTUATOR_ACCEL, steer_range=ACTUATOR_STEER)
+    model_limits = dict(max_speed=MAX_SPEED, accel_range=ACTUATOR_ACCEL, steer_range=tuple(steer_range))
     f = torch.as_tensor(features(x, u, **model_limits), dtype=torch.float32)
     y = torch.as_tensor(body_change(x, x_next), dtype=torch.float32)
     v = f[:, 0]
@@ -200,7 +205,7 @@ def train(x: np.ndarray, u: np.ndarray, x_next: np.ndarray, config: TrainConfig 
                       f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
     finally:
         torch.set_num_threads(threads)
-    return LearnedDynamics(net), losses
+    return LearnedDynamics(net, dt=DT, **model_limits), losses
 
 
 # --- held-out evaluation -------------------------------------------------------------------------------------
@@ -285,10 +290,12 @@ def _transitions(trajectories: list[Trajectory]) -> tuple[np.ndarray, np.ndarray
 
 def accuracy_report(model: LearnedDynamics, rng: np.random.Generator, episodes: int = 10, horizon: int = 20) -> str:
     """The text ``bimp train-dynamics`` prints: one-step RMSE on a fresh envelope sample and on scenario runs,
-    and open-loop error after ``horizon`` steps on scenario runs, for the MLP and the exact bicycle model."""
-    bicycle = BicycleModel()
+    and open-loop error after ``horizon`` steps on scenario runs, for the MLP and the exact bicycle model. The
+    envelope sample spans the model's own steering range (:attr:`LearnedDynamics.steer_range`)."""
+    bicycle = BicycleModel(steer_range=model.steer_range)
     lines = []
-    x, u, y = generate_data(rng, DataConfig(n_sequences=200, n_uniform=10_000, n_stop=1_000))
+    x, u, y = generate_data(rng, DataConfig(n_sequences=200, n_uniform=10_000, n_stop=1_000,
+                                            steer_limit=model.steer_range[1]))
     trajectories = rollout_scenarios(rng, episodes)
     xe, ue, ye = _transitions(trajectories)
     head = "| model | data | rows | " + " | ".join(STATE_NAMES) + " |"

@@ -22,7 +22,7 @@ import numpy as np
 from bimp.configs import ConfigError, added_field, check_fields
 from bimp.envs.scene import Scene, real_array
 from bimp.planners import core
-from bimp.planners.dynamics import dynamics_files
+from bimp.planners.dynamics import dynamics_files, steer_bound
 from bimp.planners.model import model_params
 from bimp.planners.problem import (
     BarrierShape,
@@ -128,9 +128,10 @@ class EnKTSPlanner:
 
     def __init__(self, scene: Scene | Callable[[], Scene | Sequence[Scene]], config: EnKTSConfig = EnKTSConfig()):
         self.config = config
-        self.files, self.artifacts = dynamics_files(config.problem.dynamics)  # the weights by content, and by name
         self._scene = scene if callable(scene) else (lambda: scene)
-        self._model = jax.device_put(model_params(config.problem.dynamics))
+        bound = steer_bound(self._scene())  # the model must cover the road's steering bound
+        self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound)  # the weights by content and name
+        self._model = jax.device_put(model_params(config.problem.dynamics, bound))
         self._problem_scenes: list[Scene] = []
         self._problem: Problem | None = None
         self.fallbacks = 0  # plans that came out non-finite and were replaced by holding the last input

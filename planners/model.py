@@ -41,9 +41,10 @@ class BicycleParams(NamedTuple):
     steer: np.ndarray
 
 
-def model_params(name: str) -> MLPParams | BicycleParams:
-    """Parameters of the model a config's ``dynamics`` names (``"mlp"``, ``"bicycle"`` or a weights file)."""
-    model = model_from_name(name)
+def model_params(name: str, steer_bound: float = 0.0) -> MLPParams | BicycleParams:
+    """Parameters of the model a config's ``dynamics`` names (``"mlp"``, ``"bicycle"`` or a weights file) on a road
+    with planning steering bound ``steer_bound`` [rad] (:func:`bimp.planners.dynamics.model_from_name`)."""
+    model = model_from_name(name, steer_bound)
     if isinstance(model, BicycleModel):
         return BicycleParams(float(model.dt), float(model.length), float(model.max_speed),
                              np.array(model.accel_range, float), np.array(model.steer_range, float))

@@ -55,7 +55,7 @@ from pytorch_mppi import MPPI
 
 from bimp.configs import ConfigError, added_field, check_fields
 from bimp.envs.scene import Scene
-from bimp.planners.dynamics import dynamics_files, model_from_name
+from bimp.planners.dynamics import dynamics_files, model_from_name, steer_bound
 from bimp.planners.problem import (
     Problem,
     ProblemConfig,
@@ -177,9 +177,10 @@ class MPPIPlanner:
         self.n_particles, self.horizon = config.n_particles, config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
-        self.files, self.artifacts = dynamics_files(config.problem.dynamics) if dynamics is None else ({}, {})
+        bound = steer_bound(self._scene())  # the model must cover the road's steering bound
+        self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
         if dynamics is None:
-            dynamics = model_from_name(config.problem.dynamics)
+            dynamics = model_from_name(config.problem.dynamics, bound)
         self.dynamics = dynamics
         self.generator = torch.Generator()
         noise_std = config.noise_gain * torch.tensor(config.problem.sigma_du, dtype=torch.float64)

@@ -58,7 +58,7 @@ import numpy as np
 
 from bimp.configs import ConfigError, check_fields
 from bimp.envs.scene import Scene
-from bimp.planners.dynamics import BicycleModel, dynamics_files, model_from_name
+from bimp.planners.dynamics import BicycleModel, dynamics_files, model_from_name, steer_bound
 from bimp.planners.nmpc_casadi import (  # re-exported: the program's pieces, as bimp.planners.nmpc named them
     ROAD_PARAMS,
     bicycle_function,
@@ -185,9 +185,10 @@ class NMPCPlanner:
         closed_form(self._scene())  # refused at build, where bimp evaluate names it, not in every episode
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
-        self.files, self.artifacts = dynamics_files(config.problem.dynamics) if dynamics is None else ({}, {})
+        bound = steer_bound(self._scene())
+        self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
         if dynamics is None:
-            model = model_from_name(config.problem.dynamics)
+            model = model_from_name(config.problem.dynamics, bound)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
             dynamics, self._model_dt = build(model), model.dt
         self.f = dynamics

@@ -27,6 +27,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=TrainConfig.steps, help="Adam steps")
     p.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
     p.add_argument("--episodes", type=int, default=10, help="held-out runs per scenario in the report")
+    p.add_argument("--steer-limit", type=float, default=DataConfig.steer_limit,
+                   help="the model's steering envelope [rad] either way (default: the paper's actuator, "
+                   f"{DataConfig.steer_limit}; the shipped wide model: 0.8, the widest actuator of a highway-env road)")
     return p
 
 
@@ -34,14 +37,15 @@ def main(argv: list[str] | None = None) -> int:
     """``bimp train-dynamics ARGS``: ``argv`` the arguments (default: the command line's)."""
     args = parser().parse_args(argv)
     config = TrainConfig(seed=args.seed, steps=args.steps, batch_size=args.batch_size)
-    data_config = DataConfig()
+    data_config = DataConfig(steer_limit=args.steer_limit)
     train_seq, report_seq = np.random.SeedSequence(args.seed).spawn(2)
 
     t0 = time.perf_counter()
     x, u, y = generate_data(np.random.default_rng(train_seq), data_config)
     print(f"training data: {len(x)} transitions of the env's vehicle ({time.perf_counter() - t0:.1f} s)")
     t1 = time.perf_counter()
-    model, losses = train(x, u, y, config, log_every=max(config.steps // 10, 1))
+    model, losses = train(x, u, y, config, log_every=max(config.steps // 10, 1),
+                          steer_range=(-data_config.steer_limit, data_config.steer_limit))
     print(f"trained {config.steps} steps in {time.perf_counter() - t1:.0f} s; final loss "
           f"{losses[-min(100, len(losses)):].mean():.3e}")
     path = save_model(model, args.out, extra={"train": asdict(config), "data": asdict(data_config)})
