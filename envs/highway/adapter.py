@@ -59,7 +59,7 @@ from gymnasium.error import ResetNeeded
 from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, checked_flag, is_int
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
-from bimp.envs.highway.lanes import RouteCache, route_from
+from bimp.envs.highway.lanes import RouteCache, check_steering_reach, route_from
 from bimp.envs.highway.profiles import PROFILES, SUPPORTED
 from bimp.envs.overlay import draw_lines
 from bimp.envs.road import Projection, Route, body_corners, corner_edge_margin
@@ -248,6 +248,8 @@ class HighwayAdapter(gym.Wrapper):
         self._accels: dict[int, float] = {}
         self._ended = False
         self._routes, self._shifted = RouteCache(), (None, 0.0, None)
+        check_steering_reach(base.road.network, getattr(base.vehicle, "route", None) or self.behaviour.route,
+                             base.action_type.steering_range, VEHICLE_LENGTH, self.highway_id)
         self.behaviour.decide(0.0)
         self._publish()
         self._ev_s = float(self.scene.road.project(np.array(base.vehicle.position, float)).s)  # as _measure sets it

@@ -258,3 +258,37 @@ def _once_round(route: Route, lanes: list) -> tuple[Route, list]:
     k = int(back[0])
     return Route(xy=xy[:k], s=s[:k], heading=route.heading[:k], curvature=route.curvature[:k],
                  left=route.left[:k], right=route.right[:k]), lanes[:k]
+
+
+def steering_needed(lane, length: float) -> float:
+    """The steering [rad] highway-env's bicycle (wheelbase ``length``) needs to hold ``lane``'s tightest curve:
+    ``tan(delta) = 2 tan(asin(length / (2 R)))`` (its slip angle is ``atan(tan(delta) / 2)``); 0 for a straight
+    lane, ``inf`` for a curve tighter than ``length / 2``. Circular lanes by their radius, sine lanes by their peak
+    curvature ``amplitude * pulsation^2``."""
+    if hasattr(lane, "radius"):
+        curvature = 1.0 / float(lane.radius)
+    elif hasattr(lane, "amplitude") and hasattr(lane, "pulsation"):
+        curvature = abs(float(lane.amplitude)) * float(lane.pulsation) ** 2
+    else:
+        return 0.0
+    half_chord = length * curvature / 2
+    return float(np.arctan(2 * np.tan(np.arcsin(half_chord)))) if half_chord < 1 else float("inf")
+
+
+def check_steering_reach(network: RoadNetwork, route, steer_range: tuple[float, float], length: float,
+                         name: str) -> None:
+    """``ValueError`` naming the curve and the range when a lane of ``route`` (lane indices; an index without a lane
+    id is each lane of its road; no route at all, a loop such as the racetrack: every lane of the network) needs more
+    steering (:func:`steering_needed`) than the actuator's ``steer_range`` [rad] reaches: no policy could hold it."""
+    reach = min(-float(steer_range[0]), float(steer_range[1]))
+    roads = [(a, b, i) for a, b, i in route] if route else \
+        [(a, b, None) for a, ends in network.graph.items() for b in ends]
+    indices = [(a, b, i) for a, b, lane_id in roads
+               for i in ([lane_id] if lane_id is not None else range(len(network.graph[a][b])))]
+    for index in indices:
+        lane = network.get_lane(index)
+        needed = steering_needed(lane, length)
+        if needed > reach:
+            curve = f"radius {float(lane.radius):g} m" if hasattr(lane, "radius") else "peak curvature"
+            raise ValueError(f"{name}: the route's curve on lane {tuple(index)} ({curve}) needs {needed:.3f} rad of "
+                             f"steering, past the actuator's steering range ±{reach:g} rad")

@@ -107,3 +107,26 @@ def test_a_kept_route_never_comes_round_onto_itself():
 def test_a_bad_cache_is_refused_naming_its_numbers(bad):
     with pytest.raises(ValueError, match="route cache needs"):
         RouteCache(**bad)
+
+
+def test_a_road_whose_tightest_curve_the_actuator_cannot_reach_is_refused_at_make(monkeypatch):
+    import dataclasses
+
+    import gymnasium as gym
+
+    from bimp.envs.highway import profiles
+    from bimp.envs.highway.lanes import steering_needed
+    from bimp.envs.scene import Bounds
+
+    env = gym.make("bimp/racetrack-v0")
+    radii = {lane.radius for ends in env.unwrapped.road.network.graph.values() for lanes in ends.values()
+             for lane in lanes if hasattr(lane, "radius")}
+    assert min(radii) == 15  # the hairpin: 0.326 rad, inside the racetrack's ±0.6 rad actuator
+    needed = steering_needed(env.unwrapped.road.network.get_lane(("d", "e", 0)), 5.0)
+    assert 0.32 < needed < 0.33
+    narrow = dataclasses.replace(profiles.PROFILES["racetrack-v0"], bounds=Bounds(steer=0.3, steer_rate=0.03),
+                                 actuator_steer=(-0.3, 0.3))
+    monkeypatch.setitem(profiles.PROFILES, "racetrack-v0", narrow)
+    with pytest.raises(ValueError, match=r"racetrack-v0: the route's curve on lane .* \(radius 15 m\) needs 0\.32\d "
+                                         r"rad of steering, past the actuator's steering range ±0\.3 rad"):
+        gym.make("bimp/racetrack-v0")
