@@ -23,6 +23,7 @@ from bimp.configs import ConfigError, added_field, check_fields
 from bimp.envs.scene import Scene, real_array
 from bimp.planners import core
 from bimp.planners.dynamics import dynamics_files, steer_bound
+from bimp.planners.guard import guarded
 from bimp.planners.model import model_params
 from bimp.planners.problem import (
     BarrierShape,
@@ -50,6 +51,7 @@ class EnKTSConfig:
     that no particle touches sits out the update (``bimp.planners.core._active``); first_control_barriers: the applied
     control's bounds are measured at every step; update: the reading of the printed eq. 16, ``"perturbed"`` (ours),
     ``"deterministic"`` (the authors' public EnKS code) or ``"literal"`` (:func:`bimp.planners.core.student_t_update`);
+    road_guard: where the smoothed plan leaves the road, brake in lane instead (:mod:`bimp.planners.guard`);
     seed: default seed of the planner's key. The switches exist for the ablation and the readings study
     (``docs/reproduction.md``); the defaults are what that study supports. Values are checked by
     :func:`bimp.configs.check_fields` (types, lengths) and then for range: a bad one raises
@@ -67,6 +69,8 @@ class EnKTSConfig:
     gate_barriers: bool = added_field(True, neutral=True)
     first_control_barriers: bool = added_field(True, neutral=True)
     update: str = added_field("perturbed", neutral="perturbed")
+    # Brake in lane where the smoothed plan leaves the road (bimp.planners.guard); off reproduces the planner before.
+    road_guard: bool = added_field(False, neutral=False)
     seed: int = 0
     problem: ProblemConfig = field(default_factory=ProblemConfig)
 
@@ -184,7 +188,21 @@ class EnKTSPlanner:
         self.fallbacks += int(np.count_nonzero(fell_back))
         # Plain bools: the episode loop records them and the records summarize bool flags as fallback_steps.
         self.step_info = {"fallback": bool(fell_back) if self.batch is None else tuple(map(bool, fell_back))}
-        return np.asarray(action, dtype=np.float32)
+        action = np.asarray(action, dtype=np.float32)
+        if self.config.road_guard:
+            action = self._guard(scenes, action)
+        return action
+
+    def _guard(self, scenes: list[Scene], action: np.ndarray) -> np.ndarray:
+        """``action`` with each row whose smoothed plan leaves the road replaced by braking in lane
+        (:func:`bimp.planners.guard.guarded`); ``step_info["guard"]`` says where it acted."""
+        states = self.plan.states  # (H + 1, 4) or (B, H + 1, 4): x_0 and the plan's x_1 .. x_H
+        rows = [(guarded(scene, x[0], x[1:], a)) for scene, x, a in
+                zip(scenes, states[None] if self.batch is None else states, action.reshape(-1, 2))]
+        acted = tuple(flag for _, flag in rows)
+        self.step_info["guard"] = acted[0] if self.batch is None else acted
+        out = np.stack([a for a, _ in rows])
+        return out[0] if self.batch is None else out
 
     @property
     def plan(self) -> Plan | None:
