@@ -38,7 +38,8 @@ BLOCK_NAMES = re.compile(r"^<!-- report: ([\w-]+) -->", re.M)  # any opening mar
 SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
 NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",
-         "lane-keep": "lane keeping", "ppo": "PPO", "sac": "SAC"}
+         "lane-keep": "lane keeping", "ppo": "PPO", "sac": "SAC", "enkts-guard": "EnKTS + guard",
+         "enks-guard": "EnKS + guard"}
 
 
 @dataclass
@@ -138,10 +139,14 @@ def metrics_table(folders: list[Path]) -> tuple[str, list[Cell]]:
     return "\n".join(lines + _footnote(arms)), arms
 
 
-def grid_table(folders: list[Path], with_score: bool) -> tuple[str, list[Cell]]:
+def grid_table(folders: list[Path], with_score: bool, rows_of: Path | None = None) -> tuple[str, list[Cell]]:
     """A row per scenario, a column per policy: success (Wilson 95%; over training seeds their range) and, with
-    ``with_score``, the mean closed-loop score after a semicolon; ``-`` where a policy did not run."""
+    ``with_score``, the mean closed-loop score after a semicolon; ``-`` where a policy did not run. ``rows_of``: only
+    the scenarios that folder (one of ``folders``, a study beside the main folders) ran."""
     arms = _arms(folders)
+    if rows_of is not None:
+        rows = {r["scenario"] for r in read_records(rows_of)}
+        arms = [a for a in arms if a.scenario in rows]
     columns = list(dict.fromkeys(a.column for a in arms))
     by = {(a.scenario, a.column): a for a in arms}
     runs = {a.column: a.runs for a in arms}
@@ -204,6 +209,9 @@ TABLES: dict[str, Callable[[], tuple[str, list[Cell]]]] = {
     "highway": lambda: grid_table([_results("highway")], with_score=False),
     "suite": lambda: grid_table([_results("suite")], with_score=True),
     "suite-overall": lambda: overall_table(_results("suite")),
+    # EnKTS and EnKS with the road-edge guard where they left the road, beside every policy's row from the main folders
+    "road-guard": lambda: grid_table([_results("suite"), _results("highway"), _results("road-guard")], with_score=True,
+                                     rows_of=_results("road-guard")),
     "folders": lambda: folders_table(REPO_ROOT / "results"),
 }
 
