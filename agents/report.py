@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bimp.agents.compare import compare, label_results
 from bimp.agents.errors import EvaluationError
 from bimp.agents.leaderboard import leaderboard
 from bimp.agents.metrics import code_version, record_label, summarize
@@ -183,6 +184,39 @@ def overall_table(folder: Path) -> tuple[str, list[Cell]]:
     return "\n".join(lines), []
 
 
+def episodes_table(folder: Path) -> tuple[str, list[Cell]]:
+    """A row per scenario and policy of ``folder``: episodes, success (Wilson 95%), collision and off-road counts,
+    progress (bootstrap 95%), the median plan time per step (mean over episodes) and the first failed seeds."""
+    arms = _arms([folder])
+    order = {name: i for i, name in enumerate(NAMES)}
+    lines = ["| env | policy | episodes | success | collisions | off road | progress [m] | plan ms (median) | "
+             "failed seeds |", "|---|---|---|---|---|---|---|---|---|"]
+    for a in sorted(arms, key=lambda a: (a.scenario, order.get(a.column, len(order)), a.column)):
+        (summary,) = a.summaries.values()
+        failed = summary["failed_seeds"]["success"]
+        seeds = ", ".join(map(str, failed[:10])) + (" ..." if len(failed) > 10 else "")
+        progress, plan = summary.get("progress_m") or {}, summary.get("plan_time_ms_p50") or {}
+        lines.append(f"| {a.scenario} | {NAMES.get(a.column, a.column)}{_mark(a)} | {summary['episodes']} | "
+                     f"{_short(summary['success_rate'])} | {summary['collision_rate']['k']} | "
+                     f"{summary['offroad_rate']['k']} | {_short(progress, 0)} | "
+                     f"{plan.get('mean', float('nan')):.1f} | {seeds} |")
+    return "\n".join(lines + _footnote(arms)), arms
+
+
+def paired_table(folder: Path, label_a: str, label_b: str) -> tuple[str, list[Cell]]:
+    """``label_a`` against ``label_b`` in ``folder``, seed by seed per scenario (``bimp compare``): collisions of
+    each with the exact McNemar p, and the paired bootstrap 95% interval of the progress difference."""
+    result = compare(label_results(folder, label_a), label_results(folder, label_b))
+    a, b = NAMES.get(label_a, label_a), NAMES.get(label_b, label_b)
+    lines = [f"| env | collisions {a} vs {b} (McNemar p) | progress {a} - {b} [m] |", "|---|---|---|"]
+    for scenario, e in result.items():
+        c, d = e["collision_rate"], e["progress_m"]
+        n = e["pairs"]
+        lines.append(f"| {scenario} | {round(c['a'] * n)} vs {round(c['b'] * n)} (p = {c['p_value']:.2g}) | "
+                     f"{d['mean_diff']:+.0f} [{d['ci_low']:+.0f}, {d['ci_high']:+.0f}] |")
+    return "\n".join(lines), []
+
+
 def folders_table(root: Path) -> tuple[str, list[Cell]]:
     """Every evaluation folder under ``root`` (each with an ``episodes.jsonl``): its episodes (the latest record per
     seed), arms, code versions and the arms ``bimp verify`` found the same; a tuning study's trial folders left out
@@ -207,6 +241,8 @@ def _results(name: str) -> Path:
 TABLES: dict[str, Callable[[], tuple[str, list[Cell]]]] = {
     "paper": lambda: metrics_table([_results("paper"), _results("peers"), _results("rl")]),
     "highway": lambda: grid_table([_results("highway")], with_score=False),
+    "highway-episodes": lambda: episodes_table(_results("highway")),
+    "highway-paired": lambda: paired_table(_results("highway"), "enkts", "idm"),
     "suite": lambda: grid_table([_results("suite")], with_score=True),
     "suite-overall": lambda: overall_table(_results("suite")),
     # EnKTS and EnKS with the road-edge guard where they left the road, beside every policy's row from the main folders
