@@ -125,3 +125,39 @@ def test_training_seeds_are_one_column_with_their_range(tmp_path):
     stat = report._stat(ppo, "success_rate")
     assert stat["ci_low"] == min(means) and stat["ci_high"] == max(means)
     assert "| overtaking | PPO (3 seeds)" in table and "3 x 200" in table
+
+
+def test_the_episodes_table_counts_each_arms_outcomes_and_names_its_failed_seeds(tmp_path):
+    folder = _folder(tmp_path, {"idm": "a" * 40, "lane-keep": "a" * 40})
+    records = [json.loads(x) for x in (folder / "episodes.jsonl").read_text().splitlines()]
+    lane = [r for r in records if r["label"] == "lane-keep"]
+    failed = sorted(r["seed"] for r in lane if not r["metrics"]["success_rate"])
+    table, _ = report.episodes_table(folder)
+    row = next(line for line in table.splitlines() if "| lane keeping |" in line)
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert cells[:2] == ["highway-v0", "lane keeping"] and cells[2] == str(len(lane))
+    assert cells[4] == str(sum(bool(r["metrics"]["collision_rate"]) for r in lane))
+    assert cells[8].startswith(", ".join(map(str, failed[:10]))) and cells[8].endswith("...") == (len(failed) > 10)
+    idm = next(line for line in table.splitlines() if "| IDM/MOBIL |" in line)
+    assert idm.index("IDM/MOBIL") > 0 and table.index("IDM/MOBIL") < table.index("lane keeping")  # the NAMES order
+
+
+def test_the_paired_table_is_bimp_compare_of_the_two_labels(tmp_path):
+    folder = _folder(tmp_path, {"idm": "a" * 40, "lane-keep": "a" * 40})
+    table, _ = report.paired_table(folder, "lane-keep", "idm")
+    result = report.compare(report.label_results(folder, "lane-keep"), report.label_results(folder, "idm"))
+    c, n = result["highway-v0"]["collision_rate"], result["highway-v0"]["pairs"]
+    assert f"| highway-v0 | {round(c['a'] * n)} vs {round(c['b'] * n)} (p = {c['p_value']:.2g}) |" in table
+    assert round(c["a"] * n) > 0 and round(c["b"] * n) == 0  # lane keeping collides, IDM/MOBIL does not
+
+
+def test_a_study_table_shows_only_the_scenarios_its_folder_ran(tmp_path):
+    main = _folder(tmp_path, {"idm": "a" * 40})
+    study = tmp_path / "study"
+    study.mkdir()
+    line = next(x for x in (main / "episodes.jsonl").read_text().splitlines())
+    (study / "episodes.jsonl").write_text(json.dumps({**json.loads(line), "label": "idm-x"}) + "\n")
+    with (main / "episodes.jsonl").open("a") as f:
+        f.write(json.dumps({**json.loads(line), "scenario": "merge-v0"}) + "\n")
+    table, arms = report.grid_table([main, study], with_score=False, rows_of=study)
+    assert {a.scenario for a in arms} == {"highway-v0"} and "merge-v0" not in table and "idm-x" in table
