@@ -66,7 +66,7 @@ from bimp.agents.records import (
 )
 from bimp.agents.registry import POLICIES, load, make_policy, policy_spec
 from bimp.agents.verification import VERIFIED_FILE, arm_key, read_verified
-from bimp.configs import file_sha256, is_old_tuned, read_yaml, trust_switch, tuning_path, write_tuned
+from bimp.configs import file_sha256, is_old_tuned, read_yaml, renamed_key, trust_switch, tuned_files, tuning_path
 from bimp.planners.problem import RENAMED, ProblemConfig
 
 # sha256 of planners/weights/mlp.pt as committed at ad50d20 and never changed since (git log): every planner record
@@ -167,10 +167,7 @@ def new_overrides(old_config: dict, overrides: dict) -> dict:
             key = "problem.barrier.bound_margin"
         elif flat and head in PROBLEM_KEYS:
             key = f"problem.{key}"
-        for old, new in RENAMED.items():
-            if key == old or key.startswith(old + "."):
-                key = new + key[len(old):]
-        out[key] = value
+        out[renamed_key(key, RENAMED) or key] = value
     return out
 
 
@@ -244,7 +241,7 @@ def _infinities(value: object, default: object) -> object:
 def migrate_config_file(path: str | Path, dry_run: bool = False) -> str:
     """Bring the YAML config ``path`` to today's shape: a tuned config in the old envelope (``policy``, ``tuning``
     and ``config`` around the config, :func:`bimp.configs.is_old_tuned`) split into the config alone and its tuning
-    beside it (:func:`bimp.configs.write_tuned`), and each renamed setting (:data:`RENAMED`) under its new name. The
+    beside it (:func:`bimp.configs.tuned_files`), and each renamed setting (:data:`RENAMED`) under its new name. The
     values are kept as they were, so a policy loads the same config from the file. A plain file that needs a rename
     is written again without its comments. Returns a line saying what changed; ``MigrationError`` for a file that is
     not a YAML mapping."""
@@ -262,10 +259,10 @@ def migrate_config_file(path: str | Path, dry_run: bool = False) -> str:
         return f"{path}: nothing to change"
     what = ("split: the config alone, its tuning in " + tuning_path(path).name) if old else "settings renamed"
     if not dry_run:
-        if old:
-            write_tuned(path, new, doc["policy"], doc.get("tuning"))
-        else:
-            write_atomic(path, yaml.safe_dump(new, sort_keys=False, default_flow_style=None, width=110))
+        files = tuned_files(path, new, doc["policy"], doc.get("tuning")) if old else \
+            {path: yaml.safe_dump(new, sort_keys=False, default_flow_style=None, width=110)}
+        for file, text in files.items():
+            write_atomic(file, text)
     return f"{path}: {'would be ' if dry_run else ''}{what}"
 
 

@@ -13,7 +13,6 @@ A new policy is one module plus one table entry::
 
 from __future__ import annotations
 
-import functools
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -186,8 +185,7 @@ def make_policy(name: str, env, config: str | Path | None = None, **overrides) -
         given = read_overrides(config)
     shipped = TUNED_DIR / f"{name}.yaml"
     if shipped.is_file():  # a shipped tuned config is the default; a config file goes on top of it, never instead
-        layers = [read_overrides(shipped)] + ([given] if given is not None else [])
-        overrides = merged(functools.reduce(merged, layers, {}), overrides)
+        overrides = merged(merged(read_overrides(shipped), given or {}), overrides)
     elif config is not None:
         overrides = {"config": config, **overrides}
     policy = factory(env, **overrides)

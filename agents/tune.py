@@ -54,7 +54,7 @@ from bimp.agents.backends import BackendError, connect_ray, in_worker, ray_optio
 from bimp.agents.errors import EvaluationError, check_out_dir
 from bimp.agents.evaluate import evaluate
 from bimp.agents.provenance import config_hash
-from bimp.agents.records import read_records
+from bimp.agents.records import read_records, write_atomic
 
 # The search space and the config edits (their names re-exported here, where bimp sweep and the tests find them).
 from bimp.agents.tune_space import (  # noqa: F401  (re-exported: the names of `bimp tune`'s space)
@@ -69,7 +69,7 @@ from bimp.agents.tune_space import (  # noqa: F401  (re-exported: the names of `
     suggest,
     with_params,
 )
-from bimp.configs import write_tuned
+from bimp.configs import tuned_files
 
 # optuna (a second or so to load) is imported inside the functions that run a study, as in tune_space: the config
 # editing there (bimp sweep's) needs none of it.
@@ -328,7 +328,7 @@ def tune(policy: str, scenarios: list[str], trials: int, episodes: int, seed: in
 
 def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
     """The best trial's config (factory kwargs) as a YAML of overrides that ``make_policy(policy, env,
-    config=path)`` loads, and beside it (:func:`bimp.configs.write_tuned`) the policy and the tuning (the study, its
+    config=path)`` loads, and beside it (:func:`bimp.configs.tuned_files`) the policy and the tuning (the study, its
     budget and the chosen values)."""
     best = study.best_trial
     request = study.user_attrs.get("request", {})
@@ -343,7 +343,10 @@ def write_best(study, policy: str, base: dict, space: dict, path: Path) -> Path:
               "first_seed": request.get("seed"), "params": params,
               "success_rate": best.user_attrs.get("success_rate"), "score": best.user_attrs.get("score"),
               "written": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-    return write_tuned(path, config, policy, tuning)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for file, text in tuned_files(path, config, policy, tuning).items():
+        write_atomic(file, text)
+    return path
 
 
 __all__ = ["Study", "TrialError", "TuneError", "check_space", "objective_value", "search_space", "tune"]

@@ -164,24 +164,20 @@ def check_tuned_for(policy: str, path: str | Path) -> None:
             raise ValueError(f"{path} holds a config tuned for {tuned!r}, not {policy!r} ({record.name})")
 
 
-def write_tuned(path: str | Path, config: Mapping[str, Any], policy: str, tuning: Mapping[str, Any] | None) -> Path:
-    """Write a tuned config: ``path`` the ``config`` alone (a YAML of overrides), ``NAME.tuning.yaml`` beside it the
-    ``policy`` and the ``tuning`` (the study, its budget and the chosen values). Each file replaced whole."""
+def tuned_files(path: str | Path, config: Mapping[str, Any], policy: str,
+                tuning: Mapping[str, Any] | None) -> dict[Path, str]:
+    """The two files of a tuned config, ``{file: text}``: ``path`` the ``config`` alone (a YAML of overrides), and
+    ``NAME.tuning.yaml`` beside it the ``policy`` and the ``tuning`` (the study, its budget and the chosen values).
+    The caller writes them (``bimp.agents.records.write_atomic``)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     record = {"policy": policy, **({"tuning": dict(tuning)} if tuning is not None else {})}
-    _write(tuning_path(path), f"# What `bimp tune` chose {path.name} by: the study, its budget, the values.\n"
-           + yaml.safe_dump(record, sort_keys=False, default_flow_style=None, width=110))
-    _write(path, f"# Tuned by `bimp tune` for {policy}; its tuning: {tuning_path(path).name}. Load with "
-           f"make_policy({policy!r}, env, config=<this file>).\n"
-           + yaml.safe_dump(dict(config), sort_keys=False, default_flow_style=None, width=110))
-    return path
-
-
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
+    return {
+        tuning_path(path): f"# What `bimp tune` chose {path.name} by: the study, its budget, the values.\n"
+        + yaml.safe_dump(record, sort_keys=False, default_flow_style=None, width=110),
+        path: f"# Tuned by `bimp tune` for {policy}; its tuning: {tuning_path(path).name}. Load with "
+        f"make_policy({policy!r}, env, config=<this file>).\n"
+        + yaml.safe_dump(dict(config), sort_keys=False, default_flow_style=None, width=110),
+    }
 
 
 def merged(base: dict, top: Mapping) -> dict:
@@ -233,16 +229,24 @@ def load_layered(cls: type[T], *layers: str | Path | Mapping[str, Any] | None, b
         if not isinstance(layer, Mapping):
             layer = read_overrides(layer)
         for key, value in _leaves(layer):
-            for old, new in moved.items():
-                if key == old or key.startswith(old + "."):
-                    renamed = new + key[len(old):]
-                    raise ValueError(f"{key} is now {renamed}" + (
-                        " (a planner's problem settings sit under problem: --set POLICY."
-                        f"{renamed}=...)" if renamed.startswith("problem.") and "." not in old else ""))
+            new = renamed_key(key, moved)
+            if new is not None:
+                hint = (f" (a planner's problem settings sit under problem: --set POLICY.{new}=...)"
+                        if new.startswith("problem.") and key.partition(".")[0] in moved else "")
+                raise ValueError(f"{key} is now {new}{hint}")
             for name in reversed(key.split(".")):
                 value = {name: value}
             tree = merged(tree, value)
     return load_config(cls, None, **tree)
+
+
+def renamed_key(key: str, moved: Mapping[str, str]) -> str | None:
+    """The new dotted name of ``key`` where ``moved`` (``{old dotted key: new}``) renames it or a key above it
+    (``problem.barrier.brake_decel.x`` under ``problem.barrier.brake_decel``); None where it keeps its name."""
+    for old, new in moved.items():
+        if key == old or key.startswith(old + "."):
+            return new + key[len(old):]
+    return None
 
 
 def _leaves(layer: Mapping) -> list[tuple[str, Any]]:
@@ -424,4 +428,4 @@ def neutral_values(cls: type) -> dict[str, Any]:
 
 __all__ = ["CONFIG_DIR", "TUNED_DIR", "TUNING_SUFFIX", "ConfigError", "added_field", "check_fields",
            "check_tuned_for", "file_sha256", "is_old_tuned", "load_config", "load_layered", "merged", "neutral_values",
-           "read_overrides", "read_yaml", "tuning_path", "write_tuned"]
+           "read_overrides", "read_yaml", "renamed_key", "tuned_files", "tuning_path"]

@@ -28,9 +28,8 @@ HEADING_TIME = 0.5  # [s] the brake-in-lane steering takes out a heading error o
 def leaves_road(scene: Scene, x0: np.ndarray, states: np.ndarray) -> bool:
     """Whether the planned ``states (H, >=3)`` put a body corner past the road's edge, further out than the EV at
     ``x0 (>=3,)`` is (:meth:`Scene.edge_distance`: > 0 inside)."""
-    now = float(scene.edge_distance(np.asarray(x0, float)[None, :4])[0])
-    planned = scene.edge_distance(np.asarray(states, float)[:, :4])
-    return bool(planned.min() < min(now, 0.0))
+    margins = scene.edge_distance(np.vstack([np.asarray(x0, float)[:4], np.asarray(states, float)[:, :4]]))
+    return bool(margins[1:].min() < min(margins[0], 0.0))  # one projection of the EV's and the plan's corners
 
 
 def brake_in_lane(scene: Scene, x0: np.ndarray) -> np.ndarray:

@@ -12,8 +12,9 @@ import yaml
 from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents.cli import main
 from bimp.agents.provenance import resolved_config
+from bimp.agents.records import write_atomic
 from bimp.agents.registry import make_policy
-from bimp.configs import ConfigError, is_old_tuned, load_layered, tuning_path, write_tuned
+from bimp.configs import ConfigError, is_old_tuned, load_layered, tuned_files, tuning_path
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,9 +120,11 @@ def test_a_shipped_tuned_config_under_the_new_shape_goes_under_a_file_of_overrid
         == shipped
 
 
-def test_write_tuned_writes_the_config_alone_and_its_tuning_beside_it(env, tmp_path):
+def test_a_tuned_config_is_the_config_alone_and_its_tuning_beside_it(env, tmp_path):
     config = {"k_lat": 0.02}
-    path = write_tuned(tmp_path / "lk.yaml", config, "lane-keep", {"trial": 1})
+    path = tmp_path / "lk.yaml"
+    for file, text in tuned_files(path, config, "lane-keep", {"trial": 1}).items():
+        write_atomic(file, text)
     assert yaml.safe_load(path.read_text()) == config
     assert yaml.safe_load((tmp_path / "lk.tuning.yaml").read_text())["policy"] == "lane-keep"
     assert make_policy("lane-keep", env, config=path).config.k_lat == 0.02
