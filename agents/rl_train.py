@@ -38,7 +38,7 @@ import numpy as np
 
 from bimp.agents.baselines import ZeroAction
 from bimp.agents.errors import EvaluationError
-from bimp.agents.records import read_json, write_atomic, write_figure
+from bimp.agents.files import read_json, write_atomic, write_figure
 from bimp.agents.rl import (
     PPOFeaturePolicy,
     RLConfig,

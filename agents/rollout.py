@@ -15,14 +15,13 @@ from __future__ import annotations
 import functools
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import gymnasium as gym
 import numpy as np
-
-from bimp.agents.backends import one_thread
 
 SEEDING = "np.random.SeedSequence(seed).spawn(2) -> (env, policy); each: generate_state(1, uint64)[0] >> 1"
 
@@ -30,6 +29,32 @@ SEEDING = "np.random.SeedSequence(seed).spawn(2) -> (env, policy); each: generat
 # ``speed_limit``: what the closed-loop score reads (bimp.envs.scene.attribution_info; None from an env without them).
 INFO_KEYS = ("input", "ov_distance", "edge_distance", "ttc", "lateral_error", "speed_error", "collision",
              "offroad", "constraints", "s", "reference", "ahead_of_ov1", "goal", "contact", "speed_limit")
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Run the enclosed episodes in this process as a worker runs them: one BLAS / OpenMP thread
+    (``threadpoolctl``; a worker gets it from
+    :data:`bimp.agents.evaluation.backends.THREADS` before numpy loads) and one torch thread. The episode
+    loops (:func:`bimp.agents.rollout.rollout` and ``rollout_batch``) run under it, whoever calls them: ``bimp
+    evaluate --workers 1``, ``bimp render``, the demo's figures. Why: OpenBLAS
+    splits a product differently over more threads, the floats change in their last digits, and a sampling planner's
+    trajectory then drifts apart (MPPI on lane-drop-hard seed 3001: score 0.75 on one thread, 0.44 on this 2-core
+    machine's two), so a record would depend on ``--workers`` and on the cores of the machine that made it. XLA's
+    threads are fixed when JAX starts and stay as they are; they changed no action in the cases measured
+    (``docs/scaling.md``)."""
+    import scipy.linalg  # noqa: F401  (its own OpenBLAS, which JAX's CPU LAPACK loads at a planner's first solve)
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    # threadpoolctl limits the libraries loaded when the limit starts: one loaded later inside would keep its cores.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def episode_seeds(seed: int) -> tuple[int, int]:

@@ -168,7 +168,7 @@ def tuned_files(path: str | Path, config: Mapping[str, Any], policy: str,
                 tuning: Mapping[str, Any] | None) -> dict[Path, str]:
     """The two files of a tuned config, ``{file: text}``: ``path`` the ``config`` alone (a YAML of overrides), and
     ``NAME.tuning.yaml`` beside it the ``policy`` and the ``tuning`` (the study, its budget and the chosen values).
-    The caller writes them (``bimp.agents.records.write_atomic``)."""
+    The caller writes them (``bimp.agents.files.write_atomic``)."""
     path = Path(path)
     record = {"policy": policy, **({"tuning": dict(tuning)} if tuning is not None else {})}
     return {
@@ -402,9 +402,10 @@ def file_sha256(path: str | Path) -> str:
 def added_field(default: Any, *, neutral: Any) -> Any:
     """A config field added after records were made without it. ``neutral``: its value that reproduces the behaviour
     from before it existed (it may differ from ``default``, the value new configs take). At its neutral value the
-    field is left out of a config's hash (:func:`bimp.agents.provenance.config_hash`), so the records made before it
-    existed keep resuming; ``bimp migrate`` writes it into them at that value. A field whose old behaviour no value
-    reproduces is declared as a plain field: it is always hashed, and the old records are refused, as they must be.
+    field is left out of a config's hash (:func:`bimp.agents.evaluation.provenance.config_hash`), so the records made
+    before it existed keep resuming; ``bimp migrate`` writes it into them at that value. A field whose old behaviour no
+    value reproduces is declared as a plain field: it is always hashed, and the old records are refused, as they must
+    be.
 
         gate_barriers: bool = added_field(True, neutral=True)
     """

@@ -103,8 +103,8 @@ CONTACT_FIELDS = ("rel_x", "rel_y", "rel_heading", "ev_speed", "ov_speed", "ev_l
 def attribution_info(ego: ArrayLike, ovs: ArrayLike, gaps: ArrayLike, ev_lateral_speed: float, speed_limit: float,
                      crashed: ArrayLike | None = None) -> dict:
     """The per-step ``info`` the closed-loop score's at-fault rule and speed terms read
-    (:func:`bimp.agents.metrics.episode_metrics`), one definition for the paper's envs and the highway-env adapter:
-    ``{"contact": dict | None, "speed_limit": float}``.
+    (:func:`bimp.agents.evaluation.metrics.episode_metrics`), one definition for the paper's envs and the highway-env
+    adapter: ``{"contact": dict | None, "speed_limit": float}``.
 
     ``ego``: the EV's ``[x, y, heading, speed]`` (m, rad, m/s); ``ovs (K, >=5)``: OV rows ``[present, x, y, heading,
     speed, ..]`` (:data:`OV_FIELDS`); ``gaps (K,)``: their footprint gaps [m] (:meth:`Scene.ov_gaps`);

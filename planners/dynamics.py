@@ -409,9 +409,9 @@ def dynamics_files(name: str, steer_bound: float = 0.0) -> tuple[dict[str, str],
     """``(files, artifacts)`` of the model a planner config's ``problem.dynamics`` names on a road with planning
     steering bound ``steer_bound`` (:func:`weights_for`), keyed by that config key: ``files`` its weights file by
     content, ``{"problem.dynamics": sha256}`` (``{}`` for the exact bicycle, which loads no file), so a policy's
-    config hash follows the weights, not where they lie (:func:`bimp.agents.provenance.config_hash`); ``artifacts``
-    the file by name (``bimp:planners/weights/mlp.pt`` for shipped weights, else the path as given), shown apart,
-    not hashed."""
+    config hash follows the weights, not where they lie (:func:`bimp.agents.evaluation.provenance.config_hash`);
+    ``artifacts`` the file by name (``bimp:planners/weights/mlp.pt`` for shipped weights, else the path as given), shown
+    apart, not hashed."""
     path = weights_for(name, steer_bound)
     if path is None:
         return {}, {}

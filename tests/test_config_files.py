@@ -11,8 +11,8 @@ import yaml
 
 from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents.cli import main
-from bimp.agents.provenance import resolved_config
-from bimp.agents.records import write_atomic
+from bimp.agents.evaluation.provenance import resolved_config
+from bimp.agents.files import write_atomic
 from bimp.agents.registry import make_policy
 from bimp.configs import ConfigError, is_old_tuned, load_layered, tuned_files, tuning_path
 

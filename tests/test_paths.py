@@ -12,7 +12,7 @@ from pathlib import Path
 
 from bimp import envs
 from bimp.agents.cli import main
-from bimp.agents.evaluate import resolve_arms
+from bimp.agents.evaluation.evaluate import resolve_arms
 from bimp.agents.registry import POLICIES
 
 ROOT = Path(__file__).resolve().parent.parent

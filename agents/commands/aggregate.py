@@ -12,10 +12,10 @@ import json
 import sys
 from pathlib import Path
 
-import bimp.agents.aggregate as library
-from bimp.agents.aggregate import aggregate, markdown
-from bimp.agents.compare import label_results
-from bimp.agents.records import write_atomic
+import bimp.agents.evaluation.aggregate as library
+from bimp.agents.evaluation.aggregate import aggregate, markdown
+from bimp.agents.evaluation.compare import label_results
+from bimp.agents.files import write_atomic
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,5 +1,5 @@
 """``bimp bench``: plan-step time of the planners side by side, and with ``--env`` env steps per second of every
-scenario (:mod:`bimp.agents.bench`, :mod:`bimp.agents.bench_env`).
+scenario (:mod:`bimp.agents.evaluation.bench`, :mod:`bimp.agents.evaluation.bench_env`).
 
     bimp bench                        # EnKTS, EnKS, MPPI, NMPC and the floor on the overtaking scenario
     bimp bench --scenario highway-v0  # EnKTS on a highway-env road vs the number of OVs and road points
@@ -14,7 +14,8 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from bimp.agents.bench import (
+from bimp.agents.errors import EvaluationError, check_out_dir
+from bimp.agents.evaluation.bench import (
     SCENARIO,
     report,
     report_device,
@@ -23,9 +24,8 @@ from bimp.agents.bench import (
     run_device,
     run_highway,
 )
-from bimp.agents.bench_env import report_env, run_env
-from bimp.agents.errors import EvaluationError, check_out_dir
-from bimp.agents.records import write_atomic
+from bimp.agents.evaluation.bench_env import report_env, run_env
+from bimp.agents.files import write_atomic
 from bimp.envs.highway.adapter import SUPPORTED as HIGHWAY_IDS
 
 
@@ -42,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
                              "road, with K and P sweeps")
     parser.add_argument("--env", nargs="*", default=None, metavar="SCENARIO",
                         help="env steps per second of these scenarios (none named: every one), bimp's fast traffic "
-                             "core beside highway-env's own (bimp.agents.bench_env); --out also writes a .md beside")
+                             "core beside highway-env's own (bimp.agents.evaluation.bench_env); --out also writes a "
+                             ".md beside")
     parser.add_argument("--env-steps", type=int, default=50, help="with --env: steps per round (3 rounds a core)")
     parser.add_argument("--note", default=None, help="a remark stored in the JSON (e.g. what else loaded the machine)")
     parser.add_argument("--out", type=Path, default=None, help="also write the result as JSON here")

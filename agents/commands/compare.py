@@ -11,10 +11,10 @@ import json
 import sys
 from pathlib import Path
 
-import bimp.agents.compare as library
-from bimp.agents.compare import code_version_note, compare, label_records, paired_code_versions, report
+import bimp.agents.evaluation.compare as library
 from bimp.agents.errors import EvaluationError
-from bimp.agents.records import write_atomic
+from bimp.agents.evaluation.compare import code_version_note, compare, label_records, paired_code_versions, report
+from bimp.agents.files import write_atomic
 
 
 def main(argv: list[str] | None = None) -> int:

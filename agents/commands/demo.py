@@ -10,9 +10,9 @@ from pathlib import Path
 
 from bimp import envs
 from bimp.agents.commands.args import EvaluationError
-from bimp.agents.demo import short_table
-from bimp.agents.evaluate import evaluate
-from bimp.agents.plots import plot_all, render_episode
+from bimp.agents.evaluation.demo import short_table
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.plots import plot_all, render_episode
 
 
 def main(argv: list[str] | None = None) -> int:

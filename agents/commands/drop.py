@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-import bimp.agents.drop as library
-from bimp.agents.drop import drop
+import bimp.agents.evaluation.drop as library
 from bimp.agents.errors import EvaluationError
+from bimp.agents.evaluation.drop import drop
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,7 +14,7 @@ import os
 import sys
 from pathlib import Path
 
-import bimp.agents.evaluate as library
+import bimp.agents.evaluation.evaluate as library
 from bimp import envs
 from bimp.agents.commands.args import (
     EvaluationError,
@@ -24,8 +24,8 @@ from bimp.agents.commands.args import (
     parse_labels,
     parse_overrides,
 )
-from bimp.agents.evaluate import DryRun, evaluate
-from bimp.agents.records import EPISODES_FILE, markdown_table
+from bimp.agents.evaluation.evaluate import DryRun, evaluate
+from bimp.agents.evaluation.records import EPISODES_FILE, markdown_table
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

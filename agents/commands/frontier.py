@@ -7,8 +7,8 @@ from __future__ import annotations
 import argparse
 
 from bimp.agents.commands.sweep import add_common_arguments, description, run_command
+from bimp.agents.evaluation.sweep import axis_points
 from bimp.agents.registry import is_policy_name, policy_spec
-from bimp.agents.sweep import axis_points
 
 
 def main(argv: list[str] | None = None) -> int:

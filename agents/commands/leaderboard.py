@@ -11,10 +11,11 @@ import json
 import sys
 from pathlib import Path
 
-import bimp.agents.leaderboard as library
+import bimp.agents.evaluation.leaderboard as library
 from bimp.agents.errors import EvaluationError, check_out_dir
-from bimp.agents.leaderboard import RANKABLE, leaderboard, plot, report
-from bimp.agents.records import finite, write_atomic
+from bimp.agents.evaluation.leaderboard import RANKABLE, leaderboard, plot, report
+from bimp.agents.evaluation.records import finite
+from bimp.agents.files import write_atomic
 
 
 def _check_file(value: str, flag: str) -> Path:

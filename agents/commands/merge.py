@@ -10,9 +10,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-import bimp.agents.merge as library
+import bimp.agents.evaluation.merge as library
 from bimp.agents.errors import EvaluationError
-from bimp.agents.merge import merge
+from bimp.agents.evaluation.merge import merge
 
 
 def main(argv: list[str] | None = None) -> int:

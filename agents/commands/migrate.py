@@ -12,9 +12,9 @@ import argparse
 import sys
 from pathlib import Path
 
-import bimp.agents.migrate as library
-from bimp.agents.migrate import migrate_folder
-from bimp.agents.records import EPISODES_FILE
+import bimp.agents.evaluation.migrate as library
+from bimp.agents.evaluation.migrate import migrate_folder
+from bimp.agents.evaluation.records import EPISODES_FILE
 
 
 def main(argv: list[str] | None = None) -> int:

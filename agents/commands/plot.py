@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-import bimp.agents.plots as library
+import bimp.agents.evaluation.plots as library
 from bimp.agents.commands.args import EvaluationError
-from bimp.agents.plots import plot_all
+from bimp.agents.evaluation.plots import plot_all
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,10 +12,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-import bimp.agents.video as library
+import bimp.agents.evaluation.video as library
 from bimp import envs
 from bimp.agents.commands.args import EvaluationError, add_set_argument, parse_overrides
-from bimp.agents.video import check_request, write_frame, write_video
+from bimp.agents.evaluation.video import check_request, write_frame, write_video
 
 
 def main(argv: list[str] | None = None) -> int:

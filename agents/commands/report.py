@@ -11,8 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from bimp.agents.records import write_atomic
-from bimp.agents.report import TABLES, default_files, render
+from bimp.agents.evaluation.report import TABLES, default_files, render
+from bimp.agents.files import write_atomic
 
 
 def main(argv: list[str] | None = None) -> int:

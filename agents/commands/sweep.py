@@ -15,7 +15,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import bimp.agents.sweep as library
+import bimp.agents.evaluation.sweep as library
 from bimp import envs
 from bimp.agents.commands.args import (
     EvaluationError,
@@ -24,8 +24,8 @@ from bimp.agents.commands.args import (
     backend_options,
     parse_overrides,
 )
-from bimp.agents.evaluate import DryRun
-from bimp.agents.sweep import Point, axis_points, param_points, run_points, table, write
+from bimp.agents.evaluation.evaluate import DryRun
+from bimp.agents.evaluation.sweep import Point, axis_points, param_points, run_points, table, write
 
 
 def description() -> str:

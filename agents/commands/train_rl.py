@@ -16,9 +16,9 @@ from typing import Any, NoReturn
 
 from bimp import envs
 from bimp.agents import rl_train
-from bimp.agents.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.commands.args import add_backend_arguments
 from bimp.agents.errors import EvaluationError, check_out_dir
+from bimp.agents.evaluation.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.rl import ALGOS, RLConfig
 from bimp.agents.rl_train import (
     check_model,

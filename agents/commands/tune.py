@@ -11,10 +11,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-import bimp.agents.tune as library
+import bimp.agents.evaluation.tune as library
 from bimp import envs
 from bimp.agents.commands.args import add_backend_arguments, backend_options
-from bimp.agents.tune import OBJECTIVES, TuneError, tune
+from bimp.agents.evaluation.tune import OBJECTIVES, TuneError, tune
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,9 +10,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-import bimp.agents.verify as library
+import bimp.agents.evaluation.verify as library
 from bimp.agents.errors import EvaluationError
-from bimp.agents.verify import verify_folder
+from bimp.agents.evaluation.verify import verify_folder
 
 
 def main(argv: list[str] | None = None) -> int:

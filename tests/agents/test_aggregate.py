@@ -7,8 +7,8 @@ import itertools
 import numpy as np
 import pytest
 
-from bimp.agents.aggregate import aggregate
-from bimp.agents.stats import stratified_bootstrap
+from bimp.agents.evaluation.aggregate import aggregate
+from bimp.agents.evaluation.stats import stratified_bootstrap
 
 
 def test_three_runs_of_one_task_give_their_range():

@@ -1,4 +1,5 @@
-"""Where episodes run (``bimp.agents.backends``): the local pool and Ray run the same groups with the same records.
+"""Where episodes run (``bimp.agents.evaluation.backends``): the local pool and Ray run the same groups with the same
+records.
 
 The Ray tests are slow (``-m slow``) and need the extra (``pip install -e ".[ray]"``); the fast ones check that a
 bad backend request fails before anything runs, with Ray or without it."""
@@ -13,11 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from bimp.agents.backends import THREADS, BackendError, connect_ray, one_thread
 from bimp.agents.cli import EvaluationError
 from bimp.agents.commands import evaluate as ev
-from bimp.agents.evaluate import evaluate
-from bimp.agents.records import read_records
+from bimp.agents.evaluation.backends import THREADS, BackendError, connect_ray
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.records import read_records
+from bimp.agents.rollout import one_thread
 from tests.agents.test_evaluate import ARGS, FAULTY, deadline
 
 TIMING = {"plan_time_ms_p50", "plan_time_ms_p95"}  # wall-clock: the only metrics allowed to differ
@@ -81,7 +83,7 @@ def test_one_thread_limits_numpys_blas_and_restores_the_threads_it_found():
 LATE_BLAS = """
 import jax.numpy as jnp
 from threadpoolctl import threadpool_info
-from bimp.agents.backends import one_thread
+from bimp.agents.rollout import one_thread
 with one_thread():
     jnp.linalg.solve(jnp.eye(3) * 2.0, jnp.ones(3)).block_until_ready()
     print(max(pool["num_threads"] for pool in threadpool_info()), len(threadpool_info()))
@@ -129,8 +131,8 @@ def test_an_address_where_no_cluster_answers_is_named_at_once(tmp_path):
 
 
 def test_tune_refuses_a_bad_backend_request_before_any_trial(tmp_path, monkeypatch, capsys):
-    from bimp.agents import tune
     from bimp.agents.commands import tune as tune_command
+    from bimp.agents.evaluation import tune
 
     argv = ["--policy", "lane-keep", "--scenario", "emergency-brake", "--trials", "1", "--episodes", "1"]
     for extra, message in ((["--parallel", "2"], "with --backend ray"), (["--backend", "dask"], "'dask'")):
@@ -198,7 +200,7 @@ def test_a_ray_worker_that_always_dies_is_recorded_and_the_rest_runs(tmp_path, r
 def test_tune_on_ray_runs_the_trials_in_parallel_against_one_study(tmp_path, ray_local):
     import optuna
 
-    from bimp.agents.tune import tune
+    from bimp.agents.evaluation.tune import tune
 
     args = dict(scenarios=["emergency-brake"], episodes=2, out=tmp_path / "study", progress=False, backend="ray")
     with deadline(600):
@@ -285,7 +287,7 @@ die, innocent, die_later = ("die", 0), ("ok",), ("die", 2)
 def test_a_suspect_rerun_alone_has_no_company_that_could_kill_it(monkeypatch, at_submit, log):
     """After a crash each group then in flight reruns alone. The last of them once had the next queued group
     started beside it, and a group that dies then took the innocent one down, recorded as dying twice."""
-    from bimp.agents import backends
+    from bimp.agents.evaluation import backends
 
     monkeypatch.setattr(backends, "ProcessPoolExecutor", ScriptedPool)
     monkeypatch.setattr(backends, "wait", ScriptedPool.wait)
@@ -312,7 +314,7 @@ def nap(started):
 
 
 if __name__ == "__main__":
-    from bimp.agents.backends import run_groups
+    from bimp.agents.evaluation.backends import run_groups
 
     ray = sys.argv[2] == "ray"
     run_groups([sys.argv[1]] * 4, nap, None, print, backend=sys.argv[2], workers=2, cpus=2 if ray else None)
@@ -404,7 +406,7 @@ def test_ray_task_workers_die_with_their_driver(tmp_path):
 ORPHAN = """import os, sys, time
 from pathlib import Path
 
-from bimp.agents import backends
+from bimp.agents.evaluation import backends
 
 if os.fork() == 0:
     sys.platform = "other"  # as where there is no prctl: the fallback looks at its parent pid every second
@@ -420,7 +422,7 @@ time.sleep(60)
 def test_without_prctl_a_worker_sees_its_parent_die_and_exits(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     # a parent already gone when the worker starts (no process is its own parent): exit at once, quietly
-    code = "import os; from bimp.agents.backends import die_with; die_with(os.getpid()); print('alive')"
+    code = "import os; from bimp.agents.evaluation.backends import die_with; die_with(os.getpid()); print('alive')"
     run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
     assert (run.returncode, run.stdout, run.stderr) == (1, "", "")
     child = tmp_path / "child"

@@ -1,5 +1,5 @@
-"""bimp.agents.bench: the report of a synthetic result (no timing here: benchmarks are never timed tests), the
-argument checks, the highway scenario's recorded (observation, scene) pairs and (slow) one quick highway run."""
+"""bimp.agents.evaluation.bench: the report of a synthetic result (no timing here: benchmarks are never timed tests),
+the argument checks, the highway scenario's recorded (observation, scene) pairs and (slow) one quick highway run."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from bimp.agents import bench
 from bimp.agents.commands import bench as bench_command
+from bimp.agents.evaluation import bench
 
 
 def synthetic_result() -> dict:
@@ -105,7 +105,7 @@ def test_highway_quick_run_has_both_sweeps():
     point = [r for r in result["k_sweep"] if r["n_obstacles"] == 8]
     assert point[0]["ratio"] == 1.0 and point[0]["road_points"] == 160
     assert all(math.isfinite(v) for v in result["ratios"].values()) and isinstance(result["target_met"], bool)
-    # Timed on one thread of each kind (bimp.agents.backends.one_thread), and those restored afterwards.
+    # Timed on one thread of each kind (bimp.agents.rollout.one_thread), and those restored afterwards.
     assert set(result["threads"].values()) == {1} and "torch" in result["threads"], result["threads"]
     after = bench._threads()
     assert {k: after[k] for k in before} == before  # restored (the run may load a library more)
@@ -113,7 +113,7 @@ def test_highway_quick_run_has_both_sweeps():
 
 
 def test_env_bench_times_both_cores_on_the_same_steps_and_writes_json_and_markdown(tmp_path, capsys):
-    from bimp.agents import bench_env
+    from bimp.agents.evaluation import bench_env
 
     out = tmp_path / "env.json"
     assert bench_command.main(["--env", "highway-fast-v0", "emergency-brake", "plain:highway-v0", "--env-steps", "3",

@@ -88,7 +88,7 @@ def test_an_unreadable_records_file_exits_2_naming_it(tmp_path, capsys, argv):
 
 
 def test_compare_json_that_cannot_be_written_exits_2(tmp_path, capsys):
-    from bimp.agents.evaluate import evaluate
+    from bimp.agents.evaluation.evaluate import evaluate
 
     evaluate(["emergency-brake"], ["zero", "lane-keep"], episodes=1, seed=5, workers=1, out=tmp_path, traces=0,
              progress=False)

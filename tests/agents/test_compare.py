@@ -7,9 +7,9 @@ import shutil
 import pytest
 
 from bimp.agents.commands import compare
-from bimp.agents.evaluate import evaluate
-from bimp.agents.metrics import code_version
-from bimp.agents.records import EPISODES_FILE, read_records
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.metrics import code_version
+from bimp.agents.evaluation.records import EPISODES_FILE, read_records
 
 OTHER = "f" * 40  # another commit
 

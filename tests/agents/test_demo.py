@@ -1,7 +1,7 @@
 """``bimp demo``'s short table: the columns a terminal shows whole, built from a summary."""
 
-from bimp.agents.demo import SHORT_COLUMNS, short_table
-from bimp.agents.metrics import METRICS, summarize
+from bimp.agents.evaluation.demo import SHORT_COLUMNS, short_table
+from bimp.agents.evaluation.metrics import METRICS, summarize
 
 
 def rate(mean, low, high):

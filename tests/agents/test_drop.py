@@ -5,12 +5,12 @@ import json
 
 import pytest
 
-from bimp.agents import drop as dr
-from bimp.agents import records
 from bimp.agents.cli import EvaluationError, main
 from bimp.agents.commands import evaluate as ev
-from bimp.agents.evaluate import evaluate
-from bimp.agents.records import ARMS_FILE, EPISODES_FILE, folder_lock, read_arms, read_records
+from bimp.agents.evaluation import drop as dr
+from bimp.agents.evaluation import records
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.records import ARMS_FILE, EPISODES_FILE, folder_lock, read_arms, read_records
 
 TOY = "tests.agents.toys:AlwaysBrake"
 ARGS = dict(scenarios=["emergency-brake"], episodes=2, seed=5, workers=1, traces=0, progress=False)

@@ -8,10 +8,10 @@ import pytest
 
 from bimp.agents.cli import EvaluationError
 from bimp.agents.commands import evaluate as ev
-from bimp.agents.evaluate import evaluate
-from bimp.agents.metrics import METRICS
-from bimp.agents.plots import plot_all
-from bimp.agents.records import EPISODES_FILE, folder_lock, read_arms, read_records, record_config
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.metrics import METRICS
+from bimp.agents.evaluation.plots import plot_all
+from bimp.agents.evaluation.records import EPISODES_FILE, folder_lock, read_arms, read_records, record_config
 
 ARGS = dict(scenarios=["emergency-brake"], policies=["lane-keep"], episodes=3, seed=5, workers=1,
             traces=1, progress=False)

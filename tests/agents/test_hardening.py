@@ -14,11 +14,12 @@ import gymnasium as gym
 import pytest
 
 from bimp import envs
-from bimp.agents import migrate, record_check, records, rl
+from bimp.agents import files, rl
 from bimp.agents.cli import EvaluationError, command_module, main
-from bimp.agents.evaluate import evaluate
-from bimp.agents.metrics import METRICS, summarize
-from bimp.agents.records import (
+from bimp.agents.evaluation import migrate, record_check, records
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.metrics import METRICS, summarize
+from bimp.agents.evaluation.records import (
     ARMS_FILE,
     EPISODES_FILE,
     folder_lock,
@@ -26,8 +27,8 @@ from bimp.agents.records import (
     numbered_records,
     read_arms,
     read_records,
-    write_atomic,
 )
+from bimp.agents.files import write_atomic
 from bimp.agents.registry import make_policy
 
 TOY = "tests.agents.toys:AlwaysBrake"
@@ -241,7 +242,7 @@ def test_a_file_or_a_line_over_its_limit_is_refused_naming_the_limit(folder, mon
     monkeypatch.setattr(record_check, "MAX_LINE_BYTES", 100)
     assert read_records(folder) == []
     assert "over 100 bytes, the limit per line" in capsys.readouterr().err
-    monkeypatch.setattr(records, "MAX_FILE_BYTES", 100)
+    monkeypatch.setattr(files, "MAX_FILE_BYTES", 100)
     with pytest.raises(EvaluationError, match="limit of 100 bytes per file"):
         records.episode_bytes(folder)
 
@@ -251,7 +252,7 @@ def test_a_deeply_nested_arms_json_is_one_line(folder, capsys):
     with pytest.raises(EvaluationError, match="arms.json is not JSON"):
         read_arms(folder)
     deep: object = 1
-    for _ in range(records.MAX_DEPTH + 1):
+    for _ in range(files.MAX_DEPTH + 1):
         deep = [deep]
     (folder / ARMS_FILE).write_text(json.dumps({"a": deep}))
     with pytest.raises(EvaluationError, match="nested deeper"):

@@ -1,6 +1,6 @@
 """``bimp leaderboard`` on fixture folders of hand-written episode records with known outcomes: the ranking, the
-intervals against bimp.agents.stats, the neighbours' McNemar p-value against a hand computation, "n/a" for records
-without the score, and the refusals (different seeds, mixed code versions, two configs under one label)."""
+intervals against bimp.agents.evaluation.stats, the neighbours' McNemar p-value against a hand computation, "n/a" for
+records without the score, and the refusals (different seeds, mixed code versions, two configs under one label)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from bimp.agents.cli import EvaluationError, main
-from bimp.agents.leaderboard import code_version, leaderboard, report, seed_ranges
-from bimp.agents.records import EPISODES_FILE
-from bimp.agents.stats import bootstrap_mean_ci, paired_bootstrap, stratified_bootstrap, wilson
+from bimp.agents.evaluation.leaderboard import code_version, leaderboard, report, seed_ranges
+from bimp.agents.evaluation.records import EPISODES_FILE
+from bimp.agents.evaluation.stats import bootstrap_mean_ci, paired_bootstrap, stratified_bootstrap, wilson
 
 SEEDS = list(range(3000, 3020))
 COMMIT = "a" * 40

@@ -2,8 +2,8 @@ import math
 
 import pytest
 
-from bimp.agents.metrics import METRICS, episode_metrics, summarize
-from bimp.agents.records import markdown_table
+from bimp.agents.evaluation.metrics import METRICS, episode_metrics, summarize
+from bimp.agents.evaluation.records import markdown_table
 
 OK = {"accel_min": -1.0, "accel_max": -1.0, "steer": -0.01, "accel_rate": -0.5, "steer_rate": -0.001}
 

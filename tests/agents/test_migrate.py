@@ -20,10 +20,10 @@ import shutil
 
 import pytest
 
-from bimp.agents import migrate
 from bimp.agents.cli import EvaluationError, main
-from bimp.agents.evaluate import evaluate
-from bimp.agents.records import ARMS_FILE, EPISODES_FILE, read_arms, read_records
+from bimp.agents.evaluation import migrate
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.records import ARMS_FILE, EPISODES_FILE, read_arms, read_records
 from bimp.planners.problem import ProblemConfig
 
 AFTER_MPPI_SEEDING = "667c57cfab7668693560ca8390a734d82705bc03"  # MPPI's records from here are the current code's

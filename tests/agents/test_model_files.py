@@ -20,7 +20,7 @@ from bimp import envs
 from bimp.agents import rl, rl_train
 from bimp.agents.cli import main as bimp
 from bimp.agents.commands import train_rl
-from bimp.agents.records import read_arms, read_records, record_config
+from bimp.agents.evaluation.records import read_arms, read_records, record_config
 from bimp.agents.registry import make_policy
 
 SHIPPED = sorted(rl.MODEL_DIR.glob("*.zip"))
@@ -266,7 +266,7 @@ def test_a_crafted_or_missing_replay_buffer_is_refused_and_runs_no_code(tmp_path
 
 def test_a_model_is_identified_by_its_content_not_where_it_lies(overtaking, tmp_path):
     """Issue 28: a config (and its hash) holds no path; a user's file is named as given, apart from the config."""
-    from bimp.agents.provenance import config_hash, resolved_config
+    from bimp.agents.evaluation.provenance import config_hash, resolved_config
 
     shipped = rl._shipped_model(overtaking, "ppo", None)
     here, there = tmp_path / "a" / "m.zip", tmp_path / "b" / "c" / "m.zip"

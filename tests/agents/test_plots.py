@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from bimp.agents import plots
 from bimp.agents.commands import plot as plot_command
-from bimp.agents.evaluate import evaluate
-from bimp.agents.records import EPISODES_FILE
+from bimp.agents.evaluation import plots
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.records import EPISODES_FILE
 from bimp.envs.road import RoadGeometry
 
 

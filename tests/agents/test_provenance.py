@@ -1,12 +1,13 @@
-"""bimp.agents.provenance: a run is dirty when the code differs from its commit, not when its results folder does."""
+"""bimp.agents.evaluation.provenance: a run is dirty when the code differs from its commit, not when its results folder
+does."""
 
 import dataclasses
 import json
 import subprocess
 import sys
 
-from bimp.agents import provenance
-from bimp.agents.provenance import config_hash, git_state, resolved_config
+from bimp.agents.evaluation import provenance
+from bimp.agents.evaluation.provenance import config_hash, git_state, resolved_config
 from bimp.agents.registry import PolicySpec, make_policy, register_policy
 from bimp.configs import added_field
 

@@ -8,14 +8,14 @@ import shutil
 
 import pytest
 
-from bimp.agents import evaluate as ev
-from bimp.agents import records
 from bimp.agents.cli import EvaluationError
 from bimp.agents.commands import aggregate, compare
 from bimp.agents.commands import evaluate as ev_command
 from bimp.agents.commands import plot as plot_command
-from bimp.agents.evaluate import evaluate, resolve_arms
-from bimp.agents.records import (
+from bimp.agents.evaluation import evaluate as ev
+from bimp.agents.evaluation import records
+from bimp.agents.evaluation.evaluate import evaluate, resolve_arms
+from bimp.agents.evaluation.records import (
     ARMS_FILE,
     EPISODES_FILE,
     episode_bytes,

@@ -7,7 +7,7 @@ import pytest
 import tests.agents.toys  # noqa: F401  (registers the policy "always-brake" and the scenario "gentle-brake")
 from bimp import envs
 from bimp.agents.cli import main
-from bimp.agents.records import read_arms, read_records, record_config
+from bimp.agents.evaluation.records import read_arms, read_records, record_config
 from bimp.agents.registry import POLICIES, PolicySpec, make_policy, policy_spec, register_policy
 from bimp.envs import SCENARIOS, ScenarioSpec, register_scenario
 
@@ -102,7 +102,7 @@ def test_a_plain_config_file_goes_on_top_of_a_shipped_tuned_config(tmp_path):
     (temperature 1.0 instead of the tuned value): a file of overrides is layered on top, never instead."""
     import gymnasium as gym
 
-    from bimp.agents.provenance import resolved_config
+    from bimp.agents.evaluation.provenance import resolved_config
 
     env = gym.make("bimp/EmergencyBrake-v0")
     tuned = resolved_config(make_policy("mppi", env))["config"]

@@ -8,10 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from bimp.agents import report
 from bimp.agents.commands import report as report_command
 from bimp.agents.errors import EvaluationError
-from bimp.agents.verification import arm_key
+from bimp.agents.evaluation import report
+from bimp.agents.evaluation import report_tables as tables
+from bimp.agents.evaluation.verification import arm_key
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -85,11 +86,11 @@ def _folder(tmp_path, commits: dict[str, str]) -> Path:
 def test_arms_of_mixed_unverified_code_versions_are_marked_and_named(tmp_path):
     a, b = "a" * 40, "b" * 40
     folder = _folder(tmp_path, {"idm": a, "lane-keep": b})
-    table, arms = report.grid_table([folder], with_score=False)
+    table, arms = tables.grid_table([folder], with_score=False)
     assert {(x.column, tuple(x.marked)) for x in arms} == {("idm", ("idm",)), ("lane-keep", ("lane-keep",))}
-    assert table.count(report.MARK) == 3 and "2 of 2 cells" in table  # two cells and the footnote
+    assert table.count(tables.MARK) == 3 and "2 of 2 cells" in table  # two cells and the footnote
     _, notes = report.render("<!-- report: g -->\n<!-- /report -->",
-                             {"g": lambda: report.grid_table([folder], with_score=False)}, where="p.md")
+                             {"g": lambda: tables.grid_table([folder], with_score=False)}, where="p.md")
     assert notes == ["table g: highway-v0 idm: not verified, in a table of mixed code versions",
                      "table g: highway-v0 lane-keep: not verified, in a table of mixed code versions"]
     # lane-keep found the same at the code idm was made at: one code version, nothing marked.
@@ -98,8 +99,8 @@ def test_arms_of_mixed_unverified_code_versions_are_marked_and_named(tmp_path):
     verified = {arm_key("highway-v0", "lane-keep", lane.get("config_hash")):
                 {"commit": a, "outcome": "same", "versions": [b], "dirty": False, "seeds": [1000]}}
     (folder / "verified.json").write_text(json.dumps(verified))
-    table, arms = report.grid_table([folder], with_score=False)
-    assert all(not x.marked for x in arms) and report.MARK not in table
+    table, arms = tables.grid_table([folder], with_score=False)
+    assert all(not x.marked for x in arms) and tables.MARK not in table
 
 
 def test_an_arm_of_two_code_versions_is_marked_whatever_the_order(tmp_path):
@@ -112,17 +113,17 @@ def test_an_arm_of_two_code_versions_is_marked_whatever_the_order(tmp_path):
         r["git_commit"] = b
     for order in (records, records[::-1]):
         (folder / "episodes.jsonl").write_text("\n".join(json.dumps(r) for r in order) + "\n")
-        _, arms = report.grid_table([folder], with_score=False)
+        _, arms = tables.grid_table([folder], with_score=False)
         assert {(x.column, tuple(x.marked)) for x in arms} == {("idm", ("idm",)), ("lane-keep", ("lane-keep",))}
 
 
 def test_training_seeds_are_one_column_with_their_range(tmp_path):
-    table, arms = report.metrics_table([ROOT / "results/rl"])
+    table, arms = tables.metrics_table([ROOT / "results/rl"])
     ppo = next(x for x in arms if x.column == "ppo" and x.scenario == "overtaking")
     assert sorted(ppo.runs) == ["ppo-s1", "ppo-s2", "ppo-s3"]
-    means = [report._stat(report.Cell("overtaking", "ppo", {k: v}, []), "success_rate")["mean"]
+    means = [tables._stat(tables.Cell("overtaking", "ppo", {k: v}, []), "success_rate")["mean"]
              for k, v in ppo.runs.items()]
-    stat = report._stat(ppo, "success_rate")
+    stat = tables._stat(ppo, "success_rate")
     assert stat["ci_low"] == min(means) and stat["ci_high"] == max(means)
     assert "| overtaking | PPO (3 seeds)" in table and "3 x 200" in table
 
@@ -132,7 +133,7 @@ def test_the_episodes_table_counts_each_arms_outcomes_and_names_its_failed_seeds
     records = [json.loads(x) for x in (folder / "episodes.jsonl").read_text().splitlines()]
     lane = [r for r in records if r["label"] == "lane-keep"]
     failed = sorted(r["seed"] for r in lane if not r["metrics"]["success_rate"])
-    table, _ = report.episodes_table(folder)
+    table, _ = tables.episodes_table(folder)
     row = next(line for line in table.splitlines() if "| lane keeping |" in line)
     cells = [c.strip() for c in row.split("|")[1:-1]]
     assert cells[:2] == ["highway-v0", "lane keeping"] and cells[2] == str(len(lane))
@@ -144,8 +145,8 @@ def test_the_episodes_table_counts_each_arms_outcomes_and_names_its_failed_seeds
 
 def test_the_paired_table_is_bimp_compare_of_the_two_labels(tmp_path):
     folder = _folder(tmp_path, {"idm": "a" * 40, "lane-keep": "a" * 40})
-    table, _ = report.paired_table(folder, "lane-keep", "idm")
-    result = report.compare(report.label_results(folder, "lane-keep"), report.label_results(folder, "idm"))
+    table, _ = tables.collisions_table(folder, "lane-keep", "idm")
+    result = tables.compare(tables.label_results(folder, "lane-keep"), tables.label_results(folder, "idm"))
     c, n = result["highway-v0"]["collision_rate"], result["highway-v0"]["pairs"]
     assert f"| highway-v0 | {round(c['a'] * n)} vs {round(c['b'] * n)} (p = {c['p_value']:.2g}) |" in table
     assert round(c["a"] * n) > 0 and round(c["b"] * n) == 0  # lane keeping collides, IDM/MOBIL does not
@@ -159,5 +160,86 @@ def test_a_study_table_shows_only_the_scenarios_its_folder_ran(tmp_path):
     (study / "episodes.jsonl").write_text(json.dumps({**json.loads(line), "label": "idm-x"}) + "\n")
     with (main / "episodes.jsonl").open("a") as f:
         f.write(json.dumps({**json.loads(line), "scenario": "merge-v0"}) + "\n")
-    table, arms = report.grid_table([main, study], with_score=False, rows_of=study)
+    table, arms = tables.grid_table([main, study], with_score=False, rows_of=study)
     assert {a.scenario for a in arms} == {"highway-v0"} and "merge-v0" not in table and "idm-x" in table
+
+
+def _relabelled(tmp_path, labels: dict[str, str]) -> Path:
+    """results/highway's highway-v0 records of each ``labels`` key, under its value as label."""
+    folder = _folder(tmp_path, {label: "a" * 40 for label in labels})
+    records = [json.loads(x) for x in (folder / "episodes.jsonl").read_text().splitlines()]
+    (folder / "episodes.jsonl").write_text("".join(json.dumps({**r, "label": labels[r["label"]]}) + "\n"
+                                                   for r in records))
+    return folder
+
+
+def test_a_summary_shows_the_chosen_columns_of_the_chosen_arms_in_their_order(tmp_path):
+    folder = _folder(tmp_path, {"idm": "a" * 40, "lane-keep": "a" * 40})
+    table, arms = tables.summary_table(str(folder), columns="collision,rate", labels="lane-keep,idm")
+    lines = table.splitlines()
+    assert lines[0] == "| scenario | policy | episodes | collision | steps over a rate bound |"
+    assert [line.split("|")[2].strip() for line in lines[2:]] == ["lane keeping", "IDM/MOBIL"]
+    lane = next(a for a in arms if a.column == "lane-keep")
+    assert tables.format_stat(tables._stat(lane, "collision_rate")) in lines[2]
+    assert lines[2].endswith(f"| {100 * tables._stat(lane, 'rate_violation_rate')['mean']:.1f}% |")
+    only, _ = tables.summary_table(str(folder), labels="idm")
+    assert "lane keeping" not in only and "IDM/MOBIL" in only
+    assert tables.summary_table(str(folder), scenarios="merge-v0")[0].count("\n") == 1  # no row of another road
+    with pytest.raises(EvaluationError, match="unknown column 'speed'; the columns: success"):
+        tables.summary_table(str(folder), columns="success,speed")
+    with pytest.raises(EvaluationError, match="holds no episodes.jsonl"):
+        tables.summary_table(str(tmp_path / "none"))
+
+
+def test_a_paired_table_pairs_each_variant_and_reads_its_verdict(tmp_path):
+    folder = _relabelled(tmp_path, {"lane-keep": "lk N=5", "idm": "mobil N=5"})
+    table, _ = tables.paired_table(str(folder), a="lk", b="mobil")
+    result = tables.compare(tables.label_results(folder, "lk N=5"), tables.label_results(folder, "mobil N=5"))
+    s = result["highway-v0"]["success_rate"]
+    row = table.splitlines()[2]
+    assert row.startswith("| f | highway-v0 (N=5) |") and f"| {s['only_a']} / {s['only_b']} |" in row
+    assert s["p_value"] < 0.05 and s["only_b"] > s["only_a"]
+    assert row.endswith("| - | mobil ahead on success |")  # records without the score
+    assert tables.paired_table(str(folder), a="lk", b="nobody")[0].count("\n") == 1  # no pair: the heading only
+
+
+@pytest.mark.parametrize("success, score, verdict", [
+    ({"only_a": 9, "only_b": 1, "p_value": 0.02}, {"mean_diff": 0.1, "ci_low": 0.05, "ci_high": 0.2},
+     "A ahead on success and the score"),
+    ({"only_a": 9, "only_b": 1, "p_value": 0.02}, {"mean_diff": -0.1, "ci_low": -0.2, "ci_high": -0.05},
+     "A ahead on success, B on the score"),
+    ({"only_a": 3, "only_b": 1, "p_value": 0.6}, {"mean_diff": -0.1, "ci_low": -0.2, "ci_high": -0.05},
+     "B ahead on the score"),
+    ({"only_a": 3, "only_b": 1, "p_value": 0.6}, {"mean_diff": 0.1, "ci_low": -0.2, "ci_high": 0.3}, "no difference"),
+    ({"only_a": 3, "only_b": 1, "p_value": 0.6}, {"mean_diff": None, "ci_low": float("nan")}, "no difference"),
+])
+def test_a_verdict_names_who_leads_at_the_5_percent_level(success, score, verdict):
+    assert tables._verdict(success, score, "A", "B") == verdict
+
+
+def test_variants_are_rows_and_prefixes_columns_with_the_paired_p(tmp_path):
+    folder = _relabelled(tmp_path, {"lane-keep": "lk-fast", "idm": "lk"})
+    table, _ = tables.variants_table(str(folder), prefixes="lk,lk3", pair="yes")
+    lines = table.splitlines()
+    assert lines[0] == "| variant | highway-v0 lk | highway-v0 lk3 | McNemar p |"
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in lines[2:]}
+    assert sorted(rows) == ["fast", "shipped"]  # in the order the records name them
+    assert rows["fast"][1:] == ["-", "-"] and rows["fast"][0].startswith("0.")  # no lk3 arm to show or pair
+    assert tables._variant("nu30-plain", "nu3") is None and tables._variant("enkts N=3", "enkts") == "N=3"
+
+
+def test_a_marker_passes_its_arguments_and_a_wrong_one_is_named():
+    seen = {}
+
+    def table(folders, columns="x"):
+        seen.update(folders=folders, columns=columns)
+        return "| t |", []
+
+    out, _ = report.render("<!-- report: k folders=a,b columns=y -->\n<!-- /report -->", {"k": table})
+    assert seen == {"folders": "a,b", "columns": "y"} and "| t |" in out
+    with pytest.raises(EvaluationError, match="no argument 'colour'; it takes folders, columns"):
+        report.render("<!-- report: k folders=a colour=y -->\n<!-- /report -->", {"k": table})
+    with pytest.raises(EvaluationError, match="argument 'folders' missing"):
+        report.render("<!-- report: k columns=y -->\n<!-- /report -->", {"k": table})
+    with pytest.raises(EvaluationError, match="it takes none"):
+        report.render("<!-- report: t x=1 -->\n<!-- /report -->", {"t": _table([1])})

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from bimp.agents.metrics import (
+from bimp.agents.evaluation.metrics import (
     BINARY,
     MAX_LAT_ACCEL,
     METRICS,

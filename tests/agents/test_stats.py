@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from bimp.agents.stats import bootstrap_mean_ci, mcnemar_exact, paired_bootstrap, rate_summary, wilson
+from bimp.agents.evaluation.stats import bootstrap_mean_ci, mcnemar_exact, paired_bootstrap, rate_summary, wilson
 
 
 @pytest.mark.parametrize("k, n, low, high", [

@@ -6,8 +6,8 @@ import json
 import pytest
 
 from bimp.agents.cli import EvaluationError, main
-from bimp.agents.records import read_arms, read_records, record_config
-from bimp.agents.sweep import axis_points, param_points
+from bimp.agents.evaluation.records import read_arms, read_records, record_config
+from bimp.agents.evaluation.sweep import axis_points, param_points
 
 EB = ["--scenario", "emergency-brake", "--episodes", "2", "--seed", "5"]
 
@@ -31,8 +31,8 @@ def test_a_param_sweep_runs_one_point_per_value_and_resumes(tmp_path, capsys):
 def test_a_nested_key_is_swept_whole_and_bad_params_are_named():
     import gymnasium as gym
 
+    from bimp.agents.evaluation.tune import factory_kwargs
     from bimp.agents.registry import make_policy
-    from bimp.agents.tune import factory_kwargs
 
     (point,) = param_points(["mppi.problem.barrier.edge_margin=0.5"])
     configured = factory_kwargs(make_policy("mppi", gym.make("bimp/Overtaking-v0")))["problem"]["barrier"]

@@ -12,8 +12,16 @@ import bimp.agents.baselines
 import tests.agents.faulty  # noqa: F401  (registers the policy "fragile")
 from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents.baselines import LaneKeeping
+from bimp.agents.evaluation.tune import (
+    TuneError,
+    check_space,
+    get_value,
+    objective_value,
+    search_space,
+    set_value,
+    tune,
+)
 from bimp.agents.registry import POLICIES, TUNED_DIR, make_policy
-from bimp.agents.tune import TuneError, check_space, get_value, objective_value, search_space, set_value, tune
 from bimp.configs import TUNING_SUFFIX, tuning_path
 
 EB = ["emergency-brake"]
@@ -62,7 +70,7 @@ def test_a_trial_retried_after_its_process_died_does_not_cost_the_study_a_trial(
     shortened from 90 s to 2 s so that the test need not wait."""
     from optuna.storages import RetryHeartbeatStaleTrialCallback
 
-    import bimp.agents.tune as tune_module
+    import bimp.agents.evaluation.tune as tune_module
 
     def storage(url):
         return optuna.storages.RDBStorage(url, heartbeat_interval=1, grace_period=2,
@@ -101,7 +109,7 @@ def test_a_new_studys_first_trial_is_the_shipped_config_and_a_resumed_one_keeps_
 def test_a_shipped_value_is_enqueued_only_where_the_space_could_have_drawn_it():
     from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 
-    from bimp.agents.tune_space import _contains
+    from bimp.agents.evaluation.tune_space import _contains
 
     assert _contains(IntDistribution(1, 5), 3) and not _contains(IntDistribution(1, 5), True)
     assert _contains(FloatDistribution(0.0, 1.0, step=0.25), 0.5)

@@ -8,14 +8,14 @@ import json
 
 import pytest
 
-from bimp.agents import leaderboard, verification, verify
 from bimp.agents.cli import main
-from bimp.agents.compare import label_records
-from bimp.agents.evaluate import evaluate
-from bimp.agents.metrics import code_version
-from bimp.agents.records import ARMS_FILE, EPISODES_FILE
-from bimp.agents.verification import VERIFIED_FILE, as_current, read_verified
-from bimp.agents.verify import _groups, _spread, differences, verify_folder
+from bimp.agents.evaluation import leaderboard, verification, verify
+from bimp.agents.evaluation.compare import label_records
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.metrics import code_version
+from bimp.agents.evaluation.records import ARMS_FILE, EPISODES_FILE
+from bimp.agents.evaluation.verification import VERIFIED_FILE, as_current, read_verified
+from bimp.agents.evaluation.verify import _groups, _spread, differences, verify_folder
 
 SCENARIO = "emergency-brake"
 OLD = "0" * 40  # a commit the records claim, of code the current code equals (monkeypatched below)

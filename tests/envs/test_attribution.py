@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bimp import envs  # noqa: F401  (registers the ids)
-from bimp.agents.metrics import at_fault_collision, episode_metrics
+from bimp.agents.evaluation.metrics import at_fault_collision, episode_metrics
 from bimp.agents.rollout import rollout
 from bimp.envs.road import Route
 from bimp.envs.scene import CONTACT_FIELDS, attribution_info

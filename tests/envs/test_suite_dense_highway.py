@@ -15,7 +15,7 @@ from gymnasium.utils.env_checker import check_env
 from highway_env.vehicle.behavior import AggressiveVehicle, DefensiveVehicle, IDMVehicle
 
 import bimp  # noqa: F401  (registers bimp/dense-highway-v0)
-from bimp.agents.metrics import contact_at_fault
+from bimp.agents.evaluation.metrics import contact_at_fault
 from bimp.envs import scenario_spec, wrap
 from bimp.envs.scene import VEHICLE_LENGTH, Bounds
 from bimp.envs.suite import FAMILIES

@@ -270,7 +270,7 @@ def oracle_episode(env, seed: int, whole: bool = True) -> dict:
     ``least`` (to any vehicle ahead in the EV's lane), ``cut_ins`` (vehicles that changed into the EV's lane ahead of
     it while it moved, within their safety bound), ``crash_ahead`` (traffic crashed ahead of the EV: the one thing
     that brakes harder than the cap), ``collision`` and ``at_fault``."""
-    from bimp.agents.metrics import contact_at_fault
+    from bimp.agents.evaluation.metrics import contact_at_fault
 
     obs, _ = env.reset(seed=seed)
     base = env.unwrapped

@@ -44,7 +44,7 @@ def drive_the_oracles_plan(env_id: str, config: dict, standing, seeds=range(100)
     ahead, nearest first (the stall, or the closure's blocks). Returns the seeds where the EV was struck (never its
     fault: rear-ended) and those where other traffic entered the EV's lane between it and the nearest standing
     vehicle while the EV still moved (the oracle assumes none does)."""
-    from bimp.agents.metrics import contact_at_fault
+    from bimp.agents.evaluation.metrics import contact_at_fault
 
     env = gym.make(env_id, config=config)
     rear_ended, entered = [], set()

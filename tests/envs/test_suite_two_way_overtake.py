@@ -16,8 +16,8 @@ from gymnasium.utils.env_checker import check_env
 
 import bimp  # noqa: F401  (registers bimp/two-way-overtake-v0)
 from bimp import make_policy
+from bimp.agents.evaluation.metrics import episode_metrics, record_missed_goal
 from bimp.agents.idm import _adapter
-from bimp.agents.metrics import episode_metrics, record_missed_goal
 from bimp.agents.rollout import rollout
 from bimp.envs.highway.behaviour import OvertakeDriver, pass_time
 from bimp.envs.oracle import NEVER, brake_at_the_bounds

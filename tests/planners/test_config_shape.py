@@ -16,7 +16,7 @@ import pytest
 
 from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents.baselines import LaneKeepingConfig
-from bimp.agents.provenance import resolved_config
+from bimp.agents.evaluation.provenance import resolved_config
 from bimp.agents.registry import make_policy
 from bimp.configs import ConfigError
 from bimp.planners.dynamics import WEIGHTS_PATH
@@ -83,7 +83,7 @@ def test_problem_horizon_means_the_same_for_every_planner_and_is_recorded(env, n
 
 
 def test_set_problem_horizon_through_evaluate_is_accepted_and_recorded_for_every_planner():
-    from bimp.agents.evaluate import resolve_arms
+    from bimp.agents.evaluation.evaluate import resolve_arms
 
     arms = resolve_arms(["emergency-brake"], PLANNERS, {name: {"problem.horizon": 25} for name in PLANNERS})
     assert [arm.resolved["config"]["problem"]["horizon"] for arm in arms] == [25] * len(PLANNERS)

@@ -420,7 +420,7 @@ def test_nmpc_keeps_its_own_nu_and_hard_bound_margin_over_the_shared_problem():
 
 def test_the_episode_record_marks_each_forced_solver_failure(tmp_path):
     # No iterations allowed and an infeasible first guess: every solve stops at the cap, infeasible -> fallback.
-    from bimp.agents.evaluate import evaluate, read_records
+    from bimp.agents.evaluation.evaluate import evaluate, read_records
 
     evaluate(["emergency-brake"], ["nmpc"], 1, 3, out=tmp_path, traces=1, progress=False,
              overrides={"nmpc": {"max_iter": 0, "cold_max_iter": 0, "problem.horizon": 3}})

@@ -180,7 +180,7 @@ def test_default_resolved_configs_are_unchanged():
     tests/planners/test_config_shape.py. They changed once since, when the barrier's ``brake_decel`` was renamed
     ``follower_decel`` (values unchanged; ``bimp migrate`` rehashed the committed records)."""
     from bimp.agents import make_policy
-    from bimp.agents.provenance import config_hash, resolved_config
+    from bimp.agents.evaluation.provenance import config_hash, resolved_config
 
     env = gym.make("bimp/Overtaking-v0")
     hashes = {name: config_hash(name, resolved_config(make_policy(name, env)))

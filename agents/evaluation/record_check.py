@@ -1,7 +1,7 @@
 """What a record of ``episodes.jsonl`` and an entry of ``arms.json`` must be for a reader to take it: every field a
 reader uses by its type, finiteness and range, its names printable, its nesting and its line bounded
 (``docs/evaluation.md``). A folder is input from anyone (``docs/security.md``): whatever fails is skipped by every
-reader with one warning (:mod:`bimp.agents.records`), never a traceback.
+reader with one warning (:mod:`bimp.agents.evaluation.records`), never a traceback.
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import json
 import math
 import re
 
-from bimp.agents.metrics import BINARY, METRICS, SCORE_METRICS
+from bimp.agents.evaluation.metrics import BINARY, METRICS, SCORE_METRICS
+from bimp.agents.files import MAX_DEPTH, shown, too_deep
 
 # What every reader relies on; a JSON line without them is not a record (and never a traceback).
 REQUIRED = {"scenario": str, "policy": str, "seed": int, "status": str}
@@ -18,7 +19,6 @@ OUTCOMES = ("success_rate", "collision_rate", "offroad_rate")  # what every read
 # Bounds on what a reader takes in: a shared folder is input from anyone (docs/security.md). The largest record bimp
 # writes is a long per-step trace (about 0.1 MB over 300 steps); the deepest is 4 levels (trace, constraints, step).
 MAX_LINE_BYTES = 16 << 20
-MAX_DEPTH = 16
 MAX_MAGNITUDE = 1e9  # no metric comes near it; 1e308 would average to inf
 # The metrics each reader takes as they are: an episode's outcome is 0 or 1, a share of steps or a score in [0, 1].
 _UNIT = {"input_violation_rate", "rate_violation_rate", *SCORE_METRICS} - set(BINARY)
@@ -48,27 +48,6 @@ def _metric_problem(name: str, value: object) -> str | None:
     return None
 
 
-def shown(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
-def too_deep(value: object, limit: int = MAX_DEPTH) -> bool:
-    """Whether ``value`` nests containers deeper than ``limit`` (walked without recursion: the walk of a crafted
-    record must not be what overflows)."""
-    stack = [(value, 1)]
-    while stack:
-        node, depth = stack.pop()
-        children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
-        for child in children:
-            if isinstance(child, (dict, list)):
-                if depth + 1 > limit:
-                    return True
-                stack.append((child, depth + 1))
-    return False
-
-
-# Optional fields a reader uses, by their types: (type, None allowed).
 _OPTIONAL = {"label": (str, False), "config_hash": (str, False), "config": (dict, False), "steps": (int, False),
              "overrides": (dict, False),
              "truncated": (bool, False), "git_commit": (str, True), "git_dirty": (bool, False),

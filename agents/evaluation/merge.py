@@ -25,11 +25,11 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
-from bimp.agents.drop import check_names, matching
 from bimp.agents.errors import EvaluationError
-from bimp.agents.metrics import summarize
-from bimp.agents.provenance import config_hash
-from bimp.agents.records import (
+from bimp.agents.evaluation.drop import check_names, matching
+from bimp.agents.evaluation.metrics import summarize
+from bimp.agents.evaluation.provenance import config_hash
+from bimp.agents.evaluation.records import (
     EPISODES_FILE,
     episode_bytes,
     latest_records,
@@ -40,9 +40,9 @@ from bimp.agents.records import (
     record_label,
     unchanged_lock,
     write_arms,
-    write_atomic,
     write_summary,
 )
+from bimp.agents.files import write_atomic
 
 
 def merge(sources: list[str | Path], into: str | Path, scenarios: list[str] | None = None,

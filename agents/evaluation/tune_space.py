@@ -14,7 +14,7 @@ import gymnasium as gym
 
 from bimp import envs
 from bimp.agents import registry
-from bimp.agents.provenance import resolved_config
+from bimp.agents.evaluation.provenance import resolved_config
 from bimp.agents.registry import make_policy, policy_factory
 
 

@@ -12,15 +12,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bimp.agents.metrics import BINARY, METRICS, code_version
-from bimp.agents.records import latest_records, read_records, record_label
-from bimp.agents.stats import mcnemar_exact, paired_bootstrap
-from bimp.agents.verification import as_current
+from bimp.agents.evaluation.metrics import BINARY, METRICS, code_version
+from bimp.agents.evaluation.records import latest_records, read_records, record_label
+from bimp.agents.evaluation.stats import mcnemar_exact, paired_bootstrap
+from bimp.agents.evaluation.verification import as_current
 
 
 def label_records(folder: Path, label: str) -> dict[tuple[str, int], dict]:
     """``{(scenario, seed): record}`` of the successful episodes of ``label`` in ``folder`` (an arm ``bimp verify``
-    found the same at the current code: as made by it, :func:`bimp.agents.verification.as_current`)."""
+    found the same at the current code: as made by it, :func:`bimp.agents.evaluation.verification.as_current`)."""
     rows = [r for r in as_current(folder, latest_records(read_records(folder)))
             if record_label(r) == label and r["status"] == "ok"]
     for scenario in {r["scenario"] for r in rows}:  # one config per scenario (the scenario's ranges are in it)

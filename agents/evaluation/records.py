@@ -11,17 +11,13 @@ written before ``arms.json`` existed carry their config inline and are read as t
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import errno
 import fcntl
 import io
 import json
 import math
 import os
-import stat
 import sys
-import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,9 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from bimp.agents.errors import EvaluationError
-from bimp.agents.metrics import BINARY, METRICS, record_label
-from bimp.agents.record_check import (
-    MAX_DEPTH,
+from bimp.agents.evaluation.metrics import BINARY, METRICS, record_label
+from bimp.agents.evaluation.record_check import (
     MAX_LINE_BYTES,
     OUTCOMES,
     REQUIRED,
@@ -39,14 +34,12 @@ from bimp.agents.record_check import (
     entry_problem,
     parse_record,
     record_problem,
-    shown,
-    too_deep,
 )
+from bimp.agents.files import os_reason, read_bounded, read_json, write_atomic
 
 EPISODES_FILE = "episodes.jsonl"
 ARMS_FILE = "arms.json"
 LOCK_FILE = ".lock"
-MAX_FILE_BYTES = 1 << 30  # episodes.jsonl and arms.json: a results folder is input from anyone
 
 
 def record_key(record: dict) -> tuple[str, str, str | None, int]:
@@ -55,49 +48,6 @@ def record_key(record: dict) -> tuple[str, str, str | None, int]:
 
 
 # --- reading records ---------------------------------------------------------------------------------------
-def read_bounded(path: str | Path, limit: int | None = None) -> bytes:
-    """The bytes of the regular file ``path``, at most ``limit`` of them; :class:`EvaluationError` naming the file
-    for anything else (a device such as ``/dev/zero`` behind a symlink, a FIFO, a folder, a file over the limit, a
-    read that fails); ``FileNotFoundError`` where there is none, for the caller to take as empty. ``limit``:
-    :data:`MAX_FILE_BYTES` by default."""
-    limit = MAX_FILE_BYTES if limit is None else limit
-    try:
-        if not stat.S_ISREG(os.stat(path).st_mode):  # a device is refused before it is opened
-            raise EvaluationError(f"{path} is not a regular file: bimp reads only regular files")
-        # NONBLOCK: opening a FIFO swapped in meanwhile must not wait for a writer; NOCTTY: nor adopt a terminal.
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
-    except FileNotFoundError:
-        raise
-    except OSError as err:
-        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
-    try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):  # of what was opened, not of what a name pointed to before
-            raise EvaluationError(f"{path} is not a regular file: bimp reads only regular files")
-        with os.fdopen(fd, "rb", closefd=False) as f:
-            data = f.read(limit + 1)
-    except OSError as err:
-        raise EvaluationError(f"cannot read {path}: {err.strerror or err}") from None
-    finally:
-        os.close(fd)
-    if len(data) > limit:
-        raise EvaluationError(f"{path} is over bimp's limit of {limit} bytes per file (MAX_FILE_BYTES)")
-    return data
-
-
-def read_json(path: str | Path, limit: int | None = None) -> Any:
-    """The JSON document in the regular file ``path`` (:func:`read_bounded`), nested at most :data:`MAX_DEPTH`
-    deep; :class:`EvaluationError` naming the file for one that is not such a document, ``FileNotFoundError`` where
-    there is none."""
-    data = read_bounded(path, limit)
-    try:
-        value = json.loads(data)
-    except (ValueError, RecursionError) as err:  # RecursionError: nested past what the parser takes
-        raise EvaluationError(f"{path} is not JSON: {type(err).__name__}: {shown(str(err))}") from None
-    if too_deep(value):
-        raise EvaluationError(f"{path}: nested deeper than {MAX_DEPTH} levels")
-    return value
-
-
 _reported: set[tuple[str, tuple[int, ...]]] = set()  # said once per process: evaluate reads a folder three times
 
 
@@ -175,61 +125,6 @@ def write_arms(out: str | Path, arms: dict[str, dict]) -> None:
     """``out/arms.json`` replaced atomically (a temporary file, then ``os.replace``): a reader or an interruption
     sees the old map or the new one, never half of one."""
     write_atomic(Path(out) / ARMS_FILE, json.dumps(finite(arms), indent=1, sort_keys=True) + "\n")
-
-
-def write_atomic(path: str | Path, text: str | bytes) -> None:
-    """``path`` holds ``text``, replaced in one step (fsynced before the rename): a reader, an interruption or a full
-    disk leaves the old file or the new one, never part of one. :class:`EvaluationError` in one line naming the file
-    when it cannot be written (``ENOSPC`` and every other OS error), the temporary file removed."""
-    path = Path(path)
-    tmp = None
-    try:
-        # A fresh name, created exclusively: a file (or a symlink to one) planted at a fixed temporary name in a
-        # shared folder is never written through.
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as f:
-            f.write(text.encode() if isinstance(text, str) else text)
-            f.flush()
-            os.fchmod(f.fileno(), _mode(path))
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        tmp = None
-        with contextlib.suppress(OSError):  # the rename itself, on disk
-            folder = os.open(path.parent, os.O_RDONLY)
-            try:
-                os.fsync(folder)
-            finally:
-                os.close(folder)
-    except OSError as err:
-        raise EvaluationError(f"cannot write {path}: {os_reason(err)}") from None
-    finally:
-        if tmp is not None:  # an error, or an interruption (Ctrl-C): no temporary file left
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-
-
-def _mode(path: Path) -> int:
-    """The permissions ``path`` has (a group-writable file stays so), else those a new file gets under the umask."""
-    try:
-        return stat.S_IMODE(os.stat(path).st_mode)
-    except OSError:
-        umask = os.umask(0)
-        os.umask(umask)
-        return 0o666 & ~umask
-
-
-def write_figure(fig: Any, path: str | Path, dpi: int) -> Path:
-    """A matplotlib figure saved as PNG at ``path`` through :func:`write_atomic`."""
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=dpi)
-    write_atomic(path, buffer.getvalue())
-    return Path(path)
-
-
-def os_reason(err: OSError) -> str:
-    """An OS error in a few words: ``No space left on device (ENOSPC)``."""
-    code = errno.errorcode.get(err.errno or 0)
-    return f"{err.strerror or err}" + (f" ({code})" if code else "")
 
 
 def record_config(record: dict, arms: dict[str, dict]) -> dict | None:
@@ -362,8 +257,7 @@ def markdown_table(summary: dict) -> str:
     return "\n".join(lines) + "\n" + notes
 
 
-__all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "MAX_DEPTH", "MAX_FILE_BYTES", "MAX_LINE_BYTES", "OUTCOMES",
-           "REQUIRED", "config_problem", "episode_bytes", "finite", "folder_lock", "format_stat", "latest_records",
-           "markdown_table", "numbered_records", "os_reason", "parse_record", "read_arms", "read_bounded",
-           "read_json", "read_records", "record_config", "record_key", "record_label", "record_problem",
-           "unchanged_lock", "warn_skipped", "write_arms", "write_atomic", "write_figure", "write_summary"]
+__all__ = ["ARMS_FILE", "EPISODES_FILE", "LOCK_FILE", "MAX_LINE_BYTES", "OUTCOMES", "REQUIRED", "config_problem",
+           "episode_bytes", "finite", "folder_lock", "format_stat", "latest_records", "markdown_table",
+           "numbered_records", "parse_record", "read_arms", "read_records", "record_config", "record_key",
+           "record_label", "record_problem", "unchanged_lock", "warn_skipped", "write_arms", "write_summary"]

@@ -8,13 +8,13 @@ problem a peer planner's cost is built from). Every key is checked against the p
 policy built at the space's bounds, before any trial runs.
 
 Trial. The sampled values replace those keys in the policy's resolved config; the trial is an ordinary evaluation
-(:func:`bimp.agents.evaluate.evaluate`) of that config on seeds ``seed .. seed + episodes - 1`` of every scenario, in
-``OUT/trials/<config hash>``, so a trial that is retried after an interruption resumes its episodes. It runs in
-rungs of ``--rung`` seeds; after each the running objective is reported and the median pruner stops a trial that
-trails the median of earlier trials at the same rung. Episodes that raise fail the trial with their error (a
-user attribute ``error``), and the study goes on; so does a sampled config that the policy rejects. A new study's
-first trial is not sampled: it is the config the policy ships with (its searched keys' values, those inside the
-space), so the best config is never one that trails what users run on the study's own seeds.
+(:func:`bimp.agents.evaluation.evaluate.evaluate`) of that config on seeds ``seed .. seed + episodes - 1`` of every
+scenario, in ``OUT/trials/<config hash>``, so a trial that is retried after an interruption resumes its episodes. It
+runs in rungs of ``--rung`` seeds; after each the running objective is reported and the median pruner stops a trial that
+trails the median of earlier trials at the same rung. Episodes that raise fail the trial with their error (a user
+attribute ``error``), and the study goes on; so does a sampled config that the policy rejects. A new study's first trial
+is not sampled: it is the config the policy ships with (its searched keys' values, those inside the space), so the best
+config is never one that trails what users run on the study's own seeds.
 
 Objective (maximized; ``--objective``): ``success`` (the default), the success rate over all episodes, ties broken
 safety-first by the collision rate, then the off-road rate, then the share of steps over an input or rate bound:
@@ -50,14 +50,14 @@ from pathlib import Path
 
 import numpy as np
 
-from bimp.agents.backends import BackendError, connect_ray, in_worker, ray_options, start_backend
 from bimp.agents.errors import EvaluationError, check_out_dir
-from bimp.agents.evaluate import evaluate
-from bimp.agents.provenance import config_hash
-from bimp.agents.records import read_records, write_atomic
+from bimp.agents.evaluation.backends import BackendError, connect_ray, in_worker, ray_options, start_backend
+from bimp.agents.evaluation.evaluate import evaluate
+from bimp.agents.evaluation.provenance import config_hash
+from bimp.agents.evaluation.records import read_records
 
 # The search space and the config edits (their names re-exported here, where bimp sweep and the tests find them).
-from bimp.agents.tune_space import (  # noqa: F401  (re-exported: the names of `bimp tune`'s space)
+from bimp.agents.evaluation.tune_space import (  # noqa: F401  (re-exported: the names of `bimp tune`'s space)
     TuneError,
     check_space,
     factory_kwargs,
@@ -69,6 +69,7 @@ from bimp.agents.tune_space import (  # noqa: F401  (re-exported: the names of `
     suggest,
     with_params,
 )
+from bimp.agents.files import write_atomic
 from bimp.configs import tuned_files
 
 # optuna (a second or so to load) is imported inside the functions that run a study, as in tune_space: the config
@@ -87,8 +88,9 @@ OBJECTIVES = ("success", "score")
 
 def objective_value(summary: dict, objective: str = "success") -> float:
     """``objective`` of :data:`OBJECTIVES` (see the module docstring): success first, then fewer collisions, off-road
-    exits and bound violations; or the mean closed-loop score. ``summary`` as :func:`bimp.agents.metrics.summarize`
-    returns it. Rates and scores are pooled over the arms by episodes."""
+    exits and bound violations; or the mean closed-loop score. ``summary`` as
+    :func:`bimp.agents.evaluation.metrics.summarize` returns it. Rates and scores are pooled over the arms by
+    episodes."""
     arms = [a for a in summary.values() if a["episodes"]]
     n = sum(a["episodes"] for a in arms)
     if not n:

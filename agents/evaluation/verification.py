@@ -2,7 +2,7 @@
 same is taken as made by that code, and so by the current code when the two do not differ (``docs/evaluation.md``).
 
 ``verified.json`` in an evaluation folder maps ``"SCENARIO|LABEL|CONFIG_HASH"`` to ``{"commit", "seeds", "outcome",
-"differences"}``, the outcome ``same``, ``drift`` or ``different`` (:func:`bimp.agents.verify.verify_folder`
+"differences"}``, the outcome ``same``, ``drift`` or ``different`` (:func:`bimp.agents.evaluation.verify.verify_folder`
 writes it; only ``same`` makes an arm the current code's). :func:`as_current` gives ``compare``,
 ``aggregate`` and ``leaderboard`` the records of the arms verified at code the current code equals with the current
 commit as their version, so a folder made over many commits and verified since is one code version to them.
@@ -15,10 +15,10 @@ import subprocess
 from pathlib import Path
 
 from bimp.agents.errors import EvaluationError
-from bimp.agents.metrics import code_version, record_label
-from bimp.agents.provenance import CODE_PATHS, REPO_ROOT
-from bimp.agents.provenance import code_version as running_code
-from bimp.agents.records import read_json
+from bimp.agents.evaluation.metrics import code_version, record_label
+from bimp.agents.evaluation.provenance import CODE_PATHS, REPO_ROOT
+from bimp.agents.evaluation.provenance import code_version as running_code
+from bimp.agents.files import read_json
 
 VERIFIED_FILE = "verified.json"
 

@@ -18,7 +18,7 @@ EnKTS/floor and EnKTS/MPPI per N and NMPC/EnKTS at N = 50; EnKTS at N = 50 for H
 with H); and the first call of each JAX planner shape (compile + one plan). ``--quick``: N in {50, 500} and 5
 repeats. EnKTS and EnKS compute in float32 (``bimp.planners.core``).
 
-One thread everywhere: ``run``, ``run_highway`` and ``run_device`` run under :func:`bimp.agents.backends.one_thread`
+One thread everywhere: ``run``, ``run_highway`` and ``run_device`` run under :func:`bimp.agents.rollout.one_thread`
 (one BLAS / OpenMP thread through ``threadpoolctl``, one torch thread), as every episode does, and the JSON says
 what it found there.
 On a shared machine the numbers move with the load: compare ratios from one run, not times across runs.
@@ -47,10 +47,9 @@ from pathlib import Path
 import gymnasium as gym
 
 from bimp import envs
-from bimp.agents import bench_env
-from bimp.agents.backends import one_thread
+from bimp.agents.evaluation import bench_env
 from bimp.agents.registry import POLICIES, make_policy
-from bimp.agents.rollout import rollout
+from bimp.agents.rollout import one_thread, rollout
 from bimp.planners.dynamics import load_model
 
 SCENARIO = "overtaking"

@@ -1,7 +1,7 @@
 """What produced an episode: the policy's fully resolved config, its hash, and the code version.
 
 Every episode record carries these so a result can never be attributed to the wrong configuration:
-resume in :mod:`bimp.agents.evaluate` matches on ``(scenario, label, config_hash, seed)``.
+resume in :mod:`bimp.agents.evaluation.evaluate` matches on ``(scenario, label, config_hash, seed)``.
 """
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from bimp.agents.records import finite
+from bimp.agents.evaluation.records import finite
 from bimp.agents.registry import load, policy_spec
 from bimp.configs import neutral_values
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parents[2]  # the checkout: agents/evaluation/provenance.py
 
 
 def resolved_config(policy) -> dict:
@@ -42,7 +42,7 @@ def resolved_config(policy) -> dict:
 
 def plain(value: Any) -> Any:
     """``value`` as a record holds it: JSON data (tuples as lists, paths as strings), infinities and NaN as None
-    (:func:`bimp.agents.records.finite`: JSON has no inf)."""
+    (:func:`bimp.agents.evaluation.records.finite`: JSON has no inf)."""
     return finite(json.loads(json.dumps(value, default=str)))
 
 

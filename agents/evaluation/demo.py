@@ -5,7 +5,7 @@ terminal shows whole, with their intervals. The full table (every metric, the fa
 
 from __future__ import annotations
 
-from bimp.agents.records import format_stat
+from bimp.agents.evaluation.records import format_stat
 
 # The columns a terminal shows whole: (header, summary key). Every other metric is in summary.md.
 SHORT_COLUMNS = (
@@ -18,8 +18,8 @@ SHORT_COLUMNS = (
 
 
 def short_table(summary: dict) -> str:
-    """One row per scenario and policy of a summary (``bimp.agents.metrics.summarize``): episodes, then success,
-    collision, off road (Wilson 95% intervals), progress and median plan time per step (bootstrap 95%
+    """One row per scenario and policy of a summary (``bimp.agents.evaluation.metrics.summarize``): episodes, then
+    success, collision, off road (Wilson 95% intervals), progress and median plan time per step (bootstrap 95%
     intervals), as Markdown."""
     head = ["scenario", "policy", "episodes"] + [name for name, _ in SHORT_COLUMNS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]

@@ -24,7 +24,8 @@ import numpy as np  # noqa: E402
 
 from bimp import envs  # noqa: E402
 from bimp.agents.errors import check_out_dir  # noqa: E402
-from bimp.agents.records import EPISODES_FILE, numbered_records, record_label, write_figure  # noqa: E402
+from bimp.agents.evaluation.records import EPISODES_FILE, numbered_records, record_label  # noqa: E402
+from bimp.agents.files import write_figure
 from bimp.agents.registry import make_policy, policy_color, policy_label  # noqa: E402
 from bimp.agents.rollout import rollout  # noqa: E402
 from bimp.envs.road import RoadGeometry, Route  # noqa: E402

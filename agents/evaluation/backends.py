@@ -3,13 +3,13 @@
     bimp evaluate ... --backend ray                        # a local Ray instance on this machine's cores
     bimp evaluate ... --backend ray --address HOST:6379    # a running cluster (``ray start --head`` there)
 
-A backend runs :func:`bimp.agents.evaluate.run_group` over the groups of jobs and hands each record to ``write`` as its
-group finishes; everything else (what to run, resume, the lock, provenance, the summary) stays in
-:func:`bimp.agents.evaluate.evaluate`, in the driver process, whichever backend runs the episodes. Both backends keep
-the same failure semantics: a group whose worker process dies is run again, and one that kills its worker again
-is recorded as a ``WorkerDied`` error; never lost, never a hang. The local pool reruns every group in flight when
-its pool breaks, each alone; on Ray each group is a task in its own worker, so a crash is the task's own and Ray
-retries it once (``max_retries``: a dead worker or node).
+A backend runs :func:`bimp.agents.evaluation.evaluate.run_group` over the groups of jobs and hands each record to
+``write`` as its group finishes; everything else (what to run, resume, the lock, provenance, the summary) stays in
+:func:`bimp.agents.evaluation.evaluate.evaluate`, in the driver process, whichever backend runs the episodes. Both
+backends keep the same failure semantics: a group whose worker process dies is run again, and one that kills its worker
+again is recorded as a ``WorkerDied`` error; never lost, never a hang. The local pool reruns every group in flight when
+its pool breaks, each alone; on Ray each group is a task in its own worker, so a crash is the task's own and Ray retries
+it once (``max_retries``: a dead worker or node).
 
 Killed, even by SIGKILL, the driver leaves no worker running: a pool worker dies with its parent (:func:`die_with`),
 and multiprocessing's resource tracker exits once they are gone. On Ray (2.60, observed): a driver's tasks and
@@ -33,8 +33,7 @@ import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
-from typing import Callable, Iterator
+from typing import Callable
 
 BACKENDS = ("local", "ray")
 INSTALL_RAY = 'pip install -e ".[ray]"'
@@ -82,31 +81,6 @@ def run_groups(groups: list, run: Callable, crashed: Callable, write: Callable, 
         for group in groups:
             for record in run(group):
                 write(record)
-
-
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """Run the enclosed episodes in this process as a worker runs them: one BLAS / OpenMP thread
-    (``threadpoolctl``; a worker gets it from :data:`THREADS` before numpy loads) and one torch thread. The episode
-    loops (:func:`bimp.agents.rollout.rollout` and ``rollout_batch``) run under it, whoever calls them: ``bimp
-    evaluate --workers 1``, ``bimp render``, the demo's figures. Why: OpenBLAS
-    splits a product differently over more threads, the floats change in their last digits, and a sampling planner's
-    trajectory then drifts apart (MPPI on lane-drop-hard seed 3001: score 0.75 on one thread, 0.44 on this 2-core
-    machine's two), so a record would depend on ``--workers`` and on the cores of the machine that made it. XLA's
-    threads are fixed when JAX starts and stay as they are; they changed no action in the cases measured
-    (``docs/scaling.md``)."""
-    import scipy.linalg  # noqa: F401  (its own OpenBLAS, which JAX's CPU LAPACK loads at a planner's first solve)
-    import torch
-    from threadpoolctl import threadpool_limits
-
-    # threadpoolctl limits the libraries loaded when the limit starts: one loaded later inside would keep its cores.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        with threadpool_limits(limits=1):
-            yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _ray():

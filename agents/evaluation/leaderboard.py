@@ -5,14 +5,14 @@ Per scenario (a suite family, a highway-env road or a paper scenario), one row p
 at-fault collision and off-road rates with their Wilson 95% intervals, the closed-loop score with its bootstrap 95%
 interval (``n/a`` where a record lacks it: records made before the score existed), the plan time per step (each
 episode's median, averaged over the episodes, bootstrap interval) and the episodes, all as
-:func:`bimp.agents.metrics.summarize` computes them. Rows are ranked by ``--metric`` (default: the score when every
-record carries one, else the success rate; the output says which). Between each pair of neighbours in the ranking,
-paired on the seeds both ran (:func:`bimp.agents.compare.compare`): the exact McNemar test on success and the paired
-bootstrap interval of the mean score difference.
+:func:`bimp.agents.evaluation.metrics.summarize` computes them. Rows are ranked by ``--metric`` (default: the score when
+every record carries one, else the success rate; the output says which). Between each pair of neighbours in the ranking,
+paired on the seeds both ran (:func:`bimp.agents.evaluation.compare.compare`): the exact McNemar test on success and the
+paired bootstrap interval of the mean score difference.
 
 Overall: for the policies that ran every scenario, the mean over scenarios of each scenario's mean, every scenario
 weighted equally, with the percentile interval of a bootstrap stratified by scenario (each scenario's seeds resampled
-within it: :func:`bimp.agents.stats.stratified_bootstrap`); the neighbours' McNemar test pools every paired
+within it: :func:`bimp.agents.evaluation.stats.stratified_bootstrap`); the neighbours' McNemar test pools every paired
 (scenario, seed), their score difference gets the same stratified bootstrap over the per-seed differences.
 
 A leaderboard compares like with like or says it does not: within one scenario, every policy must have results on
@@ -31,19 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
-from bimp.agents.compare import compare
 from bimp.agents.errors import EvaluationError
-from bimp.agents.metrics import code_version, summarize
-from bimp.agents.records import (
-    format_stat,
-    latest_records,
-    read_records,
-    record_label,
-    write_figure,
-)
+from bimp.agents.evaluation.compare import compare
+from bimp.agents.evaluation.metrics import code_version, summarize
+from bimp.agents.evaluation.records import format_stat, latest_records, read_records, record_label
+from bimp.agents.evaluation.stats import mcnemar_exact, stratified_bootstrap
+from bimp.agents.evaluation.verification import as_current
+from bimp.agents.files import write_figure
 from bimp.agents.registry import policy_color
-from bimp.agents.stats import mcnemar_exact, stratified_bootstrap
-from bimp.agents.verification import as_current
 
 # What a row shows, in its order: (metric, column heading). The four rates are per-episode 0/1 outcomes (Wilson),
 # the score and the plan time per-episode numbers (bootstrap of the mean), as in every summary.
@@ -97,7 +92,7 @@ def seed_ranges(seeds) -> str:
 
 def load_arms(folders: list[str | Path]) -> list[ArmResults]:
     """The arms of ``folders``: per folder, scenario and label, the latest record per seed
-    (:func:`bimp.agents.records.latest_records`), the ok ones as results and the errors' seeds.
+    (:func:`bimp.agents.evaluation.records.latest_records`), the ok ones as results and the errors' seeds.
 
     A label on a scenario of one folder must hold one config (``config_hash``): else :class:`EvaluationError`, as
     ``bimp compare`` refuses it. A label found on one scenario in two folders is shown as ``FOLDER:LABEL`` on every
@@ -207,7 +202,8 @@ def _results_by_seed(arm_results: list[dict], scenario: str) -> dict[tuple[str, 
 
 
 def _neighbour(a: dict, b: dict, entry: dict | None) -> dict:
-    """The paired test of two neighbours from :func:`bimp.agents.compare.compare`'s entry for their scenario."""
+    """The paired test of two neighbours from :func:`bimp.agents.evaluation.compare.compare`'s entry for their
+    scenario."""
     if entry is None:
         return {"a": a["label"], "b": b["label"], "pairs": 0, "success_rate": None, "score": None,
                 "collision_rate": None}

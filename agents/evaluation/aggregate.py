@@ -4,16 +4,16 @@
 Each training seed's model is evaluated as its own labelled arm of one folder (``bimp evaluate --policy ppo
 --set ppo.model=PATH --label ppo-s1``); this command reports, per scenario and over both, the mean over
 training seeds of each arm's episode mean, with the stratified bootstrap interval over training seeds
-(:func:`bimp.agents.stats.stratified_bootstrap`), and every seed's own value. A single training seed says little
-about an algorithm (Henderson et al. 2018): the interval is over seeds, not episodes. Every arm must have run
-the same episode seeds, so the seeds compare like with like.
+(:func:`bimp.agents.evaluation.stats.stratified_bootstrap`), and every seed's own value. A single training seed says
+little about an algorithm (Henderson et al. 2018): the interval is over seeds, not episodes. Every arm must have run the
+same episode seeds, so the seeds compare like with like.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from bimp.agents.stats import stratified_bootstrap
+from bimp.agents.evaluation.stats import stratified_bootstrap
 
 METRICS = ("success_rate", "collision_rate", "offroad_rate", "overtake_rate", "at_fault_collision_rate", "score",
            "progress_m")

@@ -14,13 +14,14 @@ Per arm (the records sharing one config), the old config is brought to today's (
   since before the first record: ``SHIPPED_WEIGHTS``); an arm that named another weights file is left in place;
 - PPO/SAC: the absolute ``model_path`` is dropped (``model_sha256`` names the file), and the shipped file with that
   sha256 goes into the arm's ``artifacts`` as ``bimp:agents/models/NAME``;
-- the hash recomputed with :func:`bimp.agents.provenance.config_hash`, and the config moved into ``arms.json``
+- the hash recomputed with :func:`bimp.agents.evaluation.provenance.config_hash`, and the config moved into
+``arms.json``
   (records keep their labels, seeds, metrics (but a gated score, below) and code version; only ``config``,
   ``overrides`` and ``seeding`` go, to the arm's entry).
 
 Per record, whatever its arm (migrated or left in place): the score's goal gate (``docs/suite.md``). A record that ran
-to its time limit without its goal (:func:`bimp.agents.metrics.record_missed_goal`) and was scored before the gate
-existed gets the score 0, its parts as they were: exact, since the gate multiplies what was recorded.
+to its time limit without its goal (:func:`bimp.agents.evaluation.metrics.record_missed_goal`) and was scored before the
+gate existed gets the score 0, its parts as they were: exact, since the gate multiplies what was recorded.
 
 Each migrated arm is checked, not assumed: its policy is rebuilt from the migrated config on its scenario's env, and
 its resolved config must be the migrated one (what a resume will compare). A folder where an arm fails (or a record
@@ -50,9 +51,16 @@ import yaml
 
 from bimp import envs
 from bimp.agents.errors import EvaluationError
-from bimp.agents.metrics import record_label, record_missed_goal
-from bimp.agents.provenance import REPO_ROOT, config_diff, config_hash, neutral_config, plain, resolved_config
-from bimp.agents.records import (
+from bimp.agents.evaluation.metrics import record_label, record_missed_goal
+from bimp.agents.evaluation.provenance import (
+    REPO_ROOT,
+    config_diff,
+    config_hash,
+    neutral_config,
+    plain,
+    resolved_config,
+)
+from bimp.agents.evaluation.records import (
     EPISODES_FILE,
     episode_bytes,
     finite,
@@ -62,10 +70,10 @@ from bimp.agents.records import (
     record_config,
     warn_skipped,
     write_arms,
-    write_atomic,
 )
+from bimp.agents.evaluation.verification import VERIFIED_FILE, arm_key, read_verified
+from bimp.agents.files import write_atomic
 from bimp.agents.registry import POLICIES, load, make_policy, policy_spec
-from bimp.agents.verification import VERIFIED_FILE, arm_key, read_verified
 from bimp.configs import file_sha256, is_old_tuned, read_yaml, renamed_key, trust_switch, tuned_files, tuning_path
 from bimp.planners.problem import RENAMED, ProblemConfig
 

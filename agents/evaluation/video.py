@@ -17,7 +17,7 @@ import matplotlib.image
 
 from bimp import envs
 from bimp.agents.errors import EvaluationError, check_out_dir
-from bimp.agents.evaluate import resolve_arms
+from bimp.agents.evaluation.evaluate import resolve_arms
 from bimp.agents.registry import make_policy
 from bimp.agents.rollout import episode_seeds, rollout, with_video
 

@@ -15,7 +15,7 @@ floating-point drift, a closed loop amplifies it) or ``different`` (an outcome c
 
 Exit status: 0 when every arm rerun is the same, 1 when one drifts or differs, 2 when an arm cannot be rerun (then
 nothing runs and the folder is left as it was). ``compare``, ``aggregate`` and ``leaderboard`` then take the arms
-found the same as made by the current code (:mod:`bimp.agents.verification`).
+found the same as made by the current code (:mod:`bimp.agents.evaluation.verification`).
 """
 
 from __future__ import annotations
@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from bimp.agents.errors import EvaluationError
-from bimp.agents.evaluate import evaluate, resolve_arms
-from bimp.agents.metrics import BINARY, record_label
-from bimp.agents.metrics import code_version as code_version_of
-from bimp.agents.provenance import code_version, config_diff
-from bimp.agents.records import (
+from bimp.agents.evaluation.evaluate import evaluate, resolve_arms
+from bimp.agents.evaluation.metrics import BINARY, record_label
+from bimp.agents.evaluation.metrics import code_version as code_version_of
+from bimp.agents.evaluation.provenance import code_version, config_diff
+from bimp.agents.evaluation.records import (
     EPISODES_FILE,
     episode_bytes,
     folder_lock,
@@ -42,11 +42,11 @@ from bimp.agents.records import (
     read_arms,
     read_records,
     record_config,
-    write_atomic,
 )
+from bimp.agents.evaluation.verification import VERIFIED_FILE, arm_key, read_verified
+from bimp.agents.files import write_atomic
 from bimp.agents.registry import POLICIES
 from bimp.agents.rollout import SEEDING
-from bimp.agents.verification import VERIFIED_FILE, arm_key, read_verified
 from bimp.configs import trust_switch
 
 TIMINGS = ("plan_time_ms_p50", "plan_time_ms_p95")  # the machine's, not the code's

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.signal import savgol_filter
 
-from bimp.agents.stats import mean_summary, rate_summary
+from bimp.agents.evaluation.stats import mean_summary, rate_summary
 from bimp.envs.scene import VEHICLE_WIDTH
 
 SCORE_METRICS = ("at_fault_collision_rate", "score", "score_progress", "score_ttc", "score_speed", "score_comfort")
@@ -216,7 +216,7 @@ def _goals(trace: dict) -> list[bool]:
 
 def record_label(record: dict) -> str:
     """A record's label (records older than labels use the policy name). Here, below
-    :mod:`bimp.agents.records`, because :func:`summarize` groups by it."""
+    :mod:`bimp.agents.evaluation.records`, because :func:`summarize` groups by it."""
     return record.get("label", record["policy"])
 
 
@@ -234,8 +234,8 @@ def record_missed_goal(record: dict) -> bool:
     """The goal gate of :func:`closed_loop_score` read from an episode record, from what every record holds: an
     episode that ran to its time limit (``truncated``) without a collision, on the road, and failed is one whose env
     has a goal it did not reach (without a goal such an episode succeeds). An off-road episode is not counted here,
-    where the trace's gate may count it: its score is 0 by the off-road gate either way. :mod:`bimp.agents.migrate`
-    gates the scores recorded before the goal gate with it."""
+    where the trace's gate may count it: its score is 0 by the off-road gate either way.
+    :mod:`bimp.agents.evaluation.migrate` gates the scores recorded before the goal gate with it."""
     m = record.get("metrics") or {}
     return bool(record.get("truncated")) and m.get("collision_rate") == 0.0 and m.get("offroad_rate") == 0.0 \
         and m.get("success_rate") == 0.0
@@ -243,7 +243,7 @@ def record_missed_goal(record: dict) -> bool:
 
 def summarize(records: list[dict]) -> dict[str, dict]:
     """Summary per ``label/scenario`` of episode records (one per label, scenario and seed: see
-    :func:`bimp.agents.evaluate.latest_records`).
+    :func:`bimp.agents.evaluation.evaluate.latest_records`).
 
     ``fallback_seeds`` and ``fallback_steps``: the episodes where the planner fell back on at least one step, and
     the fallback steps out of ``steps`` (all steps of the results).
@@ -288,6 +288,7 @@ def summarize(records: list[dict]) -> dict[str, dict]:
 
 def _fallback_steps(record: dict) -> int:
     """How many steps of an episode the planner fell back (``policy_info.fallback_steps``, from the planner's
-    per-step ``step_info``: :func:`bimp.agents.evaluate.step_info_summary`); 0 for a policy that reports none."""
+    per-step ``step_info``: :func:`bimp.agents.evaluation.evaluate.step_info_summary`); 0 for a policy that reports
+    none."""
     steps = (record.get("policy_info") or {}).get("fallback_steps")
     return len(steps) if isinstance(steps, list) else 0

@@ -23,20 +23,19 @@ from collections import Counter
 from pathlib import Path
 
 from bimp.agents.errors import EvaluationError
-from bimp.agents.metrics import summarize
-from bimp.agents.records import (
+from bimp.agents.evaluation.metrics import summarize
+from bimp.agents.evaluation.records import (
     EPISODES_FILE,
     episode_bytes,
     latest_records,
     numbered_records,
     read_arms,
-    read_json,
     record_label,
     unchanged_lock,
     write_arms,
-    write_atomic,
     write_summary,
 )
+from bimp.agents.files import read_json, write_atomic
 
 
 def drop(out: str | Path, scenarios: list[str] | None = None, labels: list[str] | None = None,

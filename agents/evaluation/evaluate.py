@@ -17,8 +17,8 @@ A worker process that dies is detected and its episode retried alone, then recor
 again; the run never hangs. One run at a time per folder (a lock). ``OUT/summary.{json,csv,md}`` cover the
 episodes this command asked for (``--all``: the folder).
 Episodes run on a local process pool (``--workers``) or, with ``--backend ray [--address ADDR]``, on a Ray
-cluster (:mod:`bimp.agents.backends`, ``docs/scaling.md``); this process writes the records either way.
-The folder itself (records, lock, summary files) is :mod:`bimp.agents.records`.
+cluster (:mod:`bimp.agents.evaluation.backends`, ``docs/scaling.md``); this process writes the records either way.
+The folder itself (records, lock, summary files) is :mod:`bimp.agents.evaluation.records`.
 """
 
 from __future__ import annotations
@@ -38,11 +38,11 @@ import numpy as np
 from tqdm import tqdm
 
 from bimp import envs
-from bimp.agents.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.errors import EvaluationError, check_out_dir
-from bimp.agents.metrics import episode_metrics, summarize
-from bimp.agents.provenance import code_version, config_diff, config_hash, resolved_config
-from bimp.agents.records import (
+from bimp.agents.evaluation.backends import BackendError, check_backend, run_groups, start_backend
+from bimp.agents.evaluation.metrics import episode_metrics, summarize
+from bimp.agents.evaluation.provenance import code_version, config_diff, config_hash, resolved_config
+from bimp.agents.evaluation.records import (
     ARMS_FILE,
     EPISODES_FILE,
     finite,
@@ -319,12 +319,11 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
     how many of the first seeds per arm keep their per-step trace / get an MP4 in ``out/videos``;
     ``all_records``: summarize the whole folder instead of this request; ``batch``: plan up to this many episodes
     of an arm in one batched call (policies whose spec says ``batched``; episodes with video run alone);
-    ``backend``: where the episodes run (:mod:`bimp.agents.backends`): ``"local"``, a pool of ``workers`` processes,
-    or ``"ray"``, the Ray cluster at ``address`` (default: a new local instance of ``ray_cpus`` CPUs). Raises
+    ``backend``: where the episodes run (:mod:`bimp.agents.evaluation.backends`): ``"local"``, a pool of ``workers``
+    processes, or ``"ray"``, the Ray cluster at ``address`` (default: a new local instance of ``ray_cpus`` CPUs). Raises
     :class:`EvaluationError` before anything is written when the request is invalid, conflicts with the folder's
     records, or names a backend that cannot run. ``dry_run``: check all that, then return a :class:`DryRun` (the
-    episodes that would run) instead, writing nothing and starting no backend.
-    """
+    episodes that would run) instead, writing nothing and starting no backend."""
     try:  # a dry run checks the request as a real run would, but connects to nothing
         (check_backend if dry_run else start_backend)(backend, address, ray_cpus)
     except BackendError as err:

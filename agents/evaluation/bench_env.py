@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 
 from bimp import envs
-from bimp.agents.backends import one_thread
+from bimp.agents.rollout import one_thread
 from bimp.envs.highway.adapter import HighwayAdapter
 
 CORES = ("fast", "highway-env")

@@ -3,14 +3,13 @@ tabled and drawn (the commands ``bimp sweep`` and ``bimp frontier``: :mod:`bimp.
 :mod:`bimp.agents.commands.frontier`).
 
 A sweep is a list of *points* (a policy under one set of overrides, shown as a label such as ``enkts N=50``), each
-an ordinary evaluation (:func:`bimp.agents.evaluate.evaluate`) into the one folder ``OUT``: the same resume, lock and
-provenance, one ``episodes.jsonl``, and the same ``--backend ray [--address ADDR]`` (``docs/scaling.md``).
-Every point is checked (its config, and against the folder's records) before the first episode runs: a bad
-request exits with status 2 and names the point, never after hours of the others.
-``--param POLICY.KEY=V1,V2,...`` sweeps any config key (``KEY`` as in ``bimp tune``'s search spaces:
-``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML); several ``--param`` sweep together, value by value
-(the i-th values of a policy's params form one point; the x axis shows the first). ``--n`` sweeps ``n_particles``
-of every ``--policy``.
+an ordinary evaluation (:func:`bimp.agents.evaluation.evaluate.evaluate`) into the one folder ``OUT``: the same resume,
+lock and provenance, one ``episodes.jsonl``, and the same ``--backend ray [--address ADDR]`` (``docs/scaling.md``).
+Every point is checked (its config, and against the folder's records) before the first episode runs: a bad request exits
+with status 2 and names the point, never after hours of the others. ``--param POLICY.KEY=V1,V2,...`` sweeps any config
+key (``KEY`` as in ``bimp tune``'s search spaces: ``barrier.edge_margin``, ``sigma_du[1]``; values read as YAML);
+several ``--param`` sweep together, value by value (the i-th values of a policy's params form one point; the x axis
+shows the first). ``--n`` sweeps ``n_particles`` of every ``--policy``.
 
 The frontier puts quality against compute: each policy along its compute axis (its spec's ``frontier_axis``: the
 particles N of EnKTS, EnKS and MPPI, the iteration cap of NMPC; one point for a policy without one, such as PPO),
@@ -35,10 +34,11 @@ import yaml
 
 from bimp import envs
 from bimp.agents.errors import EvaluationError, check_out_dir
-from bimp.agents.evaluate import DryRun, check_conflicts, evaluate, resolve_arms
-from bimp.agents.records import format_stat, numbered_records, write_atomic, write_figure, write_summary
+from bimp.agents.evaluation.evaluate import DryRun, check_conflicts, evaluate, resolve_arms
+from bimp.agents.evaluation.records import format_stat, numbered_records, write_summary
+from bimp.agents.evaluation.tune_space import TuneError, factory_kwargs, overrides_for
+from bimp.agents.files import write_atomic, write_figure
 from bimp.agents.registry import make_policy, policy_color, policy_label
-from bimp.agents.tune_space import TuneError, factory_kwargs, overrides_for
 
 RATES = ("success_rate", "collision_rate", "offroad_rate", "input_violation_rate", "rate_violation_rate")
 
@@ -112,8 +112,9 @@ def run_points(points: list[Point], scenarios: list[str], episodes: int, seed: i
                workers: int = 1, batch: int = 1, progress: bool = True, backend: str = "local",
                address: str | None = None, ray_cpus: int | None = None, dry_run: bool = False) -> list[dict] | DryRun:
     """Evaluate every point into ``out``; ``[{label, policy, param, value, scenario, **summary entry}]``.
-    ``backend``, ``address``, ``ray_cpus``: where the episodes run, as for :func:`bimp.agents.evaluate.evaluate`.
-    ``dry_run``: the same checks, then the :class:`bimp.agents.evaluate.DryRun` of all the points; nothing written."""
+    ``backend``, ``address``, ``ray_cpus``: where the episodes run, as for
+    :func:`bimp.agents.evaluation.evaluate.evaluate`. ``dry_run``: the same checks, then the
+    :class:`bimp.agents.evaluation.evaluate.DryRun` of all the points; nothing written."""
     labels = [p.label for p in points]
     if not points or len(set(labels)) != len(labels):
         raise EvaluationError(f"the points need distinct labels, got {labels}")
