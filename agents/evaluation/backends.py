@@ -71,8 +71,8 @@ def run_groups(groups: list, run: Callable, crashed: Callable, write: Callable, 
                workers: int = 1, address: str | None = None, cpus: int | None = None) -> None:
     """Run ``run(group)`` for every group on ``backend`` and ``write`` every record as its group finishes; a group
     whose worker died twice is written as ``crashed(group, why)``. ``local``: a pool of ``workers`` processes (in
-    this process when there is one worker or one group, on one thread as in a worker: :func:`one_thread`);
-    ``ray``: one task per group on the cluster."""
+    this process when there is one worker or one group, on one thread as in a worker:
+    :func:`bimp.agents.rollout.one_thread`); ``ray``: one task per group on the cluster."""
     if backend == "ray":
         run_ray(groups, run, crashed, write, address=address, cpus=cpus)
     elif workers > 1 and len(groups) > 1:

