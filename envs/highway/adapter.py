@@ -239,8 +239,7 @@ class HighwayAdapter(gym.Wrapper):
         # options (every key but rendering: a family's difficulty and ranges too); the behaviour layer's rule.
         base.PARAMS, base.drawn_params = {}, dict(getattr(base, "drawn_params", None) or {})
         base.OPTIONS = {k: (v,) for k, v in base.config.items() if k not in _VIEW_KEYS}
-        base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile,
-                                               self.highway_id)
+        base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]
         self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on, self.profile.overtake)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)

@@ -39,9 +39,6 @@ from bimp.envs.highway.lanes import goes_on_beside
 # never reverses, MOBIL that never travels in an oncoming lane, the traffic's IDM parameters restored per reset.
 # 3: short gaps between lanes that go on straight (roundabout-v0's entries) bridged instead of ending the route.
 VERSION = 3
-# An id whose episodes changed alone since: its own version, so that the other ids' records stay this definition.
-# roundabout-v0 4: its entries' gaps bridged by a smooth curve into the ring, not a kinked chord (lanes._bridge).
-ID_VERSIONS = {"roundabout-v0": 4}
 _IDM_KEYS = ("ACC_MAX", "COMFORT_ACC_MAX", "COMFORT_ACC_MIN", "DISTANCE_WANTED", "TIME_WANTED", "DELTA", "POLITENESS",
              "LANE_CHANGE_MIN_ACC_GAIN", "LANE_CHANGE_MAX_BRAKING_IMPOSED", "LANE_CHANGE_DELAY")
 
@@ -62,15 +59,15 @@ class BehaviourRule:
     version: int = VERSION
 
     @classmethod
-    def current(cls, target_speed: float, n_obstacles: int, profile=None, highway_id: str = "") -> "BehaviourRule":
+    def current(cls, target_speed: float, n_obstacles: int, profile=None) -> "BehaviourRule":
         """The rule now; ``profile``: the adapter's per-id numbers (planning bounds, actuator range), recorded too,
         less its fields added later at their neutral value (:func:`bimp.configs.added_field`: the rule of the
-        records made before them); ``highway_id``: the id, whose own version (:data:`ID_VERSIONS`) it takes."""
+        records made before them)."""
         neutral = neutral_values(type(profile)) if profile is not None else {}
         numbers = tuple(sorted((k, v) for k, v in dataclasses.asdict(profile).items()
                                if k not in neutral or v != neutral[k])) if profile is not None else ()
         return cls(float(target_speed), tuple((k, float(getattr(IDMVehicle, k))) for k in _IDM_KEYS), n_obstacles,
-                   repr(numbers), ID_VERSIONS.get(highway_id, VERSION))
+                   repr(numbers), VERSION)
 
 
 class ShadowDriver(IDMVehicle):

@@ -28,73 +28,41 @@ BRIDGE = 8.0  # m: ... or within this, straight on (see joins)
 def lane_walk(network, index, s_from: float, length: float, route=None, spacing: float = SPACING):
     """Points along lane ``index`` from its arc length ``s_from`` for ``length`` m, continuing into the next lanes
     (``network.next_lane`` along a copy of ``route``): ``(xy (P, 2), heading (P,) wrapped, lanes (P,) list of lane
-    indices)``; fewer metres where the network ends. A gap to the next lane (see :func:`joins`) is bridged by a
-    curve that leaves the lane ``2 x gap`` m before its end (at most half the lane) and meets the next lane abreast
-    of that end, along the next lane's heading (:func:`_bridge`)."""
+    indices)``; fewer metres where the network ends."""
     plan = list(route) if route else None  # next_lane pops the route's first road as it goes: never the vehicle's
     xy, heading, lanes = [], [], []
     s, remaining = s_from, length
     for _ in range(MAX_LANES):
         lane = network.get_lane(index)
-        following, plan = _continuation(network, index, plan)
-        back, s_next = 0.0, 0.0
-        if following is not None:
-            # Go on from abreast of where this lane ended: lanes may overlap at a join (racetrack-v0: by 0.44 m, and
-            # the polyline ran backwards there).
-            nxt, end_xy = network.get_lane(following), lane.position(lane.length, 0.0)
-            s_next = max(0.0, float(nxt.local_coordinates(end_xy)[0]))
-            gap = float(np.hypot(*(nxt.position(s_next, 0.0) - end_xy)))
-            back = min(2.0 * gap, lane.length / 2) if gap > JOIN else 0.0
-        stop = max(lane.length - back, s)
-        end = min(stop, s + remaining)
+        end = min(lane.length, s + remaining)
         for si in np.append(np.arange(s, end, spacing), end):
             xy.append(lane.position(si, 0.0))
             heading.append(lane.heading_at(si))
             lanes.append(index)
         remaining -= max(end - s, 0.0)
-        if remaining <= 1e-6 or following is None:
+        if remaining <= 1e-6:
             break
-        if back > 0.0:
-            for point, direction in _bridge(lane.position(stop, 0.0), lane.heading_at(stop),
-                                            nxt.position(s_next, 0.0), nxt.heading_at(s_next), spacing):
-                xy.append(point)
-                heading.append(direction)
-                lanes.append(index)
-        s, index = s_next, following
+        end_xy, end_heading = lane.position(lane.length, 0.0), lane.heading_at(lane.length)
+        if plan and not (tuple(plan[0][:2]) == tuple(index[:2]) or plan[0][0] == index[1]):
+            plan = None  # the walk has left the route: the lane graph's own choice (and no warning from highway-env)
+        following = network.next_lane(index, route=plan, position=end_xy)
+        if goes_on_beside(network, index, following):
+            # The route's next road goes on from another lane of this one (exit-v0: the exit leaves from the right
+            # lane, 24 m to the side): walk the lane that goes on from here; the lane change is the reference's.
+            following = network.next_lane(index, route=None, position=end_xy)
+        if following == index or following[1] == index[0] or not joins(network, following, end_xy, end_heading):
+            break  # the end of the network, or a way back (past an intersection's exit road): padded straight
+        # Go on from abreast of where this lane ended: lanes may overlap at a join (racetrack-v0: by 0.44 m, and the
+        # polyline ran backwards there).
+        s = max(0.0, float(network.get_lane(following).local_coordinates(end_xy)[0]))
+        start = network.get_lane(following).position(s, 0.0)
+        gap = float(np.hypot(*(start - end_xy)))
+        for f in np.arange(spacing, gap, spacing) / gap:  # a bridged gap (see joins), sampled like a lane
+            xy.append(end_xy + f * (start - end_xy))
+            heading.append(float(np.arctan2(*(start - end_xy)[::-1])))
+            lanes.append(index)
+        index = following
     return np.asarray(xy, float), np.asarray(heading, float), lanes
-
-
-def _continuation(network, index, plan) -> tuple[tuple | None, list | None]:
-    """The lane the walk goes on into after lane ``index`` (None where the network ends or turns back) and the plan
-    left for the lanes after it."""
-    lane = network.get_lane(index)
-    end_xy, end_heading = lane.position(lane.length, 0.0), lane.heading_at(lane.length)
-    if plan and not (tuple(plan[0][:2]) == tuple(index[:2]) or plan[0][0] == index[1]):
-        plan = None  # the walk has left the route: the lane graph's own choice (and no warning from highway-env)
-    following = network.next_lane(index, route=plan, position=end_xy)
-    if goes_on_beside(network, index, following):
-        # The route's next road goes on from another lane of this one (exit-v0: the exit leaves from the right
-        # lane, 24 m to the side): walk the lane that goes on from here; the lane change is the reference's.
-        following = network.next_lane(index, route=None, position=end_xy)
-    if following == index or following[1] == index[0] or not joins(network, following, end_xy, end_heading):
-        return None, plan  # the end of the network, or a way back (past an intersection's exit road): padded
-    return following, plan
-
-
-def _bridge(start: np.ndarray, start_heading: float, end: np.ndarray, end_heading: float, spacing: float):
-    """Points and headings every about ``spacing`` m strictly between two poses, on the cubic Hermite curve that
-    leaves ``start`` along ``start_heading`` and meets ``end`` along ``end_heading`` (tangents the chord's length).
-    A straight chord to the next lane kinked the route by 0.54 rad at roundabout-v0's entries, a turn no car makes
-    in a metre."""
-    chord = float(np.hypot(*(end - start)))
-    t0 = chord * np.array([np.cos(start_heading), np.sin(start_heading)])
-    t1 = chord * np.array([np.cos(end_heading), np.sin(end_heading)])
-    for u in np.arange(spacing, chord, spacing) / chord:
-        point = ((2 * u**3 - 3 * u**2 + 1) * start + (u**3 - 2 * u**2 + u) * t0 + (-2 * u**3 + 3 * u**2) * end
-                 + (u**3 - u**2) * t1)
-        velocity = ((6 * u**2 - 6 * u) * start + (3 * u**2 - 4 * u + 1) * t0 + (-6 * u**2 + 6 * u) * end
-                    + (3 * u**2 - 2 * u) * t1)
-        yield point, float(np.arctan2(velocity[1], velocity[0]))
 
 
 def _spaced(xy: np.ndarray, least: float) -> np.ndarray:

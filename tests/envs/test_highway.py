@@ -13,7 +13,7 @@ from gymnasium.utils.env_checker import check_env
 import bimp  # noqa: F401  (registers bimp/ID)
 from bimp.envs import scenario_spec, wrap
 from bimp.envs.highway.adapter import SUPPORTED
-from bimp.envs.highway.lanes import _bridge, _spaced, build_route
+from bimp.envs.highway.lanes import _spaced, build_route
 from bimp.envs.scene import Scene
 
 pytestmark = pytest.mark.filterwarnings("ignore")
@@ -217,29 +217,6 @@ def test_the_profile_records_drive_on_only_where_it_is_set():
     """Added after records were made: at its neutral value (off) the rule, and so every arm's hash, is as before."""
     assert "drive_on" not in gym.make("bimp/highway-fast-v0").unwrapped.BEHAVIOUR.profile
     assert "('drive_on', True)" in gym.make("bimp/exit-v0").unwrapped.BEHAVIOUR.profile
-
-
-def test_a_roundabout_entry_turns_into_the_ring_without_a_kink():
-    """The gap between an entry's end and the ring is bridged by a curve that leaves along the entry and meets the
-    ring along it (before: a chord, kinked by 0.54 rad where it left the entry)."""
-    env = gym.make("bimp/roundabout-v0")
-    env.reset(seed=2)
-    road = env.unwrapped.scene.road
-    turn = np.abs((np.diff(road.heading) + np.pi) % (2 * np.pi) - np.pi)
-    assert turn.max() < 0.2, turn.max()  # rad per metre (a radius of at least 5 m); the chord turned 0.54 at once
-
-
-def test_a_bridge_leaves_and_meets_its_poses_along_their_headings():
-    points = list(_bridge(np.zeros(2), 0.0, np.array([8.0, 4.0]), np.pi / 2, 1.0))
-    xy, heading = np.array([p for p, _ in points]), np.array([h for _, h in points])
-    assert len(points) == 8 and np.all(np.diff(xy[:, 0]) > 0)  # every metre or so, strictly between the poses
-    assert abs(heading[0]) < 0.3 and abs(heading[-1] - np.pi / 2) < 0.4 and np.all(np.diff(heading) > 0)
-
-
-def test_only_an_id_whose_episodes_changed_takes_a_new_version():
-    """roundabout-v0's bridged entries changed its episodes alone: the other ids' rules, and so their records, stay."""
-    assert gym.make("bimp/roundabout-v0").unwrapped.BEHAVIOUR.version == 4
-    assert {gym.make(f"bimp/{i}").unwrapped.BEHAVIOUR.version for i in SUPPORTED if i != "roundabout-v0"} == {3}
 
 
 @pytest.mark.parametrize("seed", range(5))
