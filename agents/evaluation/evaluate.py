@@ -23,6 +23,7 @@ The folder itself (records, lock, summary files) is :mod:`bimp.agents.evaluation
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -369,12 +370,13 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
         if path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n"):
             with open(path, "a") as sink:  # end the line an interruption cut, or the next record joins it
                 sink.write("\n")
-        with open(path, "a") as sink, tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="episodes",
-                                           disable=not progress) as bar:
+        with contextlib.closing(Appender(path)) as sink, tqdm(total=len(jobs), initial=len(jobs) - len(todo),
+                                                             desc="episodes", disable=not progress) as bar:
             def write(record: dict) -> None:
-                sink.write(json.dumps(finite(record)) + "\n")
-                sink.flush()
-                os.fsync(sink.fileno())
+                if sink.write(json.dumps(finite(record)) + "\n"):
+                    bar.write(f"bimp: warning: {path} was replaced while this run appended to it (by another "
+                              "program: git checkout or stash?); appending to the new file. The records written "
+                              "before are only in the replaced one: the same command again redoes them.")
                 bar.update()
                 if record["status"] == "error":
                     bar.write(f"episode {record['label']}/{record['scenario']}/seed {record['seed']} failed: "
@@ -387,6 +389,35 @@ def evaluate(scenarios: list[str], policies: list[str], episodes: int = 10, seed
         summary = summarize(records if all_records else [r for r in records if record_key(r) in wanted])
         write_summary(summary, out)
     return summary
+
+
+class Appender:
+    """A file opened for appending that follows its path: where another program replaced the file meanwhile
+    (``git checkout`` or ``git stash`` of a results folder during a run), the next write goes to the new file, not to
+    the replaced one that nobody reads any more. Every line is flushed and fsynced."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.file = open(self.path, "a")
+
+    def write(self, line: str) -> bool:
+        """Append ``line``; whether the file had been replaced (and was reopened) first."""
+        mine = os.fstat(self.file.fileno())
+        try:
+            now = os.stat(self.path)
+            replaced = (now.st_ino, now.st_dev) != (mine.st_ino, mine.st_dev)
+        except FileNotFoundError:
+            replaced = True
+        if replaced:
+            self.file.close()
+            self.file = open(self.path, "a")
+        self.file.write(line)
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        return replaced
+
+    def close(self) -> None:
+        self.file.close()
 
 
 def _keys(arm: ArmSpec, seeds: list[int]) -> set[tuple[str, str, str, int]]:

@@ -176,3 +176,22 @@ def test_episode_bytes_names_a_file_it_cannot_read(tmp_path, monkeypatch):
     monkeypatch.setattr(records.os, "open", denied)  # chmod would not stop root
     with pytest.raises(EvaluationError, match=f"cannot read {tmp_path / EPISODES_FILE}: Permission denied"):
         episode_bytes(tmp_path)
+
+
+def test_an_appender_follows_its_file_where_another_program_replaced_it(tmp_path):
+    """A `git stash` of a results folder during a run replaced episodes.jsonl, and the run's records went on into the
+    replaced file, which nobody reads: 820 of them were lost so. The next write now goes to the new file."""
+    path = tmp_path / "episodes.jsonl"
+    path.write_text("a\n")
+    sink = ev.Appender(path)
+    try:
+        assert sink.write("b\n") is False
+        (tmp_path / "other").write_text("a\n")
+        (tmp_path / "other").replace(path)  # as git writes a checked-out file: a new one under the name
+        assert sink.write("c\n") is True and sink.write("d\n") is False
+        assert path.read_text() == "a\nc\nd\n"  # the new file's own line kept, the run's after it
+        path.unlink()
+        assert sink.write("e\n") is True
+    finally:
+        sink.close()
+    assert path.read_text() == "e\n"
