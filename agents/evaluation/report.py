@@ -29,7 +29,6 @@ from bimp.agents.evaluation.report_tables import (
     episodes_table,
     folders_table,
     grid_table,
-    metrics_table,
     overall_table,
     paired_table,
     results,
@@ -39,12 +38,13 @@ from bimp.agents.evaluation.report_tables import (
 
 # A marker starts its line: an indented one (an example in a code block) is text.
 # A table's name, then its arguments as KEY=VALUE (lists comma-separated; no spaces in a value).
-BLOCK = re.compile(r"^(<!-- report: ([\w-]+)((?: [^\s=]+=[^\s]+)*) -->\n)(.*?)^(<!-- /report -->)$", re.S | re.M)
+MARKER = r"<!-- report: ([\w-]+)((?: [^\s=]+=[^\s]+)*) -->"
+BLOCK = re.compile(rf"^({MARKER}\n)(.*?)^(<!-- /report -->)$", re.S | re.M)
 BLOCK_NAMES = re.compile(r"^<!-- report: ([\w-]+)", re.M)  # any opening marker, paired or not
 OPENING = re.compile(r"^<!-- report: .*$", re.M)  # an opening marker's whole line, well formed or not
-WELL_FORMED = re.compile(r"<!-- report: [\w-]+(?: [^\s=]+=[^\s]+)* -->")
+WELL_FORMED = re.compile(MARKER)
 TABLES: dict[str, Callable[[], tuple[str, list[Cell]]]] = {
-    "paper": lambda: metrics_table([results("paper"), results("peers"), results("rl")]),
+    "paper": lambda: summary_table("paper,peers,rl"),
     "highway": lambda: grid_table([results("highway")], with_score=False),
     "highway-episodes": lambda: episodes_table(results("highway")),
     "highway-paired": lambda: collisions_table(results("highway"), "enkts", "idm"),
@@ -102,13 +102,13 @@ def render(text: str, tables: dict[str, Callable] = TABLES, cache: dict | None =
 
 def _build(table: Callable, args: dict[str, str], where: str) -> tuple[str, list[Cell]]:
     """``table`` built with the marker's arguments; one it does not take refused naming the ones it does."""
-    takes = [p for p in inspect.signature(table).parameters]
+    parameters = inspect.signature(table).parameters
+    takes = list(parameters)
     extra = sorted(set(args) - set(takes))
     if extra:
         raise EvaluationError(f"{where}: no argument {extra[0]!r}"
                               + (f"; it takes {', '.join(takes)}" if takes else "; it takes none"))
-    missing = [name for name, p in inspect.signature(table).parameters.items()
-               if p.default is inspect.Parameter.empty and name not in args]
+    missing = [name for name, p in parameters.items() if p.default is inspect.Parameter.empty and name not in args]
     if missing:
         raise EvaluationError(f"{where}: argument {missing[0]!r} missing; it takes {', '.join(takes)}")
     return table(**args)

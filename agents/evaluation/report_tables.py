@@ -120,22 +120,6 @@ def _footnote(arms: list[Cell]) -> list[str]:
             "version, and `bimp verify` has not found these the same at a later one (`bimp report` names them)."]
 
 
-def metrics_table(folders: list[Path]) -> tuple[str, list[Cell]]:
-    """A row per scenario and policy: episodes, success, collision, off road and progress, with their intervals
-    (Wilson 95% for rates, bootstrap of the mean for progress; over training seeds, the seeds' range)."""
-    arms = _arms(folders)
-    lines = ["| scenario | policy | episodes | success | collision | off road | progress [m] |",
-             "|---|---|---|---|---|---|---|"]
-    for a in arms:
-        counts = {len(records) for records in a.runs.values()}
-        episodes = f"{len(a.runs)} x {counts.pop()}" if len(a.runs) > 1 and len(counts) == 1 else \
-            str(sum(len(records) for records in a.runs.values()))
-        cells = [format_stat(_stat(a, m)) for m in ("success_rate", "collision_rate", "offroad_rate", "progress_m")]
-        lines.append(f"| {a.scenario} | {_column_name(a.column, a.runs)}{_mark(a)} | {episodes} | "
-                     + " | ".join(cells) + " |")
-    return "\n".join(lines + _footnote(arms)), arms
-
-
 def grid_table(folders: list[Path], with_score: bool, rows_of: Path | None = None) -> tuple[str, list[Cell]]:
     """A row per scenario, a column per policy: success (Wilson 95%; over training seeds their range) and, with
     ``with_score``, the mean closed-loop score after a semicolon; ``-`` where a policy did not run. ``rows_of``: only
@@ -284,12 +268,11 @@ def summary_table(folders: str, columns: str = "success,collision,offroad,progre
     unknown = [c for c in chosen + _names(per_seed) if c not in COLUMNS]
     if unknown:
         raise EvaluationError(f"report summary: unknown column {unknown[0]!r}; the columns: {', '.join(COLUMNS)}")
-    paths = _folder_paths(folders)
+    every = _arms(_folder_paths(folders))
     scenario_order, label_order = _names(scenarios), _names(labels)
-    present = [r for path in paths for r in read_records(path)]
-    _known("scenario", scenario_order, list(dict.fromkeys(r["scenario"] for r in present)))
-    _known("label", label_order, list(dict.fromkeys(SEEDED.sub(r"\1", record_label(r)) for r in present)))
-    arms = [a for a in _arms(paths) if (not scenario_order or a.scenario in scenario_order)
+    _known("scenario", scenario_order, list(dict.fromkeys(a.scenario for a in every)))
+    _known("label", label_order, list(dict.fromkeys(a.column for a in every)))
+    arms = [a for a in every if (not scenario_order or a.scenario in scenario_order)
             and (not label_order or a.column in label_order)]
     if scenario_order or label_order:
         arms.sort(key=lambda a: (scenario_order.index(a.scenario) if scenario_order else a.scenario,
@@ -410,12 +393,13 @@ def variants_table(folders: str, prefixes: str, pair: str = "no", intervals: str
     lines = ["| variant | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     for v in rows:
         cells = []
+        pairs = _pairs(paths, found.get((v, heads[0])), found.get((v, heads[1]))) if paired else {}
         for s in scenarios:
             cells += [(_rate(_stat(arms[s, found[v, p]], "success_rate"), with_interval)
                        + _mark(arms[s, found[v, p]]))
                       if (v, p) in found and (s, found[v, p]) in arms else "-" for p in heads]
             if paired:
-                cells.append(_pair_p(paths, s, found.get((v, heads[0])), found.get((v, heads[1]))))
+                cells.append(f"{pairs[s]['success_rate']['p_value']:.2g}" if s in pairs else "-")
         lines.append(f"| {v or 'shipped'} | " + " | ".join(cells) + " |")
     return "\n".join(lines + _footnote(list(arms.values()))), list(arms.values())
 
@@ -424,14 +408,15 @@ def _rate(stat: dict | None, with_interval: bool) -> str:
     return _short(stat) if with_interval or not stat or stat.get("mean") is None else f"{stat['mean']:.2f}"
 
 
-def _pair_p(paths: list[Path], scenario: str, a: str | None, b: str | None) -> str:
+def _pairs(paths: list[Path], a: str | None, b: str | None) -> dict[str, dict]:
+    """``bimp compare`` of labels ``a`` and ``b`` per scenario, from the first folder that pairs them there."""
     if a is None or b is None:
-        return "-"
+        return {}
+    found: dict[str, dict] = {}
     for path in paths:
-        e = _compare(path, a, b).get(scenario)
-        if e:
-            return f"{e['success_rate']['p_value']:.2g}"
-    return "-"
+        for scenario, entry in _compare(path, a, b).items():
+            found.setdefault(scenario, entry)
+    return found
 
 
 def _ms(value: float | None) -> str:

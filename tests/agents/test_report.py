@@ -117,7 +117,7 @@ def test_an_arm_of_two_code_versions_is_marked_whatever_the_order(tmp_path):
 
 
 def test_training_seeds_are_one_column_with_their_range(tmp_path):
-    table, arms = tables.metrics_table([ROOT / "results/rl"])
+    table, arms = tables.summary_table(str(ROOT / "results/rl"))
     ppo = next(x for x in arms if x.column == "ppo" and x.scenario == "overtaking")
     assert sorted(ppo.runs) == ["ppo-s1", "ppo-s2", "ppo-s3"]
     means = [tables._stat(tables.Cell("overtaking", "ppo", {k: v}, []), "success_rate")["mean"]
