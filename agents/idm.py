@@ -16,7 +16,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from bimp.configs import ConfigError, check_fields, load_config
+from bimp.configs import ConfigError, added_field, check_fields, load_config
 from bimp.envs.scene import Scene
 
 NEEDS = ("a wrapped highway-env env: bimp.envs.wrap(gym.make(ID)) or gym.make('bimp/ID'), whose behaviour layer "
@@ -26,14 +26,19 @@ NEEDS = ("a wrapped highway-env env: bimp.envs.wrap(gym.make(ID)) or gym.make('b
 @dataclass(frozen=True)
 class IDMConfig:
     """``clip_to_bounds``: clip highway-env's commands to the scene's planning bounds (default false: only to the
-    actuator range, highway-env's driver as it is). A bad value raises :class:`bimp.configs.ConfigError`."""
+    actuator range, highway-env's driver as it is). ``junction_yield``: drive the behaviour layer's command with its
+    yielding at junctions where the road has it (:mod:`bimp.envs.highway.junction`: roundabout-v0, intersection-v0;
+    default false: highway-env's driver, which does not yield). A bad value raises
+    :class:`bimp.configs.ConfigError`."""
 
     clip_to_bounds: bool = False
+    junction_yield: bool = added_field(False, neutral=False)
 
     def __post_init__(self) -> None:
         check_fields(self)
-        if not isinstance(self.clip_to_bounds, bool):
-            raise ConfigError("clip_to_bounds", "true or false", self.clip_to_bounds)
+        for name in ("clip_to_bounds", "junction_yield"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(name, "true or false", getattr(self, name))
 
 
 def _adapter(env: gym.Env):
@@ -62,7 +67,8 @@ class IDMPolicy:
     def act(self, obs: np.ndarray) -> np.ndarray:
         scene = self.env.unwrapped.scene
         scene.check_obs(obs)
-        command = self.adapter.behaviour.action
+        behaviour = self.adapter.behaviour
+        command = behaviour.action if self.config.junction_yield else behaviour.own_action
         u = np.array([command["acceleration"], command["steering"]], float)
         if self.config.clip_to_bounds:
             b = scene.bounds

@@ -89,6 +89,10 @@ PROGRESS_WINDOW = 80.0  # m of the road before a step about the EV (a quarter be
 ENV_CLASSES: dict[str, type] = {**HIGHWAY_CLASSES, **{cls.ID: cls for cls in FAMILIES.values()}}
 
 
+# The ids whose profile's duration replaces highway-env's (profiles.py says why).
+LONGER = ("racetrack-v0", "roundabout-v0", "intersection-v0")
+
+
 def adapter_config(highway_id: str, config: Mapping | None, base: Mapping | None = None) -> dict:
     """``config`` (highway-env keys, as for ``gym.make(highway_id, config=...)``) with the adapter's action and
     frequencies, checked: ``ValueError`` naming a key whose value the adapter cannot honour, or one highway-env would
@@ -128,7 +132,7 @@ def adapter_config(highway_id: str, config: Mapping | None, base: Mapping | None
     config.update(action={"type": "ContinuousAction", "acceleration_range": accel, "steering_range": steer,
                           "longitudinal": True, "lateral": True, "dynamical": False, "clip": True},
                   policy_frequency=POLICY_FREQUENCY, simulation_frequency=int(simulation))
-    if highway_id == "racetrack-v0" and "duration" not in config:
+    if highway_id in LONGER and "duration" not in config:
         config["duration"] = profile.duration
     return config
 
@@ -241,7 +245,8 @@ class HighwayAdapter(gym.Wrapper):
         base.OPTIONS = {k: (v,) for k, v in base.config.items() if k not in _VIEW_KEYS}
         base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]
-        self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on, self.profile.overtake)
+        self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on, self.profile.overtake,
+                                   self.profile.yields)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)
         self.progress = 0.0
         self._speeds: dict[int, float] = {}

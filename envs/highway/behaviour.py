@@ -32,6 +32,7 @@ import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
 
 from bimp.configs import neutral_values
+from bimp.envs.highway.junction import Yielding, yield_acceleration
 from bimp.envs.highway.lanes import goes_on_beside
 
 # Bumped whenever the adapter or the behaviour layer changes what an episode does, so that records made before are
@@ -259,9 +260,13 @@ def carries_oncoming_traffic(network, lane_index) -> bool:
 class Behaviour:
     """highway-env's IDM + MOBIL driver shadowing the EV of ``env`` (a highway-env env). ``target_speed`` [m/s]:
     the speed it aims for on a free road; ``drive_on``: drive on where the route's next road leaves from another
-    lane (:class:`DriveOnDriver`); ``overtake``: overtake through the oncoming lane (:class:`OvertakeDriver`)."""
+    lane (:class:`DriveOnDriver`); ``overtake``: overtake through the oncoming lane (:class:`OvertakeDriver`);
+    ``yields``: yield at junctions by gap acceptance (:mod:`bimp.envs.highway.junction`): the acceleration is then
+    the lesser of IDM's and IDM's behind a stopped vehicle short of the conflict. :attr:`own_action` keeps
+    highway-env's driver's command without the yielding (what the ``idm`` baseline drives by default)."""
 
-    def __init__(self, env, target_speed: float, drive_on: bool = False, overtake: bool = False):
+    def __init__(self, env, target_speed: float, drive_on: bool = False, overtake: bool = False,
+                 yields: bool = False):
         if drive_on and overtake:
             raise ValueError("a behaviour layer drives on past a missed exit (drive_on) or overtakes in the oncoming "
                              "lane (overtake), not both")
@@ -271,7 +276,9 @@ class Behaviour:
         self.shadow = driver(env.road, np.array(ev.position, float), heading=ev.heading, speed=ev.speed,
                                  target_lane_index=ev.lane_index, target_speed=self.target_speed,
                                  route=copy.deepcopy(getattr(ev, "route", None)) or None, timer=0.0)
+        self.yielding = Yielding() if yields else None
         self.action = {"acceleration": 0.0, "steering": 0.0}
+        self.own_action, self.yield_distance = dict(self.action), None
 
     @property
     def target_lane_index(self):
@@ -300,6 +307,12 @@ class Behaviour:
         finally:
             if slot is not None:
                 vehicles[slot] = ev
-        self.action = {"acceleration": float(shadow.action["acceleration"]),
-                       "steering": float(shadow.action["steering"])}
+        self.own_action = {"acceleration": float(shadow.action["acceleration"]),
+                           "steering": float(shadow.action["steering"])}
+        self.action = dict(self.own_action)
+        others = [v for v in vehicles if v is not ev]
+        self.yield_distance = self.yielding.stop_distance(shadow, others) if self.yielding else None
+        if self.yield_distance is not None:
+            self.action["acceleration"] = min(self.action["acceleration"],
+                                              yield_acceleration(shadow, self.yield_distance))
         return self.action

@@ -18,7 +18,8 @@ class Profile:
     its discrete action's target speeds), ``duration`` [s] (highway-env's, for the registration's step limit), and
     ``drive_on``: whether the behaviour layer drives on where the route's next road leaves from another lane (exit-v0,
     the exit missed: :class:`bimp.envs.highway.behaviour.DriveOnDriver`); ``overtake``: whether it overtakes through
-    the lane of oncoming traffic (the suite's two-way-overtake: :class:`bimp.envs.highway.behaviour.OvertakeDriver`)."""
+    the lane of oncoming traffic (the suite's two-way-overtake: :class:`bimp.envs.highway.behaviour.OvertakeDriver`);
+    ``yields``: whether it yields at junctions by gap acceptance (:mod:`bimp.envs.highway.junction`)."""
 
     bounds: Bounds
     actuator_steer: tuple[float, float]
@@ -26,6 +27,7 @@ class Profile:
     duration: float
     drive_on: bool = added_field(False, neutral=False)
     overtake: bool = added_field(False, neutral=False)
+    yields: bool = added_field(False, neutral=False)
 
 
 def _curve_bounds(steer: float) -> Bounds:
@@ -45,7 +47,7 @@ PROFILES: dict[str, Profile] = {
     # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
     "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True),
     # ring of radius 20 m (inner lane): 0.247 rad needed
-    "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 11.0),
+    "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 20.0, yields=True),
     # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
     "two-way-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
     # a half turn of radius 20 m (inner lane): 0.247 rad; the lanes' 20 m/s limit (highway-env's default) caps IDM
@@ -53,10 +55,12 @@ PROFILES: dict[str, Profile] = {
     # tightest turn radius 15 m: 0.326 rad; speed limit 10 m/s
     "racetrack-v0": Profile(_curve_bounds(0.4), (-0.6, 0.6), 10.0, 30.0),
     # right turn of radius 9 m: 0.524 rad; target: the top of its target_speeds (9 m/s)
-    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 13.0),
+    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 20.0, yields=True),
 }
 SUPPORTED = tuple(PROFILES)  # highway-env's ids, what wrap(gym.make(ID)) takes
-# racetrack-v0's duration (300 s) is shortened to 30 s for bimp: its step limit is the registration's.
+# racetrack-v0's duration (300 s) is shortened to 30 s for bimp. roundabout-v0's (11 s) and intersection-v0's (13 s)
+# are lengthened to 20 s: an EV that yields at the entry or the crossing for a few seconds runs out of highway-env's
+# time before its exit (roundabout-v0's route takes about 9 s without waiting). A config's own duration is kept.
 
 # The suite's families in the same table, keyed by their ID (registered as bimp/ID): each family class carries its
 # numbers, so a new family adds no line here (bimp.envs.suite.family.Family).
