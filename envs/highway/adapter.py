@@ -246,7 +246,7 @@ class HighwayAdapter(gym.Wrapper):
         base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]
         self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on, self.profile.overtake,
-                                   self.profile.yields)
+                                   self.profile.junction)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)
         self.progress = 0.0
         self._speeds: dict[int, float] = {}
@@ -378,7 +378,10 @@ class HighwayAdapter(gym.Wrapper):
     def _abreast(self) -> np.ndarray:
         """The point ``(2,)`` of MOBIL's target lane's centre abreast of the EV."""
         ev = self.env.unwrapped.vehicle
-        lane = self.env.unwrapped.road.network.get_lane(self.behaviour.target_lane_index)
+        index = self.behaviour.target_lane_index
+        if self.profile.junction and tuple(index[:2]) != tuple(ev.lane_index[:2]):
+            index = ev.lane_index  # the next road's lane, chosen ahead of the road's end (Profile.junction)
+        lane = self.env.unwrapped.road.network.get_lane(index)
         return np.asarray(lane.position(lane.local_coordinates(ev.position)[0], 0.0), float)
 
     def _reference(self, p) -> np.ndarray:

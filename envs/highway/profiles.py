@@ -19,7 +19,10 @@ class Profile:
     ``drive_on``: whether the behaviour layer drives on where the route's next road leaves from another lane (exit-v0,
     the exit missed: :class:`bimp.envs.highway.behaviour.DriveOnDriver`); ``overtake``: whether it overtakes through
     the lane of oncoming traffic (the suite's two-way-overtake: :class:`bimp.envs.highway.behaviour.OvertakeDriver`);
-    ``yields``: whether it yields at junctions by gap acceptance (:mod:`bimp.envs.highway.junction`)."""
+    ``junction``: a road whose junctions the EV crosses (roundabout-v0, intersection-v0): the behaviour layer yields
+    there by gap acceptance (:mod:`bimp.envs.highway.junction`), and the reference's lane is the EV's own road's until
+    it is on the next one (highway-env's driver turns to the next lane a little before the road's end: at
+    roundabout-v0's entry, the ring lane abreast lies 2.3 m beside the entry)."""
 
     bounds: Bounds
     actuator_steer: tuple[float, float]
@@ -27,7 +30,7 @@ class Profile:
     duration: float
     drive_on: bool = added_field(False, neutral=False)
     overtake: bool = added_field(False, neutral=False)
-    yields: bool = added_field(False, neutral=False)
+    junction: bool = added_field(False, neutral=False)
 
 
 def _curve_bounds(steer: float) -> Bounds:
@@ -47,7 +50,7 @@ PROFILES: dict[str, Profile] = {
     # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
     "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True),
     # ring of radius 20 m (inner lane): 0.247 rad needed
-    "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 20.0, yields=True),
+    "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 20.0, junction=True),
     # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
     "two-way-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
     # a half turn of radius 20 m (inner lane): 0.247 rad; the lanes' 20 m/s limit (highway-env's default) caps IDM
@@ -55,7 +58,7 @@ PROFILES: dict[str, Profile] = {
     # tightest turn radius 15 m: 0.326 rad; speed limit 10 m/s
     "racetrack-v0": Profile(_curve_bounds(0.4), (-0.6, 0.6), 10.0, 30.0),
     # right turn of radius 9 m: 0.524 rad; target: the top of its target_speeds (9 m/s)
-    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 20.0, yields=True),
+    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 20.0, junction=True),
 }
 SUPPORTED = tuple(PROFILES)  # highway-env's ids, what wrap(gym.make(ID)) takes
 # racetrack-v0's duration (300 s) is shortened to 30 s for bimp. roundabout-v0's (11 s) and intersection-v0's (13 s)
