@@ -31,7 +31,7 @@ SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
 NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",
          "lane-keep": "lane keeping", "ppo": "PPO", "sac": "SAC", "enkts-guard": "EnKTS + guard",
-         "enks-guard": "EnKS + guard", "inf": "inf (EnKS)"}
+         "enks-guard": "EnKS + guard", "idm-yield": "IDM/MOBIL + yield", "inf": "inf (EnKS)"}
 
 
 @dataclass

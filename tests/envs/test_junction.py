@@ -156,3 +156,25 @@ def test_idm_junction_yield_option():
     assert differed  # seed 1: the EV waits at the entry, which highway-env's driver does not
     with pytest.raises(ConfigError, match="junction_yield"):
         make_policy("idm", env, junction_yield="yes")
+
+
+def test_reference_lane_stays_on_the_road_until_the_next():
+    env = gym.make("bimp/roundabout-v0")
+    obs, info = env.reset(seed=0)
+    adapter = env
+    while not hasattr(adapter, "behaviour"):
+        adapter = adapter.env
+    policy = make_policy("idm", env, junction_yield=True)
+    ahead = 0
+    for _ in range(120):
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        ev = env.unwrapped.vehicle
+        if tuple(adapter.behaviour.target_lane_index[:2]) != tuple(ev.lane_index[:2]):
+            ahead += 1  # highway-env's driver has turned to the next road's lane before this one ends
+            lane = ev.lane
+            centre = lane.position(lane.local_coordinates(ev.position)[0], 0.0)
+            expected = float(env.unwrapped.scene.road.project(np.asarray(centre)[None]).l[0])
+            assert info["reference"][2] == pytest.approx(expected, abs=1e-6)
+        if terminated or truncated:
+            break
+    assert ahead > 0
