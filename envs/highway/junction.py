@@ -18,6 +18,8 @@ leader, a follower)."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 from highway_env.road.regulation import RegulatedRoad
 
@@ -175,10 +177,8 @@ def _along(vehicle, path: np.ndarray) -> bool:
 
 
 def yield_acceleration(driver, distance: float) -> float:
-    """IDM's acceleration [m/s^2] of ``driver`` behind a stopped vehicle ``distance`` m ahead, centre to centre
-    (highway-env's ``IDMVehicle.acceleration`` with that vehicle as the front one)."""
-    speed = max(float(driver.speed), 0.0)
-    ab = -driver.COMFORT_ACC_MAX * driver.COMFORT_ACC_MIN
-    wanted = driver.DISTANCE_WANTED + speed * driver.TIME_WANTED + speed * speed / (2 * np.sqrt(ab))
-    free = 1.0 - np.power(speed / max(float(driver.target_speed), 1e-6), driver.DELTA)
-    return float(driver.COMFORT_ACC_MAX * (free - (wanted / max(distance, 1e-6)) ** 2))
+    """IDM's acceleration [m/s^2] of ``driver`` behind a stopped vehicle ``distance`` m ahead, centre to centre:
+    highway-env's ``IDMVehicle.acceleration`` on a free road less its interaction term, with its ``desired_gap`` to a
+    vehicle at 0 m/s (highway-env measures the distance along the EV's lane, where the stop may lie on the next)."""
+    gap = driver.desired_gap(driver, SimpleNamespace(speed=0.0), projected=False)
+    return float(driver.acceleration(driver) - driver.COMFORT_ACC_MAX * (gap / max(distance, 1e-6)) ** 2)
