@@ -40,10 +40,13 @@ def resolved_route(vehicle) -> list:
     route names no lane of, the one starting nearest to the end of the lane before, as highway-env's ``next_lane``
     picks it. highway-env's own ``position_heading_along_route`` keeps the current lane's id there (on roundabout-v0
     the inner ring behind an entry that leads into the outer one; an IndexError where the next road has fewer
-    lanes), and its driver pops the current lane from the route a little before the lane's end."""
+    lanes), and its driver pops the current lane from the route a little before the lane's end. The current lane
+    is not put in front of a route whose first road starts where it starts: at a fork highway-env's nearest lane
+    may be the other branch's (the route's own road then leads the way, or the vehicle is predicted the wrong way
+    round)."""
     network = vehicle.road.network
     given = list(vehicle.route or [])
-    if not given or tuple(given[0][:2]) != tuple(vehicle.lane_index[:2]):
+    if not given or given[0][0] != vehicle.lane_index[0]:
         given = [vehicle.lane_index, *given]
     route, end = [], None
     for a, b, k in given:
@@ -60,7 +63,7 @@ def along_route(vehicle, distances: np.ndarray) -> np.ndarray:
     """Lane-centre points ``(T, 2)`` ``distances`` ``(T,)`` [m] ahead of ``vehicle``'s abreast position along its
     :func:`resolved_route`, as highway-env's ``predict_trajectory_constant_speed`` places them."""
     network, route = vehicle.road.network, resolved_route(vehicle)
-    s0 = vehicle.lane.local_coordinates(vehicle.position)[0]
+    s0 = network.get_lane(route[0]).local_coordinates(vehicle.position)[0]
     return np.array([network.position_heading_along_route(route, s0 + d, 0.0, vehicle.lane_index)[0]
                      for d in distances], float).reshape(-1, 2)
 
@@ -89,7 +92,8 @@ class Yielding:
     It stops at the latest at the *stop line*, the start of the first lane of its route that starts at a node where
     roads join or fork (a roundabout's ring at its entry, an intersection's turning lanes). It has *entered* once it
     drives on such a lane without yielding; from there on it yields to nobody: it has the right of way as the ring's
-    traffic has, and stopping inside a crossing blocks it."""
+    traffic has, and stopping inside a crossing blocks it. Reaching the stop line enters it too: a conflict first seen
+    there would place the stop beyond the line, inside the junction."""
 
     def __init__(self) -> None:
         self.entered = False
@@ -110,6 +114,9 @@ class Yielding:
             self.entered = junction(network, driver.lane_index[0])
             return None
         line = stop_line(driver)
+        if line is not None and line <= 0.0:  # at the line: a stop now would be inside the junction
+            self.entered = True
+            return None
         return stop if line is None else min(stop, line + driver.DISTANCE_WANTED - driver.LENGTH / 2)
 
 
@@ -123,7 +130,7 @@ def stop_line(vehicle) -> float | None:
     starts at a :func:`junction` (0 on such a lane), None where there is none."""
     network = vehicle.road.network
     route = resolved_route(vehicle)
-    ahead = -vehicle.lane.local_coordinates(vehicle.position)[0]
+    ahead = -network.get_lane(route[0]).local_coordinates(vehicle.position)[0]
     for index in route:
         if junction(network, index[0]):
             return max(ahead, 0.0)

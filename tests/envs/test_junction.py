@@ -178,3 +178,38 @@ def test_reference_lane_stays_on_the_road_until_the_next():
         if terminated or truncated:
             break
     assert ahead > 0
+
+
+def test_a_vehicle_turning_off_at_a_fork_is_predicted_along_its_own_branch():
+    _, base = _roundabout()
+    # On the ring just past the east fork, its route already on the exit: highway-env's nearest lane is the ring's.
+    vehicle = IDMVehicle.make_on_lane(base.road, ("ex", "ee", 1), 1.0, 10.0)
+    vehicle.route = [("ex", "exs", 0), ("exs", "exr", None)]
+    assert junction.resolved_route(vehicle)[0] == ("ex", "exs", 0)
+    end = junction.predicted_positions(vehicle, np.array([2.0]))[0]
+    exit_lane = base.road.network.get_lane(("exs", "exr", 0))
+    assert abs(exit_lane.local_coordinates(end)[1]) < 1.0 and end[0] > 40.0  # out along the exit, not round the ring
+
+
+@pytest.mark.parametrize("scenario", ["bimp/roundabout-v0", "bimp/intersection-v0"])
+def test_no_yield_once_at_the_stop_line(scenario):
+    """A conflict first seen at the stop line would put the stop inside the junction (IDM braking far beyond its
+    comfort there); the EV has entered once it reaches the line. Seeds where that happened before the rule."""
+    env = gym.make(scenario)
+    adapter = env
+    while not hasattr(adapter, "behaviour"):
+        adapter = adapter.env
+    policy = make_policy("idm", env, junction_yield=True)
+    yielded = 0
+    for seed in (2, 7):
+        obs, _ = env.reset(seed=seed)
+        for _ in range(200):
+            obs, _, terminated, truncated, _ = env.step(policy.act(obs))
+            behaviour = adapter.behaviour
+            if behaviour.yield_distance is not None:
+                yielded += 1
+                line = junction.stop_line(env.unwrapped.vehicle)
+                assert line is not None and line > 0.0
+            if terminated or truncated:
+                break
+    assert yielded > 0
