@@ -26,10 +26,12 @@ from bimp.planners.dynamics import dynamics_files, steer_bound
 from bimp.planners.guard import guarded
 from bimp.planners.model import model_params
 from bimp.planners.problem import (
+    STEER_UNIT,
     BarrierShape,
     Problem,
     ProblemConfig,
     Road,
+    for_road,
     load_planner_config,
     make_problem,
     road_window,
@@ -91,9 +93,10 @@ class EnKTSConfig:
         if self.update not in core.READINGS:
             raise ConfigError("update", f"one of {', '.join(core.READINGS)}", self.update)
 
-    def settings(self, n_obstacles: int) -> core.Settings:
-        """The static part for :func:`bimp.planners.core.plan_step`."""
-        problem = self.problem
+    def settings(self, n_obstacles: int, steer: float = STEER_UNIT) -> core.Settings:
+        """The static part for :func:`bimp.planners.core.plan_step` on a road with ``n_obstacles`` slots and the
+        planning steering bound ``steer`` [rad] (:func:`bimp.planners.problem.for_road`)."""
+        problem = for_road(self.problem, steer)
         return core.Settings(self.n_particles, problem.horizon, n_obstacles, float(problem.nu),
                              self.adapt_spread and not math.isinf(problem.nu), self.grow_nu, float(self.max_spread),
                              float(self.max_innovation), float(self.relaxation), self.iterations,
@@ -174,7 +177,7 @@ class EnKTSPlanner:
             raise ValueError(f"a batch of {self.batch} needs observations ({self.batch}, obs_dim), got {obs.shape}")
         obs = np.stack([scene.check_obs(row) for scene, row in zip(scenes, rows)]).astype(np.float32)
         problem = self._problem_of(scenes, obs)
-        cfg = self.config.settings(scenes[0].n_obstacles)
+        cfg = self.config.settings(scenes[0].n_obstacles, scenes[0].bounds.steer)
         # One key per episode, one draw per step: fold the step count into the episode's key.
         if self.batch is None:
             key = jax.random.fold_in(self._keys, self._step)

@@ -59,6 +59,7 @@ from bimp.planners.dynamics import dynamics_files, model_from_name, steer_bound
 from bimp.planners.problem import (
     Problem,
     ProblemConfig,
+    for_road,
     load_planner_config,
     make_problem,
     measure,
@@ -183,7 +184,8 @@ class MPPIPlanner:
             dynamics = model_from_name(config.problem.dynamics, bound)
         self.dynamics = dynamics
         self.generator = torch.Generator()
-        noise_std = config.noise_gain * torch.tensor(config.problem.sigma_du, dtype=torch.float64)
+        sigma_du = for_road(config.problem, bound).sigma_du  # the road's steering scale (as the cost's, make_problem)
+        noise_std = config.noise_gain * torch.tensor(sigma_du, dtype=torch.float64)
         self._mppi = _SeededMPPI(
             self.generator, config.control_cost, self._step, self.running_cost, nx=NX,
             noise_sigma=torch.diag(noise_std**2),

@@ -74,6 +74,7 @@ from bimp.planners.nmpc_casadi import (  # re-exported: the program's pieces, as
 from bimp.planners.problem import (
     BarrierShape,
     ProblemConfig,
+    for_road,
     load_planner_config,
     make_problem,
     predict_obstacles,
@@ -309,7 +310,8 @@ class NMPCPlanner:
         """Formulate eq. 21 (multiple shooting) for ``scene``'s layout and compile IPOPT on it."""
         if self._model_dt is not None and abs(self._model_dt - scene.dt) > 1e-9:
             raise ValueError(f"the dynamics model steps {self._model_dt} s but the scene's dt is {scene.dt} s")
-        cfg, tun, H, K = self.config, self.config.problem, self.horizon, scene.n_obstacles
+        cfg, H, K = self.config, self.horizon, scene.n_obstacles
+        tun = for_road(self.config.problem, scene.bounds.steer)  # the road's steering scales (make_problem's)
         shape, b = tun.barrier, scene.bounds
         X = ca.MX.sym("X", 4, H)  # x_1 .. x_H (columns)
         U = ca.MX.sym("U", 2, H)  # u_0 .. u_{H-1}

@@ -41,7 +41,7 @@ import numpy as np
 
 from bimp.configs import ConfigError, check_fields, load_config, load_layered
 from bimp.envs.road import Route, array_module, project, wrap_angle
-from bimp.envs.scene import Scene, bound_constraints
+from bimp.envs.scene import Bounds, Scene, bound_constraints
 from bimp.planners.dynamics import check_dynamics
 
 N_TRACK = 5  # r (3) + s (2)
@@ -215,6 +215,24 @@ class Problem(NamedTuple):
     lane_rate: float
 
 
+STEER_UNIT = Bounds().steer  # rad: the paper's steering bound, where the steering's noise scales were tuned
+
+
+def for_road(config: ProblemConfig, steer: float) -> ProblemConfig:
+    """``config`` on a road whose planning steering bound is ``steer`` [rad]: the steering's noise scales
+    (``sigma_du``'s and ``sigma_input``'s, tuned at the paper's :data:`STEER_UNIT`) scaled by ``steer /
+    STEER_UNIT``, so that they measure the same share of the steering range on every road. At the paper's scales a
+    junction's turn (0.37 rad of feed-forward at intersection-v0) lay 50 increments' standard deviations beyond a
+    start from standstill: the smoothing never found it, held the EV at the stop line (every planner) or cut the
+    turn's inside to its edge. Unchanged where the bound is the paper's (its scenarios, the suite, the straight
+    roads)."""
+    k = float(steer) / STEER_UNIT
+    if k == 1.0:
+        return config
+    return dataclasses.replace(config, sigma_du=(config.sigma_du[0], config.sigma_du[1] * k),
+                               sigma_input=(config.sigma_input[0], config.sigma_input[1] * k))
+
+
 def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
     """The noise scale of each row of ``y`` ``(m,)``: reference state, reference input, the barriers."""
     return np.array([*config.sigma_ref, *config.sigma_input]
@@ -279,6 +297,7 @@ def make_problem(scene: Scene, config: ProblemConfig, model: tuple = (), ego_xy:
     """The problem of ``scene`` under ``config`` with the road seen from ``ego_xy (2,)`` (the EV's position; the
     route's start if None) (numpy leaves; ``jax.device_put`` or any jnp call takes them)."""
     b, shape = scene.bounds, config.barrier
+    config = for_road(config, b.steer)
     lo, hi = scene.actuator_range
     f = float
     return Problem(
@@ -401,4 +420,5 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
 __all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance_local", "frenet",
            "Limits", "load_planner_config", "load_problem", "make_problem", "measure",
            "measurement_noise", "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles",
-           "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road", "ROAD_BEHIND", "road_window"]
+           "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road", "ROAD_BEHIND", "road_window",
+           "for_road", "STEER_UNIT"]

@@ -57,7 +57,7 @@ from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
 from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, checked_flag, is_int
-from bimp.envs.highway.behaviour import Behaviour, BehaviourRule
+from bimp.envs.highway.behaviour import Behaviour, BehaviourRule, curve_acceleration
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import RouteCache, check_steering_reach, route_from
 from bimp.envs.highway.profiles import PROFILES, SUPPORTED
@@ -376,21 +376,37 @@ class HighwayAdapter(gym.Wrapper):
         return self._reference(self.scene.road.project(np.stack([self._ev_state()[:2], self._abreast()])))
 
     def _abreast(self) -> np.ndarray:
-        """The point ``(2,)`` of MOBIL's target lane's centre abreast of the EV."""
+        """The point ``(2,)`` of MOBIL's target lane's centre abreast of the EV. On a junction road
+        (:attr:`Profile.junction`) the route blends across the gaps between lanes (``lanes.smooth_bridges``) and so
+        lies off their centres there: the point is the route's own abreast of the EV moved by the target lane's
+        offset from the EV's lane on its route (0 without a lane change); a target lane on another road (highway-env's
+        driver turns to the next road a little before this one ends) is the EV's own."""
         ev = self.env.unwrapped.vehicle
+        network = self.env.unwrapped.road.network
         index = self.behaviour.target_lane_index
-        if self.profile.junction and tuple(index[:2]) != tuple(ev.lane_index[:2]):
-            index = ev.lane_index  # the next road's lane, chosen ahead of the road's end (Profile.junction)
-        lane = self.env.unwrapped.road.network.get_lane(index)
-        return np.asarray(lane.position(lane.local_coordinates(ev.position)[0], 0.0), float)
+
+        def centre(lane_index) -> np.ndarray:
+            lane = network.get_lane(lane_index)
+            return np.asarray(lane.position(lane.local_coordinates(ev.position)[0], 0.0), float)
+
+        if not self.profile.junction:
+            return centre(index)
+        own = self._route_lane(ev, getattr(ev, "route", None) or self.behaviour.route)
+        if tuple(index[:2]) != tuple(own[:2]):
+            index = own
+        road = self.scene.road
+        return road.position(road.project(np.asarray(ev.position, float)).s, 0.0) + centre(index) - centre(own)
 
     def _reference(self, p) -> np.ndarray:
         """:meth:`reference` from the projections ``p`` of the EV's position (first) and :meth:`_abreast` (second)."""
         half = self.scene.vehicle_width / 2
         e_left, e_right = float(p.left[0]), float(p.right[0])
         l_ref = float(np.clip(p.l[1], e_left + half, e_right - half)) if e_right - e_left > 2 * half else 0.0
-        a_ref = float(np.clip(self.behaviour.action["acceleration"], *self.scene.bounds.accel))
-        return np.array([max(float(self.env.unwrapped.vehicle.speed), 0.0), a_ref, l_ref])
+        speed = max(float(self.env.unwrapped.vehicle.speed), 0.0)
+        a_ref = self.behaviour.action["acceleration"]
+        if np.isfinite(self.profile.lateral_accel):
+            a_ref = min(a_ref, curve_acceleration(self.scene.road, float(p.s[0]), speed, self.profile.lateral_accel))
+        return np.array([speed, float(np.clip(a_ref, *self.scene.bounds.accel)), l_ref])
 
     def _ev_state(self) -> np.ndarray:
         ev = self.env.unwrapped.vehicle

@@ -34,6 +34,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from bimp.configs import neutral_values
 from bimp.envs.highway.junction import Yielding, yield_acceleration
 from bimp.envs.highway.lanes import goes_on_beside
+from bimp.envs.road import Route
 
 # Bumped whenever the adapter or the behaviour layer changes what an episode does, so that records made before are
 # another scenario definition, never resumed as this one's. 2: routes that skip non-adjacent lane joins, the EV that
@@ -316,3 +317,24 @@ class Behaviour:
             self.action["acceleration"] = min(self.action["acceleration"],
                                               yield_acceleration(shadow, self.yield_distance))
         return self.action
+
+
+CURVE_WINDOW = 5.0  # m: a curve's curvature is the route's heading change over this (a kink is no curve)
+CURVE_LOOKAHEAD = 6.0  # s: how far ahead, at the EV's speed (at least 20 m), curves are braked for
+CURVE_REACTION = 1.0  # s: the least distance to brake over is the EV's speed times this
+
+
+def curve_acceleration(route: Route, s: float, speed: float, lateral_accel: float) -> float:
+    """The least acceleration [m/s^2] over the route ahead of arc length ``s`` [m] that brings ``speed`` [m/s] to
+    each point's curve speed ``sqrt(lateral_accel / |kappa|)`` by the time the EV reaches it,
+    ``(v_c^2 - v^2) / 2 d`` (``d`` at least ``CURVE_REACTION`` s of travel), from :data:`CURVE_LOOKAHEAD` s ahead
+    down to the EV; ``inf`` where no curve limits it. ``kappa``: the heading's change over :data:`CURVE_WINDOW` m."""
+    ahead = np.arange(0.0, max(speed * CURVE_LOOKAHEAD, 20.0), 1.0)
+    half = CURVE_WINDOW / 2
+    kappa = np.abs(route.heading_at(s + ahead + half) - route.heading_at(s + ahead - half)) / CURVE_WINDOW
+    v_curve2 = lateral_accel / np.maximum(kappa, 1e-9)
+    limited = v_curve2 < speed ** 2 + 2 * 10.0 * ahead  # the rest could not brake it at any sane rate: skip
+    if not limited.any():
+        return float("inf")
+    distance = np.maximum(ahead[limited], max(speed * CURVE_REACTION, 1.0))
+    return float(np.min((v_curve2[limited] - speed ** 2) / (2 * distance)))

@@ -22,7 +22,10 @@ class Profile:
     ``junction``: a road whose junctions the EV crosses (roundabout-v0, intersection-v0): the behaviour layer yields
     there by gap acceptance (:mod:`bimp.envs.highway.junction`), and the reference's lane is the EV's own road's until
     it is on the next one (highway-env's driver turns to the next lane a little before the road's end: at
-    roundabout-v0's entry, the ring lane abreast lies 2.3 m beside the entry)."""
+    roundabout-v0's entry, the ring lane abreast lies 2.3 m beside the entry); ``lateral_accel`` [m/s^2]: where
+    finite, the reference's acceleration also keeps the EV at or below each curve's speed ahead for that lateral
+    acceleration (:func:`bimp.envs.highway.behaviour.curve_acceleration`; highway-env's IDM takes a curve at its
+    target speed, steering up to 60 degrees at once, and the planners' bounded steering does not)."""
 
     bounds: Bounds
     actuator_steer: tuple[float, float]
@@ -31,6 +34,7 @@ class Profile:
     drive_on: bool = added_field(False, neutral=False)
     overtake: bool = added_field(False, neutral=False)
     junction: bool = added_field(False, neutral=False)
+    lateral_accel: float = added_field(float("inf"), neutral=float("inf"))
 
 
 def _curve_bounds(steer: float) -> Bounds:
@@ -39,6 +43,9 @@ def _curve_bounds(steer: float) -> Bounds:
     return Bounds(steer=steer, steer_rate=steer / 10.0)
 
 
+# m/s^2: the junction roads' curve speed, about 0.4 g (the ring at 9.8 m/s, the roundabout's entry and the
+# intersection's right turn, radius 9 m, at 6 m/s)
+CURVE_ACCEL = 4.0
 _STRAIGHT = Bounds()  # the paper's: straight roads and lane changes need no more than 0.05 rad
 # The one table of per-id numbers. Tightest radius on the EV's route -> steering needed -> planning bound (about 20%
 # above it) -> actuator range (wider still, so violations of the bound stay measurable).
@@ -49,8 +56,9 @@ PROFILES: dict[str, Profile] = {
     "merge-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),  # no duration of its own: highway-env's goal x > 370
     # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
     "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True),
-    # ring of radius 20 m (inner lane): 0.247 rad needed
-    "roundabout-v0": Profile(_curve_bounds(0.3), (-0.5, 0.5), 16.0, 20.0, junction=True),
+    # the entry's turn into the ring, the route's blend across the gap (lanes.smooth_bridges): radius 8 m over 5 m,
+    # 0.58 rad needed (the ring itself, radius 20 m on the inner lane: 0.247 rad)
+    "roundabout-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 16.0, 20.0, junction=True, lateral_accel=CURVE_ACCEL),
     # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
     "two-way-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),
     # a half turn of radius 20 m (inner lane): 0.247 rad; the lanes' 20 m/s limit (highway-env's default) caps IDM
@@ -58,7 +66,7 @@ PROFILES: dict[str, Profile] = {
     # tightest turn radius 15 m: 0.326 rad; speed limit 10 m/s
     "racetrack-v0": Profile(_curve_bounds(0.4), (-0.6, 0.6), 10.0, 30.0),
     # right turn of radius 9 m: 0.524 rad; target: the top of its target_speeds (9 m/s)
-    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 20.0, junction=True),
+    "intersection-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 9.0, 20.0, junction=True, lateral_accel=CURVE_ACCEL),
 }
 SUPPORTED = tuple(PROFILES)  # highway-env's ids, what wrap(gym.make(ID)) takes
 # racetrack-v0's duration (300 s) is shortened to 30 s for bimp. roundabout-v0's (11 s) and intersection-v0's (13 s)

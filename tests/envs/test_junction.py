@@ -171,10 +171,9 @@ def test_reference_lane_stays_on_the_road_until_the_next():
         ev = env.unwrapped.vehicle
         if tuple(adapter.behaviour.target_lane_index[:2]) != tuple(ev.lane_index[:2]):
             ahead += 1  # highway-env's driver has turned to the next road's lane before this one ends
-            lane = ev.lane
-            centre = lane.position(lane.local_coordinates(ev.position)[0], 0.0)
-            expected = float(env.unwrapped.scene.road.project(np.asarray(centre)[None]).l[0])
-            assert info["reference"][2] == pytest.approx(expected, abs=1e-6)
+            # The reference is the EV's own lane on its route, which the route follows (or blends across a gap
+            # from): the route itself, not the next road's lane (2.3 m beside the entry).
+            assert info["reference"][2] == pytest.approx(0.0, abs=1e-6)
         if terminated or truncated:
             break
     assert ahead > 0
@@ -213,3 +212,47 @@ def test_no_yield_once_at_the_stop_line(scenario):
             if terminated or truncated:
                 break
     assert yielded > 0
+
+
+def test_the_route_blends_across_the_roundabouts_gaps():
+    """roundabout-v0's entries and exits meet the ring 5.6-6.5 m on: the route blends across each gap (no turn of
+    more than the planning bound's radius over 5 m, nothing like the chord's 0.54 rad within a metre), keeps a car's
+    half width and more from its edges, and leaves the lanes' centres only across the blend."""
+    from bimp.envs.highway.lanes import BLEND, build_route, lane_walk
+
+    _, base = _roundabout()
+    network, ev = base.road.network, base.vehicle
+    entry = network.get_lane(("ses", "se", 0))
+    route, lanes = build_route(network, ("ses", "se", 0), entry.position(5.0, 0.0), ev.route)
+    assert len(lane_walk(network, ("ses", "se", 0), 0.0, 120.0, list(ev.route)[1:])[3]) == 2  # entry and exit
+    ahead = route.s < route.s[0] + 110.0  # through the entry, round the ring and out
+    heading = np.interp(np.arange(route.s[0], route.s[0] + 110.0, 1.0), route.s, route.heading)
+    assert np.abs(np.diff(heading)).max() < 0.2
+    kappa = (np.abs(heading[5:] - heading[:-5]) / 5.0).max()  # over 5 m: about a radius of 8 m
+    needed = np.arctan(2 * np.tan(np.arcsin(5.0 * kappa / 2)))  # highway-env's bicycle, L = 5 m (steering_needed)
+    assert needed <= base.scene.bounds.steer
+    assert np.minimum(route.right, -route.left)[ahead].min() > 1.3  # a car's half width and the edge margin
+    off = [abs(network.get_lane(lane).local_coordinates(point)[1]) for lane, point in zip(lanes, route.xy)]
+    blended = np.asarray(off)[ahead] > 0.05
+    assert 0 < np.count_nonzero(blended) <= 2 * (2 * BLEND + 8)  # two blends of a gap (<= 7 m) and BLEND either side
+
+
+def test_curve_acceleration_brakes_for_the_curve_ahead_and_not_on_a_straight():
+    from bimp.envs.highway.behaviour import CURVE_REACTION, curve_acceleration
+    from bimp.envs.road import Route
+
+    radius, a_lat = 20.0, 4.0
+    s = np.arange(0.0, 200.0, 1.0)
+    heading = np.where(s < 100.0, 0.0, (s - 100.0) / radius)  # straight, then a circle from 100 m on
+    xy = np.cumsum(np.stack([np.cos(heading), np.sin(heading)], 1), axis=0)
+    route = Route(xy=xy, s=s, heading=heading, curvature=np.gradient(heading, s), left=-2 + 0 * s, right=2 + 0 * s)
+    v_curve = np.sqrt(a_lat * radius)  # 8.9 m/s
+    assert curve_acceleration(route, 0.0, 15.0, a_lat) == np.inf  # the curve is 100 m on: nothing to brake for yet
+    brake = curve_acceleration(route, 60.0, 15.0, a_lat)
+    # the curvature over 5 m is the circle's from 102.5 m on: 42.5 m ahead
+    assert brake < 0 and brake == pytest.approx((v_curve ** 2 - 15.0 ** 2) / (2 * 42.5), rel=0.05)
+    assert curve_acceleration(route, 120.0, 0.5 * v_curve, a_lat) > 0  # below the curve's speed: may speed up
+    inside = curve_acceleration(route, 120.0, 12.0, a_lat)
+    assert inside == pytest.approx((v_curve ** 2 - 144.0) / (2 * 12.0 * CURVE_REACTION), rel=1e-6)
+    straight = Route(xy=xy, s=s, heading=0 * s, curvature=0 * s, left=-2 + 0 * s, right=2 + 0 * s)
+    assert curve_acceleration(straight, 50.0, 30.0, a_lat) == np.inf

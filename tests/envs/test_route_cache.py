@@ -10,7 +10,7 @@ import pytest
 import bimp  # noqa: F401  (registers bimp/ID)
 from bimp import make_policy
 from bimp.envs.highway.adapter import SUPPORTED
-from bimp.envs.highway.lanes import AHEAD, SLACK, RouteCache, build_route
+from bimp.envs.highway.lanes import AHEAD, BLEND, SLACK, RouteCache, build_route
 
 CURVED = {"roundabout-v0", "u-turn-v0", "racetrack-v0", "intersection-v0"}
 
@@ -37,6 +37,10 @@ def test_the_kept_route_is_the_fresh_route_where_a_planner_reads_it(highway_id):
         # up to the chords' sag on a curve (1 m chords on radii >= 9 m: under 2 cm) and headed the same way.
         s_fresh = fresh.project(np.array(ev.position, float)).s
         near = (fresh.s > s_fresh - 20.0) & (fresh.s < s_fresh + 200.0)
+        if highway_id == "roundabout-v0":
+            # A route built from a lane's start (the ring's, just past the entry) does not see the lane before it,
+            # so not the blend across the gap between them that the kept route follows (lanes.smooth_bridges).
+            near &= fresh.s > fresh.s[0] + BLEND
         on = kept.project(fresh.xy[near])
         tolerance = 0.02 if highway_id in CURVED else 1e-6
         assert np.abs(on.l).max() <= tolerance, highway_id

@@ -187,3 +187,30 @@ def test_default_resolved_configs_are_unchanged():
               for name in ("enkts", "enks", "mppi", "nmpc", "nmpc-t")}
     assert hashes == {"enkts": "19425dcad15426c8", "enks": "93129a5653cd37cf", "mppi": "e6310354491e83f1",
                       "nmpc": "bb113f44a62ed83f", "nmpc-t": "d75f7962508ada94"}
+
+
+def test_the_steering_scales_follow_the_roads_steering_bound(scene):
+    """for_road: the paper's scenarios (the bound the scales were tuned at) keep the config as it is; a road with a
+    twelve times wider bound (intersection-v0) has twelve times the steering increments' and the feed-forward's
+    noise, in every planner's view of it (the problem's noise, EnKTS's settings)."""
+    import dataclasses
+
+    from bimp.planners.enkts import EnKTSConfig
+    from bimp.planners.problem import STEER_UNIT, for_road
+
+    config = ProblemConfig()
+    assert scene.bounds.steer == STEER_UNIT and for_road(config, STEER_UNIT) is config
+    wide = for_road(config, 12 * STEER_UNIT)
+    assert wide.sigma_du == pytest.approx((config.sigma_du[0], 12 * config.sigma_du[1]))
+    assert wide.sigma_input == pytest.approx((config.sigma_input[0], 12 * config.sigma_input[1]))
+    env = gym.make("bimp/intersection-v0")
+    env.reset(seed=0)
+    junction = env.unwrapped.scene
+    assert junction.bounds.steer == pytest.approx(12 * STEER_UNIT)
+    noise, base = make_problem(junction, config).noise, make_problem(scene, config).noise
+    assert noise[4] == pytest.approx(12 * base[4]) and np.allclose(noise[:4], base[:4])
+    assert np.allclose(noise[5:], config.sigma_barrier)
+    settings = EnKTSConfig(problem=config).settings(junction.n_obstacles, junction.bounds.steer)
+    assert settings.sigma_du == pytest.approx(wide.sigma_du)
+    assert EnKTSConfig(problem=config).settings(5).sigma_du == pytest.approx(config.sigma_du)
+    assert dataclasses.replace(config) == config  # the stored config itself is never changed
