@@ -26,7 +26,6 @@ from bimp.planners.dynamics import dynamics_files, steer_bound
 from bimp.planners.guard import guarded
 from bimp.planners.model import model_params
 from bimp.planners.problem import (
-    STEER_UNIT,
     BarrierShape,
     Problem,
     ProblemConfig,
@@ -93,7 +92,7 @@ class EnKTSConfig:
         if self.update not in core.READINGS:
             raise ConfigError("update", f"one of {', '.join(core.READINGS)}", self.update)
 
-    def settings(self, n_obstacles: int, steer: float = STEER_UNIT) -> core.Settings:
+    def settings(self, n_obstacles: int, steer: float) -> core.Settings:
         """The static part for :func:`bimp.planners.core.plan_step` on a road with ``n_obstacles`` slots and the
         planning steering bound ``steer`` [rad] (:func:`bimp.planners.problem.for_road`)."""
         problem = for_road(self.problem, steer)

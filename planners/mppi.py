@@ -19,7 +19,8 @@ copies: float64 CPU tensors share memory with numpy): the same folded weights th
 N = 50 (about 4x, see ``docs/dynamics.md``; on par at N = 2000); the cost calls :func:`bimp.planners.problem.measure`,
 numpy too (the one definition of the problem, evaluated with numpy arrays). Noise: by default MPPI's action is the
 control *increment* (``sample: increments``), perturbed i.i.d. per step with ``noise_gain * sigma_du`` (the
-virtual system's own prior on increments, eq. 7) and clamped to the rate bounds; the input integrates it. The
+virtual system's own prior on increments, eq. 7, its steering scaled to the road's bound by
+:func:`bimp.planners.problem.for_road`) and clamped to the rate bounds; the input integrates it. The
 literal alternative (``sample: inputs``) perturbs the inputs i.i.d.: with the shipped tuning its steering noise
 (0.0015 rad) averages out over the horizon, no sample ever turns toward the reference lane, and any larger noise
 breaks the steering rate bound (0.005 rad per step) at every step (on results seeds 1000-1199 it exceeded a rate
@@ -82,7 +83,8 @@ class MPPIConfig:
     negative log-likelihood, so ``problem.nu`` is not read (it stays the shared problem's, as recorded);
     n_particles: samples N >= 2 (EnKTS's default, 50); temperature: MPPI's lambda > 0, in units of the cost (a
     negative log-likelihood);
-    noise_gain: std of the i.i.d. control perturbation per step as a multiple of ``problem.sigma_du``, > 0;
+    noise_gain: std of the i.i.d. control perturbation per step as a multiple of ``problem.sigma_du`` (for the road:
+    ``for_road``), > 0;
     control_cost: weight >= 0 of MPPI's control cost ``lambda U' Sigma^-1 eps`` (``1 - alpha`` of Williams et al.
     2018; 1 = pytorch_mppi's default). That term is the log-prior of controls that are zero-mean a priori; the
     virtual system's prior is on the increments and its input and rate terms are already in the running cost,

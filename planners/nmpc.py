@@ -12,7 +12,8 @@ directly with a gradient-based solver, so the EnKTS planner can be compared agai
 
 - ``nmpc`` (``nu = inf``): rho_n(q) = q / 2, the quadratic tracking cost of eq. 21 as a negative log-likelihood;
   weights are the inverse squared noise scales ``sigma_ref``, ``sigma_input``, ``sigma_du`` of the shared planner
-  problem (``configs/problem.yaml``), so all planners trade tracking against smoothness the same way.
+  problem (``configs/problem.yaml``, the steering's scaled to the road's bound by ``problem.for_road``), so all
+  planners trade tracking against smoothness the same way.
 - ``nmpc-t`` (``nu`` = the problem's ``nu``): rho_n(q) = (nu + n) / 2 log(1 + q / nu), the Student's-t log cost
   of section IV (it tends to q / 2 as nu -> inf).
 

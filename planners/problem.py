@@ -225,7 +225,7 @@ def for_road(config: ProblemConfig, steer: float) -> ProblemConfig:
     junction's turn (0.37 rad of feed-forward at intersection-v0) lay 50 increments' standard deviations beyond a
     start from standstill: the smoothing never found it, held the EV at the stop line (every planner) or cut the
     turn's inside to its edge. Unchanged where the bound is the paper's (its scenarios, the suite, the straight
-    roads)."""
+    roads). The barriers' widths are not scaled: a bound's barrier reads violations in radians on every road."""
     k = float(steer) / STEER_UNIT
     if k == 1.0:
         return config

@@ -319,7 +319,7 @@ class Behaviour:
         return self.action
 
 
-CURVE_WINDOW = 5.0  # m: a curve's curvature is the route's heading change over this (a kink is no curve)
+CURVE_WINDOW = 5.0  # m: a curve's curvature is the route's heading change over this (a kink reads as a curve)
 CURVE_LOOKAHEAD = 6.0  # s: how far ahead, at the EV's speed (at least 20 m), curves are braked for
 CURVE_REACTION = 1.0  # s: the least distance to brake over is the EV's speed times this
 
@@ -328,12 +328,15 @@ def curve_acceleration(route: Route, s: float, speed: float, lateral_accel: floa
     """The least acceleration [m/s^2] over the route ahead of arc length ``s`` [m] that brings ``speed`` [m/s] to
     each point's curve speed ``sqrt(lateral_accel / |kappa|)`` by the time the EV reaches it,
     ``(v_c^2 - v^2) / 2 d`` (``d`` at least ``CURVE_REACTION`` s of travel), from :data:`CURVE_LOOKAHEAD` s ahead
-    down to the EV; ``inf`` where no curve limits it. ``kappa``: the heading's change over :data:`CURVE_WINDOW` m."""
+    down to the EV; ``inf`` where no curve limits it. ``kappa``: the heading's change over :data:`CURVE_WINDOW` m.
+    ``ValueError`` unless ``lateral_accel`` > 0."""
+    if not lateral_accel > 0:
+        raise ValueError(f"a curve speed needs a lateral acceleration > 0 m/s^2, got {lateral_accel}")
     ahead = np.arange(0.0, max(speed * CURVE_LOOKAHEAD, 20.0), 1.0)
     half = CURVE_WINDOW / 2
     kappa = np.abs(route.heading_at(s + ahead + half) - route.heading_at(s + ahead - half)) / CURVE_WINDOW
     v_curve2 = lateral_accel / np.maximum(kappa, 1e-9)
-    limited = v_curve2 < speed ** 2 + 2 * 10.0 * ahead  # the rest could not brake it at any sane rate: skip
+    limited = v_curve2 < speed ** 2 + 2 * 10.0 * ahead  # the rest would allow 10 m/s^2 or more: they limit nothing
     if not limited.any():
         return float("inf")
     distance = np.maximum(ahead[limited], max(speed * CURVE_REACTION, 1.0))

@@ -33,8 +33,8 @@ BLEND = 7.0
 def lane_walk(network, index, s_from: float, length: float, route=None, spacing: float = SPACING):
     """Points along lane ``index`` from its arc length ``s_from`` for ``length`` m, continuing into the next lanes
     (``network.next_lane`` along a copy of ``route``): ``(xy (P, 2), heading (P,) wrapped, lanes (P,) list of lane
-    indices, bridges: (i, j) index pairs, the last point of a lane and the first of the next where a gap between
-    them was bridged)``; fewer metres where the network ends."""
+    indices, bridges: (i, j) index pairs, the last point of a lane and the first of the next where a gap of more
+    than ``JOIN`` m between them was bridged)``; fewer metres where the network ends."""
     plan = list(route) if route else None  # next_lane pops the route's first road as it goes: never the vehicle's
     xy, heading, lanes, bridges = [], [], [], []
     s, remaining = s_from, length
@@ -87,8 +87,9 @@ def smooth_bridges(network, xy: np.ndarray, heading: np.ndarray, lanes: list, br
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
     pieces, done = [], -np.inf
     for i, j in bridges:
-        # The window and the weight are the lanes' own, wherever the walk starts: a route built from within a blend
-        # (the EV's, rebuilt as it drives) lies on the one built before it.
+        # The window and the weight are the lanes' own, wherever on the lane before the gap the walk starts: a route
+        # rebuilt there lies on the one built before it. (One built from the lane after the gap does not see the
+        # gap; the EV's kept route, built before it got there, is the blended one.)
         first, last = s[i] - reach, s[min(j, len(s) - 1)] + reach
         if first < done or j >= len(s) or last > s[-1]:  # overlapping the previous blend, or past the walk's end
             continue
@@ -109,7 +110,7 @@ def smooth_bridges(network, xy: np.ndarray, heading: np.ndarray, lanes: list, br
         nearer = np.abs(fits).argmin(axis=1)
         pieces.append((a, b, curve, np.unwrap(np.arctan2(step[:, 1], step[:, 0])),
                        [(lanes[i], lanes[j])[n] for n in nearer], fits[np.arange(len(curve)), nearer]))
-        done = last
+        done = s[b]  # the piece runs to the walk's point at or past its window's end
     if not pieces:
         return xy, heading, lanes, offset
     out_xy, out_heading, out_lanes, out_offset, k = [], [], [], [], 0

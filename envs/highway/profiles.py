@@ -57,7 +57,7 @@ PROFILES: dict[str, Profile] = {
     # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
     "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True),
     # the entry's turn into the ring, the route's blend across the gap (lanes.smooth_bridges): radius 8 m over 5 m,
-    # 0.58 rad needed (the ring itself, radius 20 m on the inner lane: 0.247 rad)
+    # 0.58 rad needed, a thin 3% under the bound (the ring itself, radius 20 m on the inner lane: 0.247 rad)
     "roundabout-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 16.0, 20.0, junction=True, lateral_accel=CURVE_ACCEL),
     # straight; overtaking in the oncoming lane; MDPVehicle's top target speed
     "two-way-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),

@@ -256,3 +256,5 @@ def test_curve_acceleration_brakes_for_the_curve_ahead_and_not_on_a_straight():
     assert inside == pytest.approx((v_curve ** 2 - 144.0) / (2 * 12.0 * CURVE_REACTION), rel=1e-6)
     straight = Route(xy=xy, s=s, heading=0 * s, curvature=0 * s, left=-2 + 0 * s, right=2 + 0 * s)
     assert curve_acceleration(straight, 50.0, 30.0, a_lat) == np.inf
+    with pytest.raises(ValueError, match="lateral acceleration"):
+        curve_acceleration(straight, 50.0, 30.0, 0.0)

@@ -220,7 +220,8 @@ def test_a_redrawn_road_reuses_the_program_and_acts_as_a_fresh_compile():
     assert core.plan_step._cache_size() == compiled
     fresh = jax.jit(core._plan, static_argnums=1)
     problem = make_problem(env.unwrapped.scene, cfg.problem, jax.device_put(model_params(cfg.problem.dynamics)))
-    expected, _, _ = fresh(problem, cfg.settings(2), core.initial_carry(cfg.problem.horizon),
+    settings = cfg.settings(2, env.unwrapped.scene.bounds.steer)
+    expected, _, _ = fresh(problem, settings, core.initial_carry(cfg.problem.horizon),
                            jnp.asarray(obs, jnp.float32), jax.random.fold_in(jax.random.key(3), 0))
     np.testing.assert_allclose(action, np.asarray(expected), atol=1e-6)
 
@@ -252,7 +253,8 @@ def test_float32_plan_agrees_with_float64():
     env, obs = episode("bimp/Overtaking-v0", seed=2)
     cfg = small()
     problem = make_problem(env.unwrapped.scene, cfg.problem, model_params(cfg.problem.dynamics))
-    args = (cfg.settings(2), core.initial_carry(cfg.problem.horizon), obs, jax.random.key(0))
+    settings = cfg.settings(2, env.unwrapped.scene.bounds.steer)
+    args = (settings, core.initial_carry(cfg.problem.horizon), obs, jax.random.key(0))
     a32, _, plan32 = core.plan_step(jax.tree.map(lambda a: np.asarray(a, np.float32), problem), *args)
     with jax.enable_x64(True):
         p64 = jax.tree.map(lambda a: np.asarray(a, np.float64), problem)

@@ -212,5 +212,5 @@ def test_the_steering_scales_follow_the_roads_steering_bound(scene):
     assert np.allclose(noise[5:], config.sigma_barrier)
     settings = EnKTSConfig(problem=config).settings(junction.n_obstacles, junction.bounds.steer)
     assert settings.sigma_du == pytest.approx(wide.sigma_du)
-    assert EnKTSConfig(problem=config).settings(5).sigma_du == pytest.approx(config.sigma_du)
+    assert EnKTSConfig(problem=config).settings(5, STEER_UNIT).sigma_du == pytest.approx(config.sigma_du)
     assert dataclasses.replace(config) == config  # the stored config itself is never changed
