@@ -291,7 +291,8 @@ class HighwayAdapter(gym.Wrapper):
         base = self.env.unwrapped
         ev = base.vehicle
         route = getattr(ev, "route", None) or self.behaviour.route
-        road, at = self._routes.get(base.road.network, self._route_lane(ev, route), ev.position, route)
+        self._lane_on_route = self._route_lane(ev, route)  # the reference's lane (_abreast) reads it too
+        road, at = self._routes.get(base.road.network, self._lane_on_route, ev.position, route)
         # Headings are continuous along the route; shift them by whole turns to the EV's own (unwrapped) heading.
         turns = float(np.round((ev.heading - float(road.heading[at])) / (2 * np.pi)))
         if road is not self._shifted[0] or turns != self._shifted[1]:
@@ -391,7 +392,7 @@ class HighwayAdapter(gym.Wrapper):
 
         if not self.profile.junction:
             return centre(index)
-        own = self._route_lane(ev, getattr(ev, "route", None) or self.behaviour.route)
+        own = self._lane_on_route
         if tuple(index[:2]) != tuple(own[:2]):
             index = own
         road = self.scene.road

@@ -83,7 +83,6 @@ def smooth_bridges(network, xy: np.ndarray, heading: np.ndarray, lanes: list, br
     rad within a metre (roundabout-v0's entry meets the ring 5.6 m on, at 47 degrees): no vehicle follows that,
     the heading and curvature terms of the planning problem read it as a wall, and the planners stopped at the
     entry for good."""
-    offset = np.zeros(len(xy))
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
     pieces, done = [], -np.inf
     for i, j in bridges:
@@ -108,23 +107,17 @@ def smooth_bridges(network, xy: np.ndarray, heading: np.ndarray, lanes: list, br
         step = np.gradient(curve, axis=0) if len(curve) > 1 else np.array([[np.cos(heading[i]), np.sin(heading[i])]])
         fits = np.array([[before.local_coordinates(p)[1], after.local_coordinates(p)[1]] for p in curve])
         nearer = np.abs(fits).argmin(axis=1)
-        pieces.append((a, b, curve, np.unwrap(np.arctan2(step[:, 1], step[:, 0])),
-                       [(lanes[i], lanes[j])[n] for n in nearer], fits[np.arange(len(curve)), nearer]))
+        pieces.append((a, b, (curve, np.unwrap(np.arctan2(step[:, 1], step[:, 0])),
+                              [(lanes[i], lanes[j])[n] for n in nearer], fits[np.arange(len(curve)), nearer])))
         done = s[b]  # the piece runs to the walk's point at or past its window's end
-    if not pieces:
-        return xy, heading, lanes, offset
-    out_xy, out_heading, out_lanes, out_offset, k = [], [], [], [], 0
-    for a, b, curve, curve_heading, curve_lanes, curve_offset in pieces:
-        out_xy += [xy[k:a], curve]
-        out_heading += [heading[k:a], curve_heading]
-        out_lanes += lanes[k:a] + curve_lanes
-        out_offset += [offset[k:a], curve_offset]
+    offset, parts, k = np.zeros(len(xy)), [], 0
+    for a, b, piece in pieces:  # the walk's points up to each blend, then the blend in their place
+        parts += [(xy[k:a], heading[k:a], lanes[k:a], offset[k:a]), piece]
         k = b
-    out_xy.append(xy[k:])
-    out_heading.append(heading[k:])
-    out_lanes += lanes[k:]
-    out_offset.append(offset[k:])
-    return np.concatenate(out_xy), np.concatenate(out_heading), out_lanes, np.concatenate(out_offset)
+    parts.append((xy[k:], heading[k:], lanes[k:], offset[k:]))
+    xys, headings, lane_lists, offsets = zip(*parts)
+    return (np.concatenate(xys), np.concatenate(headings), [lane for part in lane_lists for lane in part],
+            np.concatenate(offsets))
 
 
 def _spaced(xy: np.ndarray, least: float) -> np.ndarray:
