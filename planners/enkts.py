@@ -33,6 +33,7 @@ from bimp.planners.problem import (
     for_road,
     load_planner_config,
     make_problem,
+    road_changes,
     road_window,
 )
 from bimp.planners.problem import search_space as problem_search_space
@@ -137,6 +138,7 @@ class EnKTSPlanner:
         self._scene = scene if callable(scene) else (lambda: scene)
         bound = steer_bound(self._scene())  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound)  # the weights by content and name
+        self.road = road_changes(config.problem, bound)  # what the road changes in the problem, for the record
         self._model = jax.device_put(model_params(config.problem.dynamics, bound))
         self._problem_scenes: list[Scene] = []
         self._problem: Problem | None = None

@@ -66,6 +66,7 @@ from bimp.planners.problem import (
     measure,
     predict_obstacles,
     reference_profile,
+    road_changes,
 )
 from bimp.planners.problem import search_space as problem_search_space
 
@@ -182,6 +183,7 @@ class MPPIPlanner:
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
         bound = steer_bound(self._scene())  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
+        self.road = road_changes(config.problem, bound)  # what the road changes in the problem, for the record
         if dynamics is None:
             dynamics = model_from_name(config.problem.dynamics, bound)
         self.dynamics = dynamics

@@ -80,6 +80,7 @@ from bimp.planners.problem import (
     make_problem,
     predict_obstacles,
     reference_profile,
+    road_changes,
 )
 from bimp.planners.problem import search_space as problem_search_space
 
@@ -189,6 +190,7 @@ class NMPCPlanner:
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
         bound = steer_bound(self._scene())
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
+        self.road = road_changes(config.problem, bound)  # what the road changes in the problem, for the record
         if dynamics is None:
             model = model_from_name(config.problem.dynamics, bound)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
@@ -328,13 +330,15 @@ class NMPCPlanner:
 
         states = ca.horzcat(x0, X)  # x_0 .. x_H
         s, lat = frenet(states[0, :], states[1, :], road)
-        dpsi = states[2, :] - heading_at(s, road)
+        dpsi = states[2, :] - heading_at(s, road)  # the body's: its corners meet the edges
+        # x_{t+1}'s course: its heading plus the slip of u_t, the input that reached it (measure's heading row)
+        course = dpsi + (ca.horzcat(ca.MX.zeros(1, 1), ca.atan(0.5 * ca.tan(U[1, :]))) if tun.track_course else 0)
         v = states[3, :]
         du = U - ca.horzcat(u_prev, U[:, :-1])
 
         # Cost (eq. 21, or its Student's-t form): residuals of bimp.planners.problem.measure, weights 1 / sigma^2.
         sr, si, sw = tun.sigma_ref, tun.sigma_input, tun.sigma_du
-        q_ref = ((lat - ref_lane) / sr[0]) ** 2 + (dpsi / sr[1]) ** 2 + ((v - v_ref) / sr[2]) ** 2
+        q_ref = ((lat - ref_lane) / sr[0]) ** 2 + (course / sr[1]) ** 2 + ((v - v_ref) / sr[2]) ** 2
         # u_t is measured with the state x_{t+1} it reaches, at that state's time (as measure's rows): the
         # feed-forward of the curvature at x_{t+1}, the reference speed's rate at t + 1.
         feedforward = ca.atan(scene.vehicle_length * curvature_at(s[:, 1:], road))

@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
-from bimp.configs import ConfigError, check_fields, load_config, load_layered
+from bimp.configs import ConfigError, added_field, check_fields, load_config, load_layered
 from bimp.envs.road import Route, array_module, project, wrap_angle
 from bimp.envs.scene import Bounds, Scene, bound_constraints
 from bimp.planners.dynamics import check_dynamics
@@ -113,7 +113,10 @@ class ProblemConfig:
     sigma_barrier: of each barrier value (the barriers' tightness);
     lane_change_rate [m/s]: the reference lane over the horizon leaves the EV's lateral offset toward the
     reference lane at most this fast, a lane-change path rather than a step (``inf``: the step);
-    barrier: margins and widths (:class:`BarrierShape`); road_points, road_spacing [m]: the road the planner
+    track_course: the heading term measures the course (the direction of travel, the body's heading plus the
+    bicycle's slip ``arctan(tan(delta) / 2)``) against the road's heading instead of the body's heading (what
+    :func:`for_road` turns on on a road whose steering bound exceeds the paper's); barrier: margins and widths
+    (:class:`BarrierShape`); road_points, road_spacing [m]: the road the planner
     sees, P points of the scene's route every ``road_spacing`` m from ``ROAD_BEHIND`` m behind the EV (one compiled
     program per P; the plan's reach at 40 m/s over 2 s is 80 m, the default window 139 m); dynamics: ``"mlp"`` (the
     shipped model), ``"bicycle"``
@@ -137,6 +140,7 @@ class ProblemConfig:
     # and every planner's config hash changed with them (docs/evaluation.md).
     road_points: int = 160
     road_spacing: float = 1.0
+    track_course: bool = added_field(False, neutral=False)
 
     def __post_init__(self) -> None:
         check_fields(self, allow_inf=("nu", "lane_change_rate"))
@@ -205,7 +209,8 @@ class Barrier(NamedTuple):
 class Problem(NamedTuple):
     """One episode's planning problem: ``noise (m,)`` is the measurement noise scale of each row of ``y``;
     ``model`` the dynamics' parameters (:mod:`bimp.planners.model`); ``lane_rate`` the reference lane's lateral speed
-    [m/s] over the horizon (finite: a step is 1e6)."""
+    [m/s] over the horizon (finite: a step is 1e6); ``course``: 1.0 where the heading term measures the course
+    (``ProblemConfig.track_course``), else 0.0 (data, not a program switch)."""
 
     road: Road
     limits: Limits
@@ -213,24 +218,43 @@ class Problem(NamedTuple):
     noise: np.ndarray
     model: tuple
     lane_rate: float
+    course: float = 0.0
 
 
 STEER_UNIT = Bounds().steer  # rad: the paper's steering bound, where the steering's noise scales were tuned
 
 
 def for_road(config: ProblemConfig, steer: float) -> ProblemConfig:
-    """``config`` on a road whose planning steering bound is ``steer`` [rad]: the steering's noise scales
-    (``sigma_du``'s and ``sigma_input``'s, tuned at the paper's :data:`STEER_UNIT`) scaled by ``steer /
-    STEER_UNIT``, so that they measure the same share of the steering range on every road. At the paper's scales a
-    junction's turn (0.37 rad of feed-forward at intersection-v0) lay 50 increments' standard deviations beyond a
-    start from standstill: the smoothing never found it, held the EV at the stop line (every planner) or cut the
-    turn's inside to its edge. Unchanged where the bound is the paper's (its scenarios, the suite, the straight
-    roads). The barriers' widths are not scaled: a bound's barrier reads violations in radians on every road."""
+    """``config`` on a road whose planning steering bound is ``steer`` [rad], where it is not the paper's
+    :data:`STEER_UNIT` (the paper's scenarios, the suite and the straight roads keep ``config`` as it is):
+
+    - the steering's noise (``sigma_du``'s and ``sigma_input``'s, tuned at the paper's bound) scales by ``steer /
+      STEER_UNIT``, so that it measures the same share of the steering range on every road. At the paper's scales a
+      junction's turn (0.37 rad of feed-forward at intersection-v0) lay 50 increments' standard deviations beyond a
+      start from standstill: the smoothing never found it, held the EV at the stop line (every planner) or cut the
+      turn's inside to its edge. The barriers' widths are not scaled: a bound's barrier reads violations in radians
+      on every road;
+    - the heading term tracks the course (``track_course``). On a tight curve the bicycle's body points outward of
+      its course by the slip (0.12 rad on roundabout-v0's ring, 2.4 of the heading's 0.05 rad sigmas): aligning the
+      body with the lane turned the course inward, and the plans settled 1-2 m inside the lane (into the ring's
+      inner lane, past the exit), or drifted off it while stopping in the roundabout's S-bend entry. On the paper's
+      roads the slip is at most 0.025 rad.
+
+    :func:`road_changes` lists what this changes, for the record."""
     k = float(steer) / STEER_UNIT
     if k == 1.0:
         return config
     return dataclasses.replace(config, sigma_du=(config.sigma_du[0], config.sigma_du[1] * k),
-                               sigma_input=(config.sigma_input[0], config.sigma_input[1] * k))
+                               sigma_input=(config.sigma_input[0], config.sigma_input[1] * k), track_course=True)
+
+
+def road_changes(config: ProblemConfig, steer: float) -> dict:
+    """The fields of ``config`` that :func:`for_road` changes on a road of steering bound ``steer`` [rad], as
+    ``{key: new value}`` (``{}`` where it changes none): what a planner records beside its config, so that its
+    episodes on such a road are attributed to what it planned with."""
+    adapted = for_road(config, steer)
+    return {f.name: getattr(adapted, f.name) for f in dataclasses.fields(config)
+            if getattr(adapted, f.name) != getattr(config, f.name)}
 
 
 def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
@@ -309,6 +333,7 @@ def make_problem(scene: Scene, config: ProblemConfig, model: tuple = (), ego_xy:
         noise=measurement_noise(config, scene.n_obstacles),
         model=model,
         lane_rate=f(min(config.lane_change_rate, 1e6)),  # finite: inf * 0 would be nan at t = 0
+        course=1.0 if config.track_course else 0.0,
     )
 
 
@@ -380,10 +405,12 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     road, lim, bar = problem.road, problem.limits, problem.barrier
     p = project(road, x[:, :2])
     s, lat = p.s, p.l
-    dpsi = wrap_angle(x[:, 2] - p.heading)
+    # The course is the direction the bicycle moves in: its heading plus the slip of the step's steering.
+    dpsi = wrap_angle(x[:, 2] - p.heading)  # the body's: its corners meet the edges
+    course = dpsi + problem.course * xp.arctan(0.5 * xp.tan(u[:, 1]))
     v = x[:, 3]
     feedforward = xp.arctan(lim.length * p.curvature)
-    tracking = xp.stack([lat - ref_lane, dpsi, v - v_ref, u[:, 0] - a_ref, u[:, 1] - feedforward], axis=1)
+    tracking = xp.stack([lat - ref_lane, course, v - v_ref, u[:, 0] - a_ref, u[:, 1] - feedforward], axis=1)
 
     s_o, l_o, v_o, a_o, present = obstacles
     w = bar.widths
@@ -421,4 +448,4 @@ __all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance_local
            "Limits", "load_planner_config", "load_problem", "make_problem", "measure",
            "measurement_noise", "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles",
            "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road", "ROAD_BEHIND", "road_window",
-           "for_road", "STEER_UNIT"]
+           "for_road", "road_changes", "STEER_UNIT"]

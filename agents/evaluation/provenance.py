@@ -27,7 +27,9 @@ def resolved_config(policy) -> dict:
     dataclass (a planner's holds its ``problem``) or a dict, and ``"files"``: the files it loaded that its config
     names only by name or path, by content, keyed by that config key (a planner's ``{"problem.dynamics": sha256}``
     of its weights: new weights at the same path are another config, the same weights elsewhere the same), when it
-    has any. ``TypeError`` for a policy that exposes no config: its results could
+    has any; and ``"road"``: what the env's road changes in it (a planner's ``{"sigma_du": ..., "track_course": true}``
+    on a road whose steering bound is not the paper's: :func:`bimp.planners.problem.road_changes`), when it changes
+    anything. ``TypeError`` for a policy that exposes no config: its results could
     not be attributed."""
     config = getattr(policy, "config", None)
     if dataclasses.is_dataclass(config) and not isinstance(config, type):
@@ -35,8 +37,8 @@ def resolved_config(policy) -> dict:
     if not isinstance(config, dict):
         raise TypeError(f"{type(policy).__name__} exposes no `config` (a dataclass or dict): "
                         "evaluation cannot record what produced its episodes")
-    files = getattr(policy, "files", None)
-    resolved = {"config": config, **({"files": dict(files)} if files else {})}
+    files, road = getattr(policy, "files", None), getattr(policy, "road", None)
+    resolved = {"config": config, **({"files": dict(files)} if files else {}), **({"road": dict(road)} if road else {})}
     return json.loads(json.dumps(resolved, default=str))  # tuples -> lists, paths -> str: as recorded
 
 

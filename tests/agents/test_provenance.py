@@ -6,6 +6,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from bimp.agents.evaluation import provenance
 from bimp.agents.evaluation.provenance import config_hash, git_state, resolved_config
 from bimp.agents.registry import PolicySpec, make_policy, register_policy
@@ -124,3 +126,25 @@ def test_planner_weights_are_hashed_by_content_not_by_path(tmp_path):
     assert hash_with(str(copies[0])) != before
     assert hash_with("bicycle") != hash_with("mlp") and "files" not in resolved_config(
         make_policy("enkts", env, **{"problem.dynamics": "bicycle"}))
+
+
+@pytest.mark.parametrize("policy", ["enkts", "enks", "mppi"])  # NMPC plans on the paper's roads only
+def test_what_a_curved_road_changes_in_a_planner_is_recorded_and_hashed(policy):
+    """A planner on a road whose steering bound is not the paper's plans with the problem as the road changes it
+    (problem.for_road: scaled steering noise, the course tracked). Its resolved config says so under ``"road"``, so
+    that records made before the road changed anything are another config, never resumed as these; on the paper's
+    scenarios there is no ``"road"`` and the hash is what it was."""
+    import gymnasium as gym
+
+    from bimp.planners.problem import road_changes
+
+    def resolved(env_id):
+        env = gym.make(env_id)
+        env.reset(seed=0)
+        return resolved_config(make_policy(policy, env))
+
+    paper, uturn = resolved("bimp/EmergencyBrake-v0"), resolved("bimp/u-turn-v0")
+    assert "road" not in paper and uturn["road"]["track_course"] is True
+    assert uturn["road"] == json.loads(json.dumps(road_changes(make_policy(policy, gym.make(
+        "bimp/u-turn-v0")).config.problem, 0.3)))
+    assert config_hash(policy, uturn) != config_hash(policy, {k: v for k, v in uturn.items() if k != "road"})

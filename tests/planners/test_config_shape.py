@@ -55,6 +55,7 @@ def migrate(old: dict) -> dict:
         config["problem"].update(road_points=ProblemConfig.road_points, road_spacing=ProblemConfig.road_spacing)
         # one name per meaning: the barrier's braking of a follower is follower_decel (the env's is brake_decel)
         config["problem"]["barrier"]["follower_decel"] = config["problem"]["barrier"].pop("brake_decel")
+        config["problem"]["track_course"] = False  # added since at its neutral value: the planners as they were
     return {"config": config}
 
 
@@ -154,4 +155,6 @@ def test_the_shipped_tuned_configs_load_in_the_new_shape(env, name):
 
     tuned = read_overrides(TUNED_DIR / f"{name}.yaml")
     assert "horizon" not in tuned and "nu" not in tuned and "bound_tightening" not in tuned
-    assert resolved_config(make_policy(name, env))["config"] == json.loads(json.dumps(tuned))
+    expected = json.loads(json.dumps(tuned))
+    expected["problem"].setdefault("track_course", False)  # added since the tuning, at its neutral value
+    assert resolved_config(make_policy(name, env))["config"] == expected

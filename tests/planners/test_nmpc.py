@@ -136,14 +136,15 @@ def test_casadi_frenet_heading_and_curvature_match_the_road(arc_deg):
     np.testing.assert_allclose(got[3][inside], road.curvature_at(s_np)[inside], atol=1e-12)
 
 
-def curved_nlp(horizon: int, seed: int, ref=None):
+def curved_nlp(horizon: int, seed: int, ref=None, **problem):
     """An NMPC planner on overtaking with the scenarios' sharpest curve (R = 180 m), its compiled NLP and the NLP
-    parameters of the first observation (``ref`` replaces the observed reference)."""
+    parameters of the first observation (``ref`` replaces the observed reference; ``problem``: keys of its
+    :class:`ProblemConfig`)."""
     env = gym.make(envs.env_id("overtaking"), config={"radius": 180.0})
     obs, _ = env.reset(seed=seed)
     scene = env.unwrapped.scene
     assert scene.geometry.radius == 180.0 and scene.geometry.arc_angle != 0
-    planner = NMPCPlanner(scene, nmpc(horizon, ProblemConfig(dynamics="bicycle")))
+    planner = NMPCPlanner(scene, nmpc(horizon, ProblemConfig(dynamics="bicycle", **problem)))
     ego, u_prev, ovs, obs_ref = scene.split_obs(obs)
     params = planner._params(scene, ego, u_prev, ovs, obs_ref if ref is None else np.asarray(ref, float))
     return scene, planner, planner._problem(scene), params, (ego, u_prev, ovs)
@@ -193,15 +194,18 @@ def test_road_edge_rows_are_the_problem_edge_distance():
     np.testing.assert_allclose(local[on_straights], exact[on_straights], rtol=0, atol=1e-9)  # exact where straight
 
 
-def test_cost_is_the_nll_of_the_problem_tracking_rows():
+@pytest.mark.parametrize("track_course", [False, True])
+def test_cost_is_the_nll_of_the_problem_tracking_rows(track_course):
     """With ``nu = inf`` NMPC's cost is the NLL of ``measure``'s tracking rows (reference state and input) of the
     states ``x_1 .. x_H``, each with the input ``u_t`` that reached it and the references of its own time
-    ``t + 1`` (the curvature feed-forward at ``x_{t+1}``, the reference speed's rate at ``t + 1``), plus the
-    increments' prior ``|u_t - u_{t-1}|^2_{Sigma_w^-1} / 2``. A reference speed braking to 0 inside the horizon
-    makes its rate change with t; random states over the curve make the feed-forward change."""
+    ``t + 1`` (the curvature feed-forward at ``x_{t+1}``, the reference speed's rate at ``t + 1``; the course
+    with ``u_t``'s slip where the heading row tracks the course), plus the increments' prior
+    ``|u_t - u_{t-1}|^2_{Sigma_w^-1} / 2``. A reference speed braking to 0 inside the horizon makes its rate change
+    with t; random states over the curve make the feed-forward change."""
     H = 6
     ref_lane = 2.0
-    scene, planner, nlp, params, (ego, u_prev, ovs) = curved_nlp(H, seed=5, ref=[0.5, -2.0, ref_lane])
+    scene, planner, nlp, params, (ego, u_prev, ovs) = curved_nlp(H, seed=5, ref=[0.5, -2.0, ref_lane],
+                                                                 track_course=track_course)
     tun = planner.config.problem
     # The whole road in one window (the states are drawn over all of it).
     problem = make_problem(scene, dataclasses.replace(tun, road_points=1500))
@@ -212,7 +216,7 @@ def test_cost_is_the_nll_of_the_problem_tracking_rows():
     rng = np.random.default_rng(6)
     for _ in range(10):
         X = random_states_near_the_road(scene, rng, H)
-        U = np.column_stack([rng.uniform(-6, 3, H), rng.uniform(-0.05, 0.05, H)])
+        U = np.column_stack([rng.uniform(-6, 3, H), rng.uniform(-0.3, 0.3, H)])  # slips up to 0.15 rad
         du = U - np.vstack([u_prev, U[:-1]])
         expected = 0.5 * np.sum((du / tun.sigma_du) ** 2)
         for t in range(H):

@@ -214,3 +214,28 @@ def test_the_steering_scales_follow_the_roads_steering_bound(scene):
     assert settings.sigma_du == pytest.approx(wide.sigma_du)
     assert EnKTSConfig(problem=config).settings(5, STEER_UNIT).sigma_du == pytest.approx(config.sigma_du)
     assert dataclasses.replace(config) == config  # the stored config itself is never changed
+
+
+def test_the_heading_row_tracks_the_course_where_asked_and_the_edge_the_body(scene):
+    """``track_course``: the heading row reads the body's heading plus the slip of the step's steering,
+    ``arctan(tan(delta) / 2)`` (highway-env's bicycle moves along it); without it, the body's heading. The edge row
+    reads the body's corners either way. ``for_road`` asks for the course where the road's steering bound is not the
+    paper's, and ``road_changes`` names everything it changed there (nothing on the paper's roads)."""
+    import dataclasses
+
+    from bimp.planners.problem import STEER_UNIT, for_road, road_changes
+
+    config = ProblemConfig()
+    body = make_problem(scene, config)
+    course = make_problem(scene, dataclasses.replace(config, track_course=True))
+    assert (body.course, course.course) == (0.0, 1.0)
+    far = (np.array([500.0]), np.array([2.0]), np.array([20.0]), np.zeros(1), np.ones(1, bool))
+    x = np.array([[10.0, 2.9, 0.02, 20.0]])  # near the edge, turned a little left
+    u = np.array([[0.0, 0.3]])
+    h_body, h_course = (measure(p, x, u, u * 0, u, np.zeros(2), 2.0, 20.0, 0.0, far) for p in (body, course))
+    slip = np.arctan(0.5 * np.tan(0.3))
+    assert h_course[0, 1] == pytest.approx(h_body[0, 1] + slip) and h_body[0, 1] == pytest.approx(0.02, abs=1e-6)
+    np.testing.assert_allclose(np.delete(h_course, 1, axis=1), np.delete(h_body, 1, axis=1))  # edges: the body's
+    assert road_changes(config, STEER_UNIT) == {} and for_road(config, STEER_UNIT).track_course is False
+    changes = road_changes(config, 6 * STEER_UNIT)
+    assert sorted(changes) == ["sigma_du", "sigma_input", "track_course"] and changes["track_course"] is True
