@@ -115,7 +115,7 @@ class ProblemConfig:
     reference lane at most this fast, a lane-change path rather than a step (``inf``: the step);
     track_course: the heading term measures the course (the direction of travel, the body's heading plus the
     bicycle's slip ``arctan(tan(delta) / 2)``) against the road's heading instead of the body's heading (what
-    :func:`for_road` turns on on a road whose steering bound exceeds the paper's); barrier: margins and widths
+    :func:`for_road` turns on on a road whose steering bound is not the paper's); barrier: margins and widths
     (:class:`BarrierShape`); road_points, road_spacing [m]: the road the planner
     sees, P points of the scene's route every ``road_spacing`` m from ``ROAD_BEHIND`` m behind the EV (one compiled
     program per P; the plan's reach at 40 m/s over 2 s is 80 m, the default window 139 m); dynamics: ``"mlp"`` (the

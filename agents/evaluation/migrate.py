@@ -128,7 +128,7 @@ def new_shape(policy: str, config: dict) -> dict:
             config["files"] = {"problem.dynamics": SHIPPED_WEIGHTS}
         elif dynamics != "bicycle":
             raise NotReproduced(f"its weights {dynamics!r} cannot be told by content now")
-    stray = sorted(set(config) - {"config", "files", "scenario"})
+    stray = sorted(set(config) - {"config", "files", "road", "scenario"})
     if stray:
         raise MigrationError(f"the config holds {stray}, which no current config has")
     return config
@@ -222,7 +222,7 @@ def rebuild(policy: str, scenario: str, config: dict, given: str | None = None) 
         resolved["config"]["model_sha256"] = own["model_sha256"]
         # Only the name: an absolute path would tie the folder to the machine it was made on.
         artifacts = {"model": Path(given).name if given and Path(given).is_absolute() else given}
-    expected = plain({"config": own, **({"files": config["files"]} if "files" in config else {})})
+    expected = plain({"config": own, **{k: config[k] for k in ("files", "road") if k in config}})
     if resolved != expected:
         raise NotReproduced("rebuilt, it resolves otherwise: " + "; ".join(config_diff(expected, resolved)[:4]))
     return artifacts, note

@@ -588,3 +588,16 @@ def test_renamed_settings_take_their_new_name_and_verifications_follow_the_new_h
     assert len(carried) == len(verified) and set(carried).isdisjoint(verified)
     assert {key.rsplit("|", 1)[1] for key in carried} <= set(arms)  # each under its arm's new hash
     assert sorted(carried.values(), key=json.dumps) == sorted(verified.values(), key=json.dumps)
+
+
+def test_a_folder_with_a_planner_on_a_curved_road_migrates_to_itself(tmp_path, capsys):
+    """A planner's arm on a curved road records what the road changes in its problem (``"road"``): a current
+    record, which ``bimp migrate`` finds unchanged, and rebuilds to the same config."""
+    evaluate(scenarios=["u-turn-v0"], policies=["enkts"], seeds=[1000], episodes=1, out=tmp_path, progress=False)
+    (arm,) = read_arms(tmp_path).values()
+    assert arm["config"]["road"]["track_course"] is True
+    before = tree(tmp_path)
+    assert main(["migrate", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "nothing to change" in out and "left in place:" not in out and "not migrated" not in out
+    assert tree(tmp_path) == before

@@ -237,5 +237,10 @@ def test_the_heading_row_tracks_the_course_where_asked_and_the_edge_the_body(sce
     assert h_course[0, 1] == pytest.approx(h_body[0, 1] + slip) and h_body[0, 1] == pytest.approx(0.02, abs=1e-6)
     np.testing.assert_allclose(np.delete(h_course, 1, axis=1), np.delete(h_body, 1, axis=1))  # edges: the body's
     assert road_changes(config, STEER_UNIT) == {} and for_road(config, STEER_UNIT).track_course is False
-    changes = road_changes(config, 6 * STEER_UNIT)
-    assert sorted(changes) == ["sigma_du", "sigma_input", "track_course"] and changes["track_course"] is True
+    assert road_changes(config, 6 * STEER_UNIT) == {"sigma_du": (0.5, pytest.approx(6 * config.sigma_du[1])),
+                                                    "sigma_input": (3.0, pytest.approx(6 * config.sigma_input[1])),
+                                                    "track_course": True}
+    env = gym.make("bimp/u-turn-v0")  # a curved road: the planners' problem there tracks the course by default
+    env.reset(seed=0)
+    assert env.unwrapped.scene.bounds.steer == pytest.approx(6 * STEER_UNIT)
+    assert make_problem(env.unwrapped.scene, config).course == 1.0 and body.course == 0.0
