@@ -405,8 +405,8 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     road, lim, bar = problem.road, problem.limits, problem.barrier
     p = project(road, x[:, :2])
     s, lat = p.s, p.l
-    # The course is the direction the bicycle moves in: its heading plus the slip of the step's steering.
     dpsi = wrap_angle(x[:, 2] - p.heading)  # the body's: its corners meet the edges
+    # The course is the direction the bicycle moves in: its heading plus the slip of the step's steering.
     course = dpsi + problem.course * xp.arctan(0.5 * xp.tan(u[:, 1]))
     v = x[:, 3]
     feedforward = xp.arctan(lim.length * p.curvature)
