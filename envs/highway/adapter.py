@@ -27,9 +27,9 @@
   ``docs/suite.md``) ``contact`` (None, or the vehicle in contact: the least footprint gap <= 0, else the nearest
   one highway-env flags crashed) and ``speed_limit`` (the EV's lane's ``speed_limit``, else the free-road target);
 - **reward and termination**: highway-env's (crash, its off-road where it has one, its goals, its duration), and
-  the episode also terminates on bimp's ``collision`` or ``offroad``, and at ``info["goal"]``: exit-v0's exit taken,
-  roundabout-v0's last road reached (highway-env rewards them but drives on, off the end of its network); a step
-  after termination raises ``gymnasium.error.ResetNeeded``.
+  the episode also terminates on bimp's ``collision`` or ``offroad``, and at ``info["goal"]``: exit-v0's exit lane
+  reached, roundabout-v0's last road reached (highway-env rewards them but drives on, off the end of its network);
+  a step after termination raises ``gymnasium.error.ResetNeeded``.
 
 The env under the adapter is a new instance of the id's adapted class (:func:`bimp.envs.highway.fixed
 .adapted_class`: highway-env's own, or the fixed subclass where highway-env fails under continuous actions) built
@@ -246,7 +246,7 @@ class HighwayAdapter(gym.Wrapper):
         base.BEHAVIOUR = BehaviourRule.current(self.profile.target_speed, self.n_obstacles, self.profile)
         self.dt = 1.0 / base.config["policy_frequency"]
         self.behaviour = Behaviour(base, self.profile.target_speed, self.profile.drive_on, self.profile.overtake,
-                                   self.profile.junction)
+                                   self.profile.junction, self.profile.gap_plan)
         self.last_input, self.prev_input = np.zeros(2), np.zeros(2)
         self.progress = 0.0
         self._speeds: dict[int, float] = {}
@@ -323,7 +323,8 @@ class HighwayAdapter(gym.Wrapper):
     def _goal(self) -> bool | None:
         """highway-env's goal where its env has one (``info["goal"]``, None on the envs without one; success needs
         it where there is one, else the time limit):
-        exit-v0's exit road reached (the exit taken), intersection-v0's ``has_arrived`` (crossed, on the exit road),
+        exit-v0's exit lane or road reached (highway-env's ``_is_success``), intersection-v0's ``has_arrived``
+        (crossed, on the exit road),
         merge-v0's end of the road (x > 370 m, where highway-env ends it) and, on roundabout-v0, the last road of
         the EV's route reached (the roundabout left); past exit's and roundabout's the EV would run off the end of
         the network, so the adapter ends the episode there. A suite family with a goal says it by its
@@ -331,8 +332,8 @@ class HighwayAdapter(gym.Wrapper):
         base = self.env.unwrapped
         if hasattr(base, "goal_reached"):
             return bool(base.goal_reached())
-        if self.highway_id == "exit-v0":  # on the exit road (highway-env's _is_success also counts the lane beside it)
-            return tuple(base.vehicle.lane_index[:2]) == ("2", "exit")
+        if self.highway_id == "exit-v0":  # highway-env's own: in the exit lane (it leads only to the exit) or beyond
+            return bool(base._is_success())
         if self.highway_id == "intersection-v0":
             return bool(base.has_arrived(base.vehicle))
         if self.highway_id == "merge-v0":

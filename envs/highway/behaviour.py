@@ -7,8 +7,9 @@ simulated, never in the road's vehicle list) and asked what highway-env's driver
   graph's own choice, ``RoadNetwork.next_lane``), followed by ``follow_road``;
 - lane: MOBIL (``change_lane_policy`` / ``mobil``, politeness and thresholds as highway-env's traffic has them) on
   multi-lane roads, never into a lane that oncoming traffic drives on (:class:`ShadowDriver`) but where the id's
-  profile lets it overtake there (the suite's two-way-overtake: :class:`OvertakeDriver`); on exit-v0 the exit
-  is taken only from the lane it leaves from, else missed (:class:`DriveOnDriver`); an ending lane is
+  profile lets it overtake there (the suite's two-way-overtake: :class:`OvertakeDriver`); on exit-v0 a plan
+  through the gaps of the lanes between leads into the exit lane (:class:`GapDriver`), and the exit is taken only
+  from that lane, else missed (:class:`DriveOnDriver`); an ending lane is
   left when highway-env's driver leaves it (its route moves to the next road's
   nearest lane at the end, and MOBIL's incentive comes from the lane's end as an obstacle only where highway-env
   models one);
@@ -32,8 +33,9 @@ import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
 
 from bimp.configs import neutral_values
+from bimp.envs.highway.gaps import GapPlan, GapSearch, plan_gaps
 from bimp.envs.highway.junction import Yielding, yield_acceleration
-from bimp.envs.highway.lanes import goes_on_beside
+from bimp.envs.highway.lanes import goes_on_beside, needed_lane
 from bimp.envs.road import Route
 
 # Bumped whenever the adapter or the behaviour layer changes what an episode does, so that records made before are
@@ -247,6 +249,62 @@ class DriveOnDriver(ShadowDriver):
         super().follow_road()
 
 
+class GapDriver(DriveOnDriver):
+    """:class:`DriveOnDriver` that plans its way into the lane its route needs (exit-v0's exit lane, two to six lanes
+    to the right) through the gaps of the lanes between (:func:`bimp.envs.highway.gaps.plan_gaps`), where MOBIL
+    waits for a gap its own rule accepts and at exit-v0's density none comes. Replanned every lattice step
+    (:attr:`SEARCH`), its first step driven until then: the lane change begun or not, the acceleration. Where the
+    lattice finds no way in (or the EV is past it), highway-env's driver decides. The plan's
+    top speed is the target speed: exit-v0's lane speed limits (26 m/s in the left lane, 3.4 m/s less per lane to
+    the right) are its traffic's speeds, and an EV held to them could not reach the exit within the episode."""
+
+    SEARCH = GapSearch()
+    plan: GapPlan | None = None
+    _planned = False
+
+    def change_lane_policy(self) -> None:
+        if not self._planned or self.timer >= self.SEARCH.step - 1e-9:
+            self._planned, self.timer = True, 0.0
+            self.plan, self._lane = self._plan()
+        if self.plan is None:
+            super().change_lane_policy()
+            return
+        road = self.target_lane_index[:2]
+        lane = self._lane + (self._toward if self.plan.change else 0)
+        if lane < len(self.road.network.graph[road[0]][road[1]]):  # the needed lane may begin on the next road
+            self.target_lane_index = (*road, lane)
+
+    def acceleration(self, ego_vehicle, front_vehicle=None, rear_vehicle=None) -> float:
+        if ego_vehicle is self and self.plan is not None:
+            return self.plan.accel
+        return super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
+
+    def _plan(self) -> tuple[GapPlan | None, int]:
+        """The lattice's plan from here and the lane it starts from: (None, -1) where there is none."""
+        network = self.road.network
+        goal_index = needed_lane(network, [self.lane_index, *self.route], self.lane_index[2]) if self.route else None
+        if goal_index is None:
+            return None, -1
+        goal = network.get_lane(goal_index)
+        s, lat = goal.local_coordinates(self.position)
+        width, k = goal.width_at(s), goal_index[2]
+        window = (0.0, goal.length - self.LENGTH)
+        frac = k + lat / width
+        self._toward = int(np.sign(k - frac)) or 1
+        lane = int(np.floor(frac + 0.125)) if self._toward > 0 else int(np.ceil(frac - 0.125))
+        cs = self.SEARCH.change_steps
+        phase = int(np.clip(np.round(abs(frac - lane) * cs), 0, cs - 1))
+        if s >= window[1]:
+            return None, -1  # before, in the needed lane, the lattice drives on at speed (no braking to its limit)
+        rows = []
+        for other in self.road.vehicles:
+            if other is self or np.cos(other.heading - self.heading) <= 0:
+                continue
+            so, lo = goal.local_coordinates(other.position)
+            rows.append((np.round(k + lo / width), so, other.speed))
+        return plan_gaps(self.SEARCH, s, self.speed, lane, phase, k, window, np.array(rows)), lane
+
+
 def carries_oncoming_traffic(network, lane_index) -> bool:
     """Whether a lane of the opposite direction between the same nodes runs along ``lane_index``'s centreline (its
     start on the lane's end, within half a lane width)."""
@@ -267,13 +325,14 @@ class Behaviour:
     highway-env's driver's command without the yielding (what the ``idm`` baseline drives by default)."""
 
     def __init__(self, env, target_speed: float, drive_on: bool = False, overtake: bool = False,
-                 yields: bool = False):
+                 yields: bool = False, gap_plan: bool = False):
         if drive_on and overtake:
             raise ValueError("a behaviour layer drives on past a missed exit (drive_on) or overtakes in the oncoming "
                              "lane (overtake), not both")
         self.env, self.target_speed = env, float(target_speed)
         ev = env.vehicle
-        driver = DriveOnDriver if drive_on else OvertakeDriver if overtake else ShadowDriver
+        driver = (GapDriver if gap_plan else DriveOnDriver if drive_on else OvertakeDriver if overtake
+                  else ShadowDriver)
         self.shadow = driver(env.road, np.array(ev.position, float), heading=ev.heading, speed=ev.speed,
                                  target_lane_index=ev.lane_index, target_speed=self.target_speed,
                                  route=copy.deepcopy(getattr(ev, "route", None)) or None, timer=0.0)

@@ -152,6 +152,21 @@ def joins(network: RoadNetwork, index: tuple, end: np.ndarray, heading: float) -
     return distance <= BRIDGE and abs(wrap_angle(float(np.arctan2(gap[1], gap[0])) - heading)) < np.pi / 4
 
 
+def needed_lane(network: RoadNetwork, route: list, lane: int) -> tuple | None:
+    """The lane the EV, in lane number ``lane`` of its road, must be in to go on along ``route`` (lane indices,
+    highway-env's; the roads' lanes parallel, numbered alike): on the first road of the route whose next road goes
+    on (:func:`joins`) from some of its lanes only and not from lane ``lane``, the nearest lane that does (exit-v0:
+    the exit lane ``("1", "2", 6)``); None where the EV's lane goes on all along."""
+    for (a, b, _), (c, d, k) in zip(route, route[1:]):
+        nexts = [(c, d, j) for j in range(len(network.graph[c][d]))] if k is None else [(c, d, k)]
+        joined = [i for i, own in enumerate(network.graph[a][b])
+                  if any(joins(network, n, own.position(own.length, 0.0), own.heading_at(own.length))
+                         for n in nexts)]
+        if joined and lane not in joined:
+            return (a, b, min(joined, key=lambda i: abs(i - lane)))
+    return None
+
+
 def goes_on_beside(network: RoadNetwork, index: tuple, following: tuple) -> bool:
     """Whether ``following`` (``network.next_lane`` after lane ``index``, along a route) is another lane than
     ``index`` that does not go on from ``index``'s end (:func:`joins`): the route's next road leaves from a lane

@@ -25,7 +25,9 @@ class Profile:
     roundabout-v0's entry, the ring lane abreast lies 2.3 m beside the entry); ``lateral_accel`` [m/s^2]: where
     finite, the reference's acceleration also keeps the EV at or below each curve's speed ahead for that lateral
     acceleration (:func:`bimp.envs.highway.behaviour.curve_acceleration`; highway-env's IDM takes a curve at its
-    target speed, steering up to 60 degrees at once, and the planners' bounded steering does not)."""
+    target speed, steering up to 60 degrees at once, and the planners' bounded steering does not); ``gap_plan``: the
+    behaviour layer plans its way through the gaps into the lane its route needs (exit-v0's exit lane, which MOBIL
+    never heads for: :class:`bimp.envs.highway.behaviour.GapDriver`)."""
 
     bounds: Bounds
     actuator_steer: tuple[float, float]
@@ -35,6 +37,7 @@ class Profile:
     overtake: bool = added_field(False, neutral=False)
     junction: bool = added_field(False, neutral=False)
     lateral_accel: float = added_field(float("inf"), neutral=float("inf"))
+    gap_plan: bool = added_field(False, neutral=False)
 
 
 def _curve_bounds(steer: float) -> Bounds:
@@ -55,7 +58,7 @@ PROFILES: dict[str, Profile] = {
     "highway-fast-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 30.0),
     "merge-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),  # no duration of its own: highway-env's goal x > 370
     # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
-    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True),
+    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True, gap_plan=True),
     # the entry's turn into the ring, the route's blend across the gap (lanes.smooth_bridges): radius 8 m over 5 m,
     # 0.58 rad needed, a thin 3% under the bound (the ring itself, radius 20 m on the inner lane: 0.247 rad)
     "roundabout-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 16.0, 20.0, junction=True, lateral_accel=CURVE_ACCEL),

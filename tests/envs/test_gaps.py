@@ -1,0 +1,94 @@
+"""The gap plan of a mandatory lane change (bimp.envs.highway.gaps) and exit-v0's driver that executes it."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import bimp.envs  # noqa: F401  (registers the envs)
+from bimp.agents.registry import make_policy
+from bimp.configs import ConfigError
+from bimp.envs.highway.gaps import GapSearch, plan_gaps
+from bimp.envs.highway.lanes import needed_lane
+
+SEARCH = GapSearch()
+WINDOW = (0.0, 95.0)  # exit-v0's exit lane, in its own frame
+
+
+def test_on_an_empty_road_the_change_begins_at_once_and_arrives_in_the_window():
+    plan = plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 3, WINDOW, np.zeros((0, 3)))
+    assert plan is not None and plan.change
+    # 250 m to the lane's start at no more than 30 m/s, and 3 changes of 2 s each: neither bound is beaten
+    assert plan.arrival >= max(250.0 / SEARCH.top_speed, 3 * SEARCH.change_steps * SEARCH.step)
+
+
+def test_a_vehicle_abreast_in_the_next_lane_holds_the_change_back():
+    abreast = np.array([[1, -250.0, 25.0]])
+    plan = plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 3, WINDOW, abreast)
+    assert plan is not None and not plan.change  # it changes later, once past or behind the vehicle
+    assert plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 3, WINDOW, np.zeros((0, 3))).change
+
+
+def test_a_closed_lane_leaves_no_way_in():
+    wall = np.array([[1, s, 25.0] for s in np.arange(-700.0, 200.0, 6.0)])  # bumper to bumper beside the EV
+    assert plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 3, WINDOW, wall) is None
+
+
+def test_past_the_window_out_of_the_goal_lane_the_goal_is_missed():
+    assert plan_gaps(SEARCH, 120.0, 25.0, 2, 0, 3, WINDOW, np.zeros((0, 3))) is None
+
+
+def test_a_change_under_way_goes_on():
+    plan = plan_gaps(SEARCH, -250.0, 25.0, 0, 2, 3, WINDOW, np.zeros((0, 3)))
+    assert plan is not None and plan.change
+
+
+def test_the_plan_never_closes_on_the_vehicle_ahead_faster_than_it_can_brake():
+    # a slow vehicle 60 m ahead in the EV's own lane: the first step brakes or leaves the lane, never keeps on
+    slow, open_lane = np.array([[0, -190.0, 9.0]]), (-400.0, 95.0)  # the goal lane open beside the EV
+    plan = plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 1, open_lane, slow)
+    assert plan is not None and (plan.accel < 0 or plan.change)
+    # 30 m ahead it is too close to shed 16 m/s at the lattice's braking already: no plan, highway-env's driver brakes
+    assert plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 1, open_lane, np.array([[0, -220.0, 9.0]])) is None
+
+
+def test_bad_input_is_refused_naming_it():
+    with pytest.raises(ConfigError, match="step"):
+        GapSearch(step=0.0)
+    with pytest.raises(ConfigError, match="change_steps"):
+        GapSearch(change_steps=0)
+    with pytest.raises(ConfigError, match="lag"):
+        GapSearch(lag=-1.0)
+    with pytest.raises(ValueError, match="phase0"):
+        plan_gaps(SEARCH, 0.0, 20.0, 0, SEARCH.change_steps, 3, WINDOW, np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="goal lane"):
+        plan_gaps(SEARCH, 0.0, 20.0, 3, 1, 3, WINDOW, np.zeros((0, 3)))
+
+
+def test_the_needed_lane_is_the_one_the_route_goes_on_from():
+    env = gym.make("bimp/exit-v0")
+    env.reset(seed=0)
+    network = env.unwrapped.road.network
+    assert needed_lane(network, [("0", "1", 0), ("1", "2", None), ("2", "exit", None)], 0) == ("1", "2", 6)
+    # on to road ("2", "3") every lane but the exit lane goes on: the EV's own lane does, and so none is needed
+    assert needed_lane(network, [("0", "1", 0), ("1", "2", None), ("2", "3", None)], 0) is None
+    assert needed_lane(network, [("1", "2", 6), ("2", "3", None)], 6) == ("1", "2", 5)  # out of the exit lane
+
+
+def test_exit_v0_success_is_highway_envs_own_and_the_driver_reaches_the_exit_lane():
+    """highway-env's driver executing the gap plan (the ``idm`` baseline) on a development seed: in the exit lane,
+    which is highway-env's ``is_success``, with no collision; without the plan it never left lane 0 (every policy,
+    seeds 1000-1099)."""
+    env = gym.make("bimp/exit-v0")
+    obs, info = env.reset(seed=3)
+    policy = make_policy("idm", env)
+    done = False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        done = terminated or truncated
+    assert info["goal"] and info["is_success"] and not info["collision"]
+    assert env.unwrapped.vehicle.lane_index in (("1", "2", 6), ("2", "exit", 0))
+
+
+def test_the_profile_records_the_gap_plan_only_where_it_is_set():
+    assert "gap_plan" not in gym.make("bimp/highway-fast-v0").unwrapped.BEHAVIOUR.profile
+    assert "('gap_plan', True)" in gym.make("bimp/exit-v0").unwrapped.BEHAVIOUR.profile
