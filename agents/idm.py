@@ -3,9 +3,11 @@ highway-env user knows.
 
 The EV is driven by highway-env's own ``IDMVehicle`` decisions, the behaviour layer of a wrapped env
 (:mod:`bimp.envs.highway.behaviour`): IDM for the acceleration, MOBIL for the lane, highway-env's lane-following
-steering controller, all as highway-env computes them for its traffic, through the same adapter and action mapping as
-every other policy (:meth:`bimp.envs.scene.Scene.to_normalized`: clipped to the actuator range, not to the planning
-bounds, as highway-env's driver is unbounded by them; ``clip_to_bounds: true`` clips to the bounds instead).
+steering controller, all as highway-env computes them for its traffic (on exit-v0 the gap plan into the exit lane
+replaces MOBIL's lane and IDM's acceleration: :mod:`bimp.envs.highway.gaps`), through the same adapter and action
+mapping as every other policy (:meth:`bimp.envs.scene.Scene.to_normalized`: clipped to the actuator range, not to
+the planning bounds, as highway-env's driver is unbounded by them; ``clip_to_bounds: true`` clips to the bounds
+instead).
 """
 
 from __future__ import annotations
