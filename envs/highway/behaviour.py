@@ -81,6 +81,8 @@ class ShadowDriver(IDMVehicle):
     on the latter), moved the EV into it, and the EV then met the oncoming traffic head on and stopped there (EnKTS,
     development seeds). Overtaking in the oncoming lane is a decision of its own (the suite's two-way-overtake)."""
 
+    clock = 0.0  # s since the episode began (Behaviour.decide advances it)
+
     def mobil(self, lane_index) -> bool:
         return not carries_oncoming_traffic(self.road.network, lane_index) and super().mobil(lane_index)
 
@@ -250,21 +252,24 @@ class DriveOnDriver(ShadowDriver):
 
 
 class GapDriver(DriveOnDriver):
-    """:class:`DriveOnDriver` that plans its way into the lane its route needs (exit-v0's exit lane, two to six lanes
-    to the right) through the gaps of the lanes between (:func:`bimp.envs.highway.gaps.plan_gaps`), where MOBIL
-    waits for a gap its own rule accepts and at exit-v0's density none comes. Replanned every lattice step
-    (:attr:`SEARCH`), its first step driven until then: the lane change begun or not, the acceleration. Where the
-    lattice finds no way in (or the EV is past it), highway-env's driver decides. The plan's
-    top speed is the target speed: exit-v0's lane speed limits (26 m/s in the left lane, 3.4 m/s less per lane to
-    the right) are its traffic's speeds, and an EV held to them could not reach the exit within the episode."""
+    """:class:`DriveOnDriver` that plans its way into the lane its route needs (exit-v0's exit lane, six lanes to
+    the right of the start) through the gaps of the lanes between (:func:`bimp.envs.highway.gaps.plan_gaps`),
+    where MOBIL waits for a gap its own rule accepts and at exit-v0's density none comes. Replanned every
+    lattice step (:attr:`SEARCH`, at the target speed as its top speed), its first step driven until then: the
+    lane change begun or not (MOBIL's target lane replaced), the acceleration (IDM's replaced). Where the
+    lattice finds no way in (or the EV is past it, or off its route), highway-env's driver decides, MOBIL
+    included. The plan's top speed is the target speed: exit-v0's lane speed limits (26 m/s in the left lane,
+    3.4 m/s less per lane to the right) are its traffic's speeds, and an EV held to them could not reach the
+    exit within the episode.
+    """
 
     SEARCH = GapSearch()
     plan: GapPlan | None = None
-    _planned = False
+    _next_plan = 0.0  # s of :attr:`ShadowDriver.clock`: MOBIL's own timer is left to MOBIL, which needs it
 
     def change_lane_policy(self) -> None:
-        if not self._planned or self.timer >= self.SEARCH.step - 1e-9:
-            self._planned, self.timer = True, 0.0
+        if self.clock >= self._next_plan - 1e-9:
+            self._next_plan = self.clock + self.SEARCH.step
             self.plan, self._lane = self._plan()
         if self.plan is None:
             super().change_lane_policy()
@@ -302,7 +307,8 @@ class GapDriver(DriveOnDriver):
                 continue
             so, lo = goal.local_coordinates(other.position)
             rows.append((np.round(k + lo / width), so, other.speed))
-        return plan_gaps(self.SEARCH, s, self.speed, lane, phase, k, window, np.array(rows)), lane
+        search = dataclasses.replace(self.SEARCH, top_speed=max(float(self.target_speed), 1e-3))
+        return plan_gaps(search, s, self.speed, lane, phase, k, window, np.array(rows)), lane
 
 
 def carries_oncoming_traffic(network, lane_index) -> bool:
@@ -358,6 +364,7 @@ class Behaviour:
         shadow.heading, shadow.speed = float(ev.heading), float(ev.speed)
         shadow.lane_index, shadow.lane = ev.lane_index, ev.lane
         shadow.timer += dt
+        shadow.clock += dt
         vehicles = env.road.vehicles
         slot = next((i for i, v in enumerate(vehicles) if v is ev), None)
         if slot is not None:

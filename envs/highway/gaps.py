@@ -3,14 +3,14 @@ MOBIL never heads for, and at exit-v0's density never finds a gap its own rule a
 
 :func:`plan_gaps` searches a space-time lattice for the earliest way into the needed lane: every ``step`` s the EV
 picks an acceleration and whether to begin the next lane change towards the goal; a change takes ``change_steps``
-steps, during which the EV holds both lanes. The other vehicles hold their lane and speed (exit-v0's traffic does not
-change lanes). A lattice state is kept only while the EV keeps a safe gap to every vehicle in a lane it holds: the
-footprint gap plus the distance that sheds the closing speed at ``brake`` m/s^2, both to the vehicle ahead and to
-the one behind. No time headway: the EV crosses lanes slower than itself, in front of their vehicles (with highway-env's
-driver executing the plan, a 0.3 s headway reached exit-v0's exit lane on 8 of development seeds 0-11, none on all 30
-of 0-29, with no collision). States are merged on (lane, change phase, speed to 1 m/s,
-position to 2 m), the cheapest (least braking) kept, and of those at most ``per_group`` per lane, phase and speed
-(to 4 m/s), the furthest ahead.
+steps, during which the EV holds both lanes. The other vehicles hold their lane and speed (exit-v0's traffic does
+not change lanes). A lattice state is kept only while the EV keeps a safe gap to every vehicle in a lane it holds:
+the footprint gap plus the distance that sheds the closing speed at ``brake`` m/s^2, both to the vehicle ahead and
+to the one behind, at the start and the end of each step. No time headway: the EV crosses lanes slower than itself,
+in front of their vehicles (with highway-env's driver executing the plan: with a 0.3 s headway it reached exit-v0's
+exit lane on 8 of development seeds 0-11; with none, on 29 of 0-29, with no collision). States are merged on
+(lane, change phase, speed to 2 m/s, position to 2 m), the cheapest kept, and of those at most ``per_group`` per
+lane, phase and speed (to 4 m/s), the furthest ahead. A change once begun is not taken back.
 
 The frame: parallel straight lanes numbered as highway-env numbers them (0 the leftmost), positions ``s`` [m] along
 them.
@@ -102,14 +102,14 @@ def plan_gaps(search: GapSearch, s0: float, v0: float, lane0: int, phase0: int, 
         changing = (phase_ > 0) | begin
         v1 = np.clip(v_ + a * dt, 0.0, search.top_speed)
         s1 = s_ + (v_ + v1) / 2 * dt
-        ok &= _safe(search, lane_, lane_ + toward * changing, s_, s1, v1, others, t0, t0 + dt)
+        ok &= _safe(search, lane_, lane_ + toward * changing, s_, s1, v_, v1, others, t0, t0 + dt)
         phase1 = np.where(changing, phase_ + 1, 0)
         done = phase1 == search.change_steps
         lane1 = np.where(done, lane_ + toward, lane_)
         phase1 = np.where(done, 0, phase1)
         entering = (lane1 == goal) | ((phase1 > 0) & (lane1 + toward == goal))
         ok &= ~entering | (s1 >= window[0] - search.length)  # the goal lane begins at window[0]
-        ok &= (s1 <= window[1]) | ((lane1 == goal) & (phase1 == 0))  # past the window, out of the goal lane: missed
+        ok &= s1 <= window[1]  # past the window the goal is missed
         left = np.abs(goal - lane1) * search.change_steps - phase1 * (lane1 != goal)
         ok &= t0 + dt + left * dt <= search.horizon + 1e-9
         if k == 0:
@@ -127,9 +127,10 @@ def plan_gaps(search: GapSearch, s0: float, v0: float, lane0: int, phase0: int, 
 
 
 def _safe(search: GapSearch, lane_from: np.ndarray, lane_to: np.ndarray, s_before: np.ndarray, s_after: np.ndarray,
-          v_after: np.ndarray, others: np.ndarray, t_before: float, t_after: float) -> np.ndarray:
+          v_before: np.ndarray, v_after: np.ndarray, others: np.ndarray, t_before: float,
+          t_after: float) -> np.ndarray:
     """``(M,)``: whether the EV, holding ``lane_from`` and ``lane_to`` over a step, keeps the safe gap to every other
-    vehicle in those lanes at the step's end and passes none of them within it (module doc)."""
+    vehicle in those lanes at the step's start and end and passes none of them within it (module doc)."""
     if not len(others):
         return np.ones(len(s_before), bool)
     o_lane, o_s, o_v = others[:, 0], others[:, 1], others[:, 2]
@@ -137,12 +138,17 @@ def _safe(search: GapSearch, lane_from: np.ndarray, lane_to: np.ndarray, s_befor
     ahead_after = (o_s + o_v * t_after)[None] - s_after[:, None]
     ahead_before = (o_s + o_v * t_before)[None] - s_before[:, None]
     passed = np.sign(ahead_after) != np.sign(ahead_before)
-    v, ov = v_after[:, None], o_v[None]
-    front = search.gap + np.maximum(v ** 2 - ov ** 2, 0.0) / (2 * search.brake)
-    rear = search.gap + np.maximum(ov ** 2 - v ** 2, 0.0) / (2 * search.brake)
-    room = np.abs(ahead_after) - search.length
-    unsafe = held & (passed | (room < np.where(ahead_after >= 0, front, rear)))
-    return ~unsafe.any(axis=1)
+    unsafe = passed | _short(search, ahead_after, v_after, o_v) | _short(search, ahead_before, v_before, o_v)
+    return ~(held & unsafe).any(axis=1)
+
+
+def _short(search: GapSearch, ahead: np.ndarray, v: np.ndarray, o_v: np.ndarray) -> np.ndarray:
+    """``(M, N)``: whether the EV at speed ``v (M,)`` is nearer than the safe gap (module doc) to each other vehicle
+    ``ahead (M, N)`` m ahead of it (behind: < 0) at speed ``o_v (N,)``."""
+    v, o_v = v[:, None], o_v[None]
+    front = search.gap + np.maximum(v ** 2 - o_v ** 2, 0.0) / (2 * search.brake)
+    rear = search.gap + np.maximum(o_v ** 2 - v ** 2, 0.0) / (2 * search.brake)
+    return np.abs(ahead) - search.length < np.where(ahead >= 0, front, rear)
 
 
 def _merge(search: GapSearch, lane, phase, s, v, cost, first):

@@ -37,9 +37,24 @@ def test_past_the_window_out_of_the_goal_lane_the_goal_is_missed():
     assert plan_gaps(SEARCH, 120.0, 25.0, 2, 0, 3, WINDOW, np.zeros((0, 3))) is None
 
 
-def test_a_change_under_way_goes_on():
-    plan = plan_gaps(SEARCH, -250.0, 25.0, 0, 2, 3, WINDOW, np.zeros((0, 3)))
-    assert plan is not None and plan.change
+def test_a_change_under_way_arrives_by_the_steps_it_has_driven_sooner():
+    open_now = (-400.0, 95.0)  # the goal lane open from here: the lane changes alone time the arrival
+    settled = plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 3, open_now, np.zeros((0, 3)))
+    under_way = plan_gaps(SEARCH, -250.0, 25.0, 0, 2, 3, open_now, np.zeros((0, 3)))
+    assert settled.arrival == pytest.approx(3 * SEARCH.change_steps * SEARCH.step)
+    assert under_way.arrival == pytest.approx(settled.arrival - 2 * SEARCH.step) and under_way.change
+
+
+def test_the_goal_lane_is_reached_within_its_window_or_not_at_all():
+    # the change's last step from 13 m before the window's end: at 30 m/s even braking overshoots it (14.5 m)
+    assert plan_gaps(SEARCH, 82.0, 30.0, 2, 3, 3, WINDOW, np.zeros((0, 3))) is None
+    assert plan_gaps(SEARCH, 82.0, 10.0, 2, 3, 3, WINDOW, np.zeros((0, 3))) is not None
+
+
+def test_a_vehicle_beside_at_the_steps_start_is_not_cut_off():
+    # 3 m behind the EV's centre in the next lane at 10 m/s: clear of it by the step's end, abreast at its start
+    beside = np.array([[1, -253.0, 10.0]])
+    assert not plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 1, (-400.0, 95.0), beside).change
 
 
 def test_the_plan_never_closes_on_the_vehicle_ahead_faster_than_it_can_brake():
@@ -87,6 +102,25 @@ def test_exit_v0_success_is_highway_envs_own_and_the_driver_reaches_the_exit_lan
         done = terminated or truncated
     assert info["goal"] and info["is_success"] and not info["collision"]
     assert env.unwrapped.vehicle.lane_index in (("1", "2", 6), ("2", "exit", 0))
+
+
+def test_the_plan_is_remade_every_lattice_step_and_leaves_mobils_timer_to_mobil(monkeypatch):
+    from bimp.envs.highway import behaviour
+
+    calls = []
+    monkeypatch.setattr(behaviour, "plan_gaps", lambda *a: calls.append(a) or None)  # no plan: MOBIL decides
+    env = gym.make("bimp/exit-v0")
+    env.reset(seed=0)
+    adapter = env
+    while not hasattr(adapter, "behaviour"):
+        adapter = adapter.env
+    shadow = adapter.behaviour.shadow
+    before, timer = len(calls), shadow.timer
+    for _ in range(12):
+        adapter.behaviour.decide(0.1)
+        timer = max(timer, shadow.timer)
+    assert len(calls) - before == 2  # at 0.5 s and 1.0 s of the 1.2 s (the reset's decision made the first)
+    assert timer > shadow.LANE_CHANGE_DELAY - 0.1  # MOBIL's timer ran up to its delay: MOBIL got to decide
 
 
 def test_the_profile_records_the_gap_plan_only_where_it_is_set():
