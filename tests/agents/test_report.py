@@ -201,7 +201,17 @@ def test_a_paired_table_pairs_each_variant_and_reads_its_verdict(tmp_path):
     row = table.splitlines()[2]
     assert row.startswith("| f | highway-v0 (N=5) |") and f"| {s['only_a']} / {s['only_b']} |" in row
     assert s["p_value"] < 0.05 and s["only_b"] > s["only_a"]
-    assert row.endswith("| - | mobil ahead on success |")  # records without the score
+    sc = result["highway-v0"]["score"]
+    assert sc["ci_high"] < 0  # the records carry the closed-loop score: mobil leads on it too
+    assert row.endswith(f"| {sc['mean_diff']:+.3f} [{sc['ci_low']:+.3f}, {sc['ci_high']:+.3f}] | "
+                        "mobil ahead on success and the score |")
+    # records made before the score: no score cell, the verdict on success alone
+    records = [json.loads(x) for x in (folder / "episodes.jsonl").read_text().splitlines()]
+    (folder / "episodes.jsonl").write_text("".join(
+        json.dumps({**r, "metrics": {k: v for k, v in r["metrics"].items() if not k.startswith("score")}}) + "\n"
+        for r in records))
+    unscored, _ = tables.paired_table(str(folder), a="lk", b="mobil")
+    assert unscored.splitlines()[2].endswith("| - | mobil ahead on success |")
     with pytest.raises(EvaluationError, match="no label 'nobody'"):
         tables.paired_table(str(folder), a="lk", b="nobody")
 

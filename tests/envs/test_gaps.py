@@ -115,12 +115,26 @@ def test_the_plan_is_remade_every_lattice_step_and_leaves_mobils_timer_to_mobil(
     while not hasattr(adapter, "behaviour"):
         adapter = adapter.env
     shadow = adapter.behaviour.shadow
-    before, timer = len(calls), shadow.timer
-    for _ in range(12):
+    before, timers = len(calls), [shadow.timer]
+    for _ in range(15):
         adapter.behaviour.decide(0.1)
-        timer = max(timer, shadow.timer)
-    assert len(calls) - before == 2  # at 0.5 s and 1.0 s of the 1.2 s (the reset's decision made the first)
-    assert timer > shadow.LANE_CHANGE_DELAY - 0.1  # MOBIL's timer ran up to its delay: MOBIL got to decide
+        timers.append(shadow.timer)
+    assert len(calls) - before == 3  # at 0.5, 1.0 and 1.5 s (the reset's decision made the first)
+    # MOBIL's timer ran up to its delay and MOBIL, deciding (past it, within a step), reset it: the planning left
+    # MOBIL's clock alone (with the clock shared, the timer went back to 0 every 0.5 s and MOBIL never decided)
+    peak = max(range(len(timers)), key=timers.__getitem__)
+    assert timers[peak] > shadow.LANE_CHANGE_DELAY - 0.05 and min(timers[peak:]) < 0.2
+
+
+def test_the_plan_runs_up_to_the_behaviour_layers_target_speed(monkeypatch):
+    from bimp.envs.highway import behaviour
+
+    searches = []
+    monkeypatch.setattr(behaviour, "plan_gaps", lambda search, *a: searches.append(search) or None)
+    env = gym.make("bimp/exit-v0")
+    env.reset(seed=0)
+    behaviour.Behaviour(env.unwrapped, 20.0, drive_on=True, gap_plan=True).decide(0.0)
+    assert searches[-1].top_speed == 20.0
 
 
 def test_the_profile_records_the_gap_plan_only_where_it_is_set():
