@@ -270,14 +270,13 @@ class GapDriver(DriveOnDriver):
     def change_lane_policy(self) -> None:
         if self.clock >= self._next_plan - 1e-9:
             self._next_plan = self.clock + self.SEARCH.step
-            self.plan, self._lane = self._plan()
+            self.plan, self._plan_lane = self._plan()
         if self.plan is None:
             super().change_lane_policy()
             return
         road = self.target_lane_index[:2]
-        lane = self._lane + (self._toward if self.plan.change else 0)
-        if lane < len(self.road.network.graph[road[0]][road[1]]):  # the needed lane may begin on the next road
-            self.target_lane_index = (*road, lane)
+        if self._plan_lane < len(self.road.network.graph[road[0]][road[1]]):  # the needed lane may begin further on
+            self.target_lane_index = (*road, self._plan_lane)
 
     def acceleration(self, ego_vehicle, front_vehicle=None, rear_vehicle=None) -> float:
         if ego_vehicle is self and self.plan is not None:
@@ -285,22 +284,23 @@ class GapDriver(DriveOnDriver):
         return super().acceleration(ego_vehicle, front_vehicle, rear_vehicle)
 
     def _plan(self) -> tuple[GapPlan | None, int]:
-        """The lattice's plan from here and the lane it starts from: (None, -1) where there is none."""
+        """The lattice's plan from here and the number of the lane its first step drives to (the one the EV is in,
+        or the next towards the needed lane): (None, -1) where there is none."""
         network = self.road.network
         goal_index = needed_lane(network, [self.lane_index, *self.route], self.lane_index[2]) if self.route else None
         if goal_index is None:
             return None, -1
         goal = network.get_lane(goal_index)
         s, lat = goal.local_coordinates(self.position)
-        width, k = goal.width_at(s), goal_index[2]
         window = (0.0, goal.length - self.LENGTH)
-        frac = k + lat / width
-        self._toward = int(np.sign(k - frac)) or 1
-        lane = int(np.floor(frac + 0.125)) if self._toward > 0 else int(np.ceil(frac - 0.125))
-        cs = self.SEARCH.change_steps
-        phase = int(np.clip(np.round(abs(frac - lane) * cs), 0, cs - 1))
         if s >= window[1]:
             return None, -1  # before, in the needed lane, the lattice drives on at speed (no braking to its limit)
+        width, k = goal.width_at(s), goal_index[2]
+        frac = k + lat / width
+        toward = int(np.sign(k - frac)) or 1
+        lane = int(np.floor(frac + 0.125)) if toward > 0 else int(np.ceil(frac - 0.125))
+        cs = self.SEARCH.change_steps
+        phase = int(np.clip(np.round(abs(frac - lane) * cs), 0, cs - 1))
         rows = []
         for other in self.road.vehicles:
             if other is self or np.cos(other.heading - self.heading) <= 0:
@@ -308,7 +308,8 @@ class GapDriver(DriveOnDriver):
             so, lo = goal.local_coordinates(other.position)
             rows.append((np.round(k + lo / width), so, other.speed))
         search = dataclasses.replace(self.SEARCH, top_speed=max(float(self.target_speed), 1e-3))
-        return plan_gaps(search, s, self.speed, lane, phase, k, window, np.array(rows)), lane
+        plan = plan_gaps(search, s, self.speed, lane, phase, k, window, np.array(rows))
+        return plan, lane + (toward if plan is not None and plan.change else 0)
 
 
 def carries_oncoming_traffic(network, lane_index) -> bool:

@@ -52,9 +52,9 @@ class GapSearch:
                 raise ConfigError(name, "> 0", getattr(self, name))
         if not self.lag >= 0:
             raise ConfigError("lag", ">= 0", self.lag)
-        for name in ("change_steps", "per_group"):
-            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
-                raise ConfigError(name, "an integer >= 1", getattr(self, name))
+        for name in ("change_steps", "per_group"):  # ints: check_fields refuses any other type
+            if not getattr(self, name) >= 1:
+                raise ConfigError(name, ">= 1", getattr(self, name))
         if not self.accels:
             raise ConfigError("accels", "at least one acceleration", self.accels)
 

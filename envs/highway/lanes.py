@@ -159,9 +159,7 @@ def needed_lane(network: RoadNetwork, route: list, lane: int) -> tuple | None:
     the exit lane ``("1", "2", 6)``); None where the EV's lane goes on all along."""
     for (a, b, _), (c, d, k) in zip(route, route[1:]):
         nexts = [(c, d, j) for j in range(len(network.graph[c][d]))] if k is None else [(c, d, k)]
-        joined = [i for i, own in enumerate(network.graph[a][b])
-                  if any(joins(network, n, own.position(own.length, 0.0), own.heading_at(own.length))
-                         for n in nexts)]
+        joined = [i for i, own in enumerate(network.graph[a][b]) if any(goes_on_from(network, n, own) for n in nexts)]
         if joined and lane not in joined:
             return (a, b, min(joined, key=lambda i: abs(i - lane)))
     return None
@@ -171,9 +169,12 @@ def goes_on_beside(network: RoadNetwork, index: tuple, following: tuple) -> bool
     """Whether ``following`` (``network.next_lane`` after lane ``index``, along a route) is another lane than
     ``index`` that does not go on from ``index``'s end (:func:`joins`): the route's next road leaves from a lane
     beside (exit-v0's exit, 24 m to the side), which highway-env's next_lane reaches by a chord."""
-    lane = network.get_lane(index)
-    return following != index and not joins(network, following, lane.position(lane.length, 0.0),
-                                             lane.heading_at(lane.length))
+    return following != index and not goes_on_from(network, following, network.get_lane(index))
+
+
+def goes_on_from(network: RoadNetwork, index: tuple, lane) -> bool:
+    """Whether lane ``index`` goes on from the end of ``lane`` (a highway-env lane): :func:`joins` at its end."""
+    return joins(network, index, lane.position(lane.length, 0.0), lane.heading_at(lane.length))
 
 
 def _edges(network, xy: np.ndarray, heading: np.ndarray, index, offset: float = 0.0) -> tuple[float, float]:
