@@ -19,15 +19,17 @@
 - **info**: highway-env's own keys (``speed``, ``crashed``, ``rewards`` ...) plus bimp's safety quantities:
   ``collision`` (highway-env's crash flag, or a footprint gap <= 0 to any vehicle or object), ``offroad`` (a body
   corner on no lane of the network, asked where the route's edges put a corner outside; or highway-env's
-  ``on_road`` false), ``ov_distance`` (footprint gaps to the K
-  slots, inf where absent), ``edge_distance``, ``ttc``, ``s`` (the EV's progress along its route [m], cumulative
-  across the republished scenes), ``reference``, ``lateral_error``, ``speed_error`` (speed minus the free-road
-  target speed), ``longitudinal_speed``, ``input``, ``constraints`` (as the paper's envs report them),
+  ``on_road`` false, unless the centre is in a seam between two lanes of one road), ``ov_distance`` (footprint
+  gaps to the K slots, inf where absent), ``edge_distance``, ``ttc``, ``s`` (the EV's progress along its route
+  [m], cumulative across the republished scenes), ``reference``, ``lateral_error``, ``speed_error`` (speed minus
+  the free-road target speed), ``longitudinal_speed``, ``input``, ``constraints`` (as the paper's envs report them),
   ``ahead_of_ov1`` (None), and for the closed-loop score (:func:`bimp.envs.scene.attribution_info`,
   ``docs/suite.md``) ``contact`` (None, or the vehicle in contact: the least footprint gap <= 0, else the nearest
   one highway-env flags crashed) and ``speed_limit`` (the EV's lane's ``speed_limit``, else the free-road target);
 - **reward and termination**: highway-env's (crash, its off-road where it has one, its goals, its duration), and
-  the episode also terminates on bimp's ``collision`` or ``offroad``, and at ``info["goal"]``: exit-v0's exit lane
+  the episode also terminates on bimp's ``collision`` or ``offroad``; where highway-env would end it off the road
+  with the EV's centre in a seam between two lanes (its ``on_road`` asks the EV's own lane only), bimp's
+  ``offroad`` decides, and the episode goes on, and at ``info["goal"]``: exit-v0's exit lane
   reached, roundabout-v0's last road reached (highway-env rewards them but drives on, off the end of its network);
   a step after termination raises ``gymnasium.error.ResetNeeded``.
 
@@ -59,7 +61,7 @@ from gymnasium.error import ResetNeeded
 from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, checked_flag, is_int
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule, curve_acceleration
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
-from bimp.envs.highway.lanes import RouteCache, check_steering_reach, route_from
+from bimp.envs.highway.lanes import RouteCache, check_steering_reach, off_lanes, route_from
 from bimp.envs.highway.profiles import PROFILES, SUPPORTED
 from bimp.envs.overlay import draw_lines
 from bimp.envs.road import Projection, Route, body_corners, corner_edge_margin
@@ -81,7 +83,10 @@ from bimp.envs.traffic import make_fast_if_known
 N_OBSTACLES = 8
 _VIEW_KEYS = frozenset({"screen_width", "screen_height", "centering_position", "scaling", "show_trajectories",
                         "render_agent", "offscreen_rendering", "manual_control", "real_time_rendering"})
-JUNCTION_MARGIN = 1.0  # m: see HighwayAdapter._corner_off_lanes
+JUNCTION_MARGIN = 1.0  # m: see lanes.off_lanes
+# m: highway-env's lanes of one road may leave a seam between them, which its on_road (the EV's own lane only) counts
+# as off the road: racetrack-v0's road f-g has 5 m lanes 5.08 m apart, painted as one road. See lanes.off_lanes.
+SEAM_MARGIN = 0.25
 PROGRESS_WINDOW = 80.0  # m of the road before a step about the EV (a quarter behind) that its progress is read on
 
 
@@ -275,7 +280,10 @@ class HighwayAdapter(gym.Wrapper):
         self.behaviour.decide(self.dt)
         self._publish()
         obs, safety = self._measure((road_before, before))
-        terminated = bool(terminated or safety["collision"] or safety["offroad"] or bool(safety["goal"]))
+        # highway-env ends an episode off the road by its on_road (racetrack-v0 does by default), which counts the
+        # seam between two lanes of one road as off it; bimp's offroad (lanes.off_lanes) decides instead.
+        seam = not ev.on_road and not ev.crashed and not safety["offroad"]
+        terminated = bool((terminated and not seam) or safety["collision"] or safety["offroad"] or bool(safety["goal"]))
         self._ended = terminated
         return obs, float(reward), terminated, bool(truncated), {**info, **safety}
 
@@ -342,19 +350,6 @@ class HighwayAdapter(gym.Wrapper):
             route = getattr(base.vehicle, "route", None)
             return bool(route and base.vehicle.lane_index[:2] == route[-1][:2])
         return None
-
-    def _corner_off_lanes(self, state: np.ndarray) -> bool:
-        """Whether a body corner lies on no lane of the network: the drivable area exactly, as the union of
-        highway-env's lanes. Asked only where the route's edges put a corner outside (``edge_distance < 0``): those
-        edges are the planner's view of the road ahead, and at a junction (a roundabout's entry, an exit) the EV
-        crosses lanes beside its route that they leave out. highway-env's lanes leave slivers uncovered where they
-        meet at an angle (a roundabout's entry and ring): a corner within ``JUNCTION_MARGIN`` of a lane is on it."""
-        lanes = self.env.unwrapped.road.network.lanes_list()
-        for corner in body_corners(state[:2], state[2], VEHICLE_LENGTH, VEHICLE_WIDTH):
-            if not any(lane.on_lane(corner, *lane.local_coordinates(corner), margin=JUNCTION_MARGIN)
-                       for lane in lanes):
-                return True
-        return False
 
     def _others(self) -> list:
         base = self.env.unwrapped
@@ -444,7 +439,7 @@ class HighwayAdapter(gym.Wrapper):
 
     def _safety(self, state: np.ndarray, rows: np.ndarray, ref: np.ndarray, crashed: np.ndarray, p) -> dict:
         base, scene = self.env.unwrapped, self.scene
-        ev = base.vehicle
+        ev, network = base.vehicle, base.road.network
         # Footprint gaps of the slots, of any vehicle near enough to touch (centres within the two half-diagonals)
         # and, once highway-env has crashed the EV, of all (the contact may be one it pushed apart).
         gaps_all = np.full(len(rows), np.inf)
@@ -482,7 +477,9 @@ class HighwayAdapter(gym.Wrapper):
                                        crashed=flagged)
         return {
             "collision": bool(ev.crashed or (len(gaps_all) and gaps_all.min() <= 0.0)),
-            "offroad": bool(not ev.on_road or (edge < 0.0 and self._corner_off_lanes(state))),
+            "offroad": bool((not ev.on_road and off_lanes(network, state[None, :2], SEAM_MARGIN, besides=ev.lane))
+                            or (edge < 0.0 and off_lanes(network, body_corners(state[:2], state[2], VEHICLE_LENGTH,
+                                                                               VEHICLE_WIDTH), JUNCTION_MARGIN))),
             "ov_distance": gaps.tolist(), "edge_distance": edge,
             "ttc": float(ttc.min()), "s": self.progress, "reference": ref.tolist(),
             "lateral_error": float(e.l - ref[2]), "speed_error": float(ev.speed - self.profile.target_speed),

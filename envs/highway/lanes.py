@@ -198,6 +198,23 @@ def _edges(network, xy: np.ndarray, heading: np.ndarray, index, offset: float = 
     return left, right
 
 
+def off_lanes(network: RoadNetwork, points: np.ndarray, margin: float, besides=None) -> bool:
+    """Whether a point of ``points (P, 2)`` lies on no lane of the network, a point within ``margin`` m of a lane
+    counting as on it: the drivable area, as the union of highway-env's lanes. Two uses (the adapter's offroad):
+    - the body corners, where the route's edges put one outside (``edge_distance < 0``): those edges are the
+      planner's view of the road ahead, and at a junction (a roundabout's entry, an exit) the EV crosses lanes
+      beside its route that they leave out. highway-env's lanes leave slivers uncovered where they meet at an
+      angle (a roundabout's entry and ring): the adapter's ``JUNCTION_MARGIN``;
+    - the centre, where highway-env's ``on_road`` is false: it asks the EV's own lane only, so a centre in the
+      seam between two lanes of one road would end the episode on a road drawn as one. The other lanes only
+      (``besides``, the EV's own, left out), within the adapter's ``SEAM_MARGIN``: where lanes meet without a
+      seam, as on every straight road, the rule is highway-env's exactly."""
+    lanes = [lane for lane in network.lanes_list() if lane is not besides]
+    return any(not any(lane.on_lane(point, *lane.local_coordinates(point), margin=margin) for lane in lanes)
+               for point in points)
+
+
+
 def _beside(network, index) -> list:
     """The lanes whose sides may bound the route on lane ``index``'s road (:func:`_edges`), kept on the network
     (a road's lanes do not change within an episode, and a reset builds a new network)."""

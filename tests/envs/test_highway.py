@@ -231,3 +231,32 @@ def test_spaced_keeps_what_the_point_by_point_rule_keeps(seed):
         if last is None or np.hypot(*(point - last)) >= 0.5:
             keep[i], last = True, point
     assert np.array_equal(_spaced(xy, 0.5), keep) and not keep.all()
+
+
+def _racetrack_ev_at(lateral: float):
+    """racetrack-v0 with the EV moved onto road f-g, ``lateral`` m right of lane 0's centre, heading along it."""
+    env = gym.make("bimp/racetrack-v0")
+    env.reset(seed=0)
+    base = env.unwrapped
+    lane = base.road.network.get_lane(("f", "g", 0))
+    ev = base.vehicle
+    ev.position, ev.heading, ev.speed = lane.position(5.0, lateral), lane.heading_at(5.0), 5.0
+    ev.lane_index, ev.lane = ("f", "g", 0), lane
+    base.road.vehicles = [ev]  # nothing to run into
+    return env, ev
+
+
+def test_a_seam_between_two_lanes_of_one_road_is_road():
+    """racetrack-v0's road f-g has 5 m lanes 5.08 m apart. highway-env's ``on_road`` (the EV's own lane only) counts a
+    centre in that seam as off the road and its racetrack ends the episode there: 20 of EnKTS's 100 results
+    episodes ended so. bimp's ``offroad`` counts the seam as road, and the episode goes on."""
+    env, ev = _racetrack_ev_at(2.54)
+    _, _, terminated, _, info = env.step(np.zeros(2, np.float32))
+    assert not ev.on_road  # highway-env's rule sees the seam: the test would pass vacuously without it
+    assert not info["offroad"] and not info["collision"] and not terminated
+
+
+def test_past_the_outer_side_of_the_road_is_off_it():
+    env, ev = _racetrack_ev_at(-3.6)  # lane 0's outer side is at -2.5: its centre 1.1 m beyond
+    _, _, terminated, _, info = env.step(np.zeros(2, np.float32))
+    assert not ev.on_road and info["offroad"] and terminated
