@@ -17,7 +17,7 @@ Nothing here imports highway-env or JAX.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -175,7 +175,10 @@ class Scene:
     step. ``actuator_accel`` / ``actuator_steer``: physical ranges that the normalized action [-1, 1] maps onto.
     ``n_obstacles``: fixed number of OV slots in the observation (absent ones are masked, ``present = 0``).
     ``geometry``: the closed-form road where the env has one (the paper's scenarios: what NMPC's CasADi program
-    plans on), else None.
+    plans on), else None. ``ov_paths``: where the env knows where the OVs drive (a wrapped highway-env junction
+    road: :mod:`bimp.envs.highway.prediction`), each slot's path ``(n_obstacles, T, 3)`` ``[x, y, heading]`` every
+    ``dt`` from now, which the planners predict the OVs along; None elsewhere (they extrapolate the observation).
+    Per step, like the road a wrapped env republishes, and left out of the comparison of scenes.
     """
 
     road: Route
@@ -187,6 +190,7 @@ class Scene:
     actuator_steer: tuple[float, float]
     n_obstacles: int
     geometry: RoadGeometry | None = None
+    ov_paths: np.ndarray | None = field(default=None, compare=False)
 
     # --- observation layout --------------------------------------------------------------------------
     @property

@@ -310,8 +310,8 @@ def roll_out(model, x0: jnp.ndarray, controls: jnp.ndarray) -> jnp.ndarray:
 
 plan_step = jax.jit(_plan, static_argnums=1)
 
-# One compiled program for a batch of episodes: the problem's road (and nothing else) differs per row.
-_BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None, lane_rate=None, course=None)
+# One compiled program for a batch of episodes: the problem's road and the OVs' paths differ per row.
+_BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None, lane_rate=None, course=None, paths=0)
 
 
 @partial(jax.jit, static_argnums=1)

@@ -221,19 +221,23 @@ class EnKTSPlanner:
 
     def _problem_of(self, scenes: list[Scene], obs: np.ndarray) -> Problem:
         """The problem of the current scene(s) seen from each row's EV (``obs (B or 1, obs_dim)``): the road is a
-        window of the scene's route ahead of the EV, rebuilt every step; the rest only when the rest of a scene
-        changes (the env redraws it at reset; a wrapped highway-env env publishes a new scene, same but for its road,
-        every step). Compared by value, not ``id``: a freed scene's id can be reused by the next one."""
+        window of the scene's route ahead of the EV, rebuilt every step with the OVs' paths where the scene has them;
+        the rest only when the rest of a scene changes (the env redraws it at reset; a wrapped highway-env env
+        publishes a new scene, same but for its road and paths, every step). Compared by value, not ``id``: a freed
+        scene's id can be reused by the next one."""
         static = [dataclasses.replace(s, road=None) for s in scenes]  # a Route compares by identity: leave it out
         if static != self._problem_scenes:
             problem = make_problem(scenes[0], self.config.problem, self._model)
             self._static = jax.device_put(jax.tree.map(
                 lambda a: np.asarray(a, np.float32) if isinstance(a, (float, np.ndarray)) else a,
-                problem._replace(road=None)))
+                problem._replace(road=None, paths=None)))
             self._problem_scenes = static
         roads = [road_window(s.road, row[:2], self.config.problem) for s, row in zip(scenes, obs)]
         road = roads[0] if self.batch is None else Road(*(np.stack(v) for v in zip(*roads)))
-        return self._static._replace(road=Road(*(np.asarray(v, np.float32) for v in road)))
+        paths = None if scenes[0].ov_paths is None else np.stack([s.ov_paths for s in scenes]).astype(np.float32)
+        if paths is not None and self.batch is None:
+            paths = paths[0]
+        return self._static._replace(road=Road(*(np.asarray(v, np.float32) for v in road)), paths=paths)
 
 
 CONFIG_FILE = "planner.yaml"

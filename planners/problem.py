@@ -210,7 +210,9 @@ class Problem(NamedTuple):
     """One episode's planning problem: ``noise (m,)`` is the measurement noise scale of each row of ``y``;
     ``model`` the dynamics' parameters (:mod:`bimp.planners.model`); ``lane_rate`` the reference lane's lateral speed
     [m/s] over the horizon (finite: a step is 1e6); ``course``: 1.0 where the heading term measures the course
-    (``ProblemConfig.track_course``), else 0.0 (data, not a program switch)."""
+    (``ProblemConfig.track_course``), else 0.0 (data, not a program switch); ``paths``: the OVs' paths where the
+    scene gives them (``Scene.ov_paths (K, T, 3)``, :func:`predict_obstacles`), else None (a program switch: a
+    junction road compiles its own program)."""
 
     road: Road
     limits: Limits
@@ -219,6 +221,7 @@ class Problem(NamedTuple):
     model: tuple
     lane_rate: float
     course: float = 0.0
+    paths: np.ndarray | None = None
 
 
 STEER_UNIT = Bounds().steer  # rad: the paper's steering bound, where the steering's noise scales were tuned
@@ -334,6 +337,7 @@ def make_problem(scene: Scene, config: ProblemConfig, model: tuple = (), ego_xy:
         model=model,
         lane_rate=f(min(config.lane_change_rate, 1e6)),  # finite: inf * 0 would be nan at t = 0
         course=1.0 if config.track_course else 0.0,
+        paths=scene.ov_paths,
     )
 
 
@@ -360,24 +364,42 @@ def edge_distance_local(left, right, limits: Limits, lat, dpsi):
 
 def predict_obstacles(problem: Problem, ovs, horizon: int):
     """Constant-acceleration prediction of the OVs along their own heading relative to the road (a vehicle in a
-    lane moves along it; an oncoming one against ``s``, a crossing one across it), speed never below 0.
+    lane moves along it; an oncoming one against ``s``, a crossing one across it), speed never below 0; where the
+    problem has the OVs' paths (``problem.paths``: a junction road's lanes), along those instead.
 
     ovs: observation rows ``(K, 6)`` ``[present, x, y, heading, speed, accel]``. Returns ``s, l, v, a`` of shapes
     ``(horizon + 1, K)`` (index 0 = now; ``v``, ``a`` along the road, signed: < 0 for oncoming traffic) and
     ``present`` (bool ``(K,)``).
     """
     xp = array_module(ovs, problem.limits.dt, problem.road.xy)
-    p = project(problem.road, ovs[:, 1:3])
-    dh = wrap_angle(ovs[:, 3] - p.heading)
-    along, across = xp.cos(dh), xp.sin(dh)
     v0, a = ovs[:, 4], ovs[:, 5]
     t = xp.arange(horizon + 1)[:, None] * problem.limits.dt
     t_stop = xp.where(a < 0, v0 / xp.maximum(-a, 1e-9), xp.inf)
+    v = xp.maximum(v0 + a * t, 0.0)
+    a_t = xp.where(t < t_stop, a, 0.0)
+    if problem.paths is not None:
+        return (*_along_paths(problem, problem.paths, horizon, v, a_t), ovs[:, 0] > 0)
+    p = project(problem.road, ovs[:, 1:3])
+    dh = wrap_angle(ovs[:, 3] - p.heading)
+    along, across = xp.cos(dh), xp.sin(dh)
     tc = xp.minimum(t, t_stop)
     travel = v0 * tc + 0.5 * a * tc**2
-    v = xp.maximum(v0 + a * t, 0.0)
-    return (p.s + along * travel, p.l + across * travel, along * v, along * xp.where(t < t_stop, a, 0.0),
-            ovs[:, 0] > 0)
+    return p.s + along * travel, p.l + across * travel, along * v, along * a_t, ovs[:, 0] > 0
+
+
+def _along_paths(problem: Problem, paths, horizon: int, v, a):
+    """``s, l, v, a`` ``(horizon + 1, K)`` of the OVs on their paths ``(K, T, 3)`` ``[x, y, heading]`` (one every
+    ``dt`` from now), their speed ``v`` and acceleration ``a`` ``(horizon + 1, K)`` taken along the road by the
+    paths' heading; past a path's end, straight on at its last step."""
+    xp = array_module(paths, problem.road.xy)
+    extra = horizon + 1 - paths.shape[1]
+    if extra > 0:  # static shapes: a horizon longer than the paths the env gives
+        step = (paths[:, -1] - paths[:, -2]) * xp.array([1.0, 1.0, 0.0])
+        paths = xp.concatenate([paths, paths[:, -1:] + xp.arange(1, extra + 1)[None, :, None] * step[:, None]], 1)
+    paths = xp.swapaxes(paths[:, :horizon + 1], 0, 1)  # (horizon + 1, K, 3)
+    p = project(problem.road, paths[..., :2])
+    along = xp.cos(wrap_angle(paths[..., 2] - p.heading))
+    return p.s, p.l, along * v, along * a
 
 
 def reference_profile(problem: Problem, ref, ego, horizon: int):

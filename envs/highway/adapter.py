@@ -51,6 +51,7 @@ own ids.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 
 import gymnasium as gym
@@ -62,6 +63,7 @@ from bimp.envs.checks import check_highway_config, check_policy_frequency, check
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule, curve_acceleration
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
 from bimp.envs.highway.lanes import RouteCache, check_steering_reach, off_lanes, route_from
+from bimp.envs.highway.prediction import lane_paths
 from bimp.envs.highway.profiles import PROFILES, SUPPORTED
 from bimp.envs.overlay import draw_lines
 from bimp.envs.road import Projection, Route, body_corners, corner_edge_margin
@@ -355,10 +357,10 @@ class HighwayAdapter(gym.Wrapper):
         base = self.env.unwrapped
         return [v for v in base.road.vehicles if v is not base.vehicle] + list(base.road.objects)
 
-    def _rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every other vehicle and road object as an OV row ``(N, 6)``, nearest first (by centre distance), and
+    def _rows(self) -> tuple[np.ndarray, np.ndarray, list]:
+        """Every other vehicle and road object as an OV row ``(N, 6)``, nearest first (by centre distance),
         highway-env's crash flag of each ``(N,)`` (``crashed``, or ``hit`` for an object it lets vehicles pass
-        through), in the same order."""
+        through) and the vehicles and objects themselves, in the same order."""
         ev = self.env.unwrapped.vehicle
         others = self._others()
         rows = np.array([[1.0, *v.position, v.heading, v.speed, self._accels.get(id(v), 0.0)]
@@ -366,7 +368,7 @@ class HighwayAdapter(gym.Wrapper):
         crashed = np.array([bool(v.crashed or getattr(v, "hit", False)) for v in others], bool)
         distance = np.hypot(*(rows[:, 1:3] - ev.position).T) if len(rows) else np.zeros(0)
         order = np.argsort(distance, kind="stable")
-        return rows[order], crashed[order]
+        return rows[order], crashed[order], [others[i] for i in order]
 
     def reference(self) -> np.ndarray:
         """``[v_ref m/s, a_ref m/s^2, l_ref m]`` (module docstring)."""
@@ -414,7 +416,11 @@ class HighwayAdapter(gym.Wrapper):
         projection on the route of every point they need: the EV, the reference lane abreast, the EV's body corners
         and the OVs in the slots (rows ``0``, ``1``, ``2:6``, ``6:``). After a step, ``stepped``: the road before it
         and the EV's position then, to add the step's progress along that road."""
-        rows, crashed = self._rows()
+        rows, crashed, others = self._rows()
+        base = self.env.unwrapped
+        if self.profile.junction:  # the slots' paths along their lanes (bimp.envs.highway.prediction)
+            base.scene = dataclasses.replace(base.scene, ov_paths=lane_paths(
+                base.road.network, others, list(rows[:self.n_obstacles, 5]), self.n_obstacles, self.dt))
         state = self._ev_state()
         corners = body_corners(state[:2], state[2], VEHICLE_LENGTH, VEHICLE_WIDTH)
         p = self.scene.road.project(np.vstack([state[None, :2], self._abreast()[None], corners,

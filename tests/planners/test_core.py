@@ -314,3 +314,17 @@ def test_the_spread_cap_bounds_the_widening():
     plain, _ = update(X, Y, y, 4.0, adapt_spread=False)
     assert wide.std(0)[1] > 3 * plain.std(0)[1]
     np.testing.assert_allclose(capped.std(0), np.sqrt(1.5) * plain.std(0), rtol=1e-6)
+
+
+def test_a_batch_on_a_junction_road_plans_each_row_on_its_own_paths():
+    """roundabout-v0 publishes the OVs' paths (Scene.ov_paths): a batch takes each row's, as single plans do."""
+    envs_, obs = zip(*(episode("bimp/roundabout-v0", seed) for seed in (1, 2)))
+    scenes = [e.unwrapped.scene for e in envs_]
+    assert all(s.ov_paths is not None for s in scenes) and not np.allclose(*(s.ov_paths for s in scenes))
+    batch = EnKTSPlanner(lambda: scenes, small())
+    batch.reset(seed=[11, 12])
+    singles = [EnKTSPlanner(scene, small()) for scene in scenes]
+    for planner, seed in zip(singles, (11, 12)):
+        planner.reset(seed)
+    actions = batch.act(np.stack(obs))
+    np.testing.assert_allclose(actions, np.stack([p.act(o) for p, o in zip(singles, obs)]), atol=2e-5)

@@ -244,3 +244,37 @@ def test_the_heading_row_tracks_the_course_where_asked_and_the_edge_the_body(sce
     env.reset(seed=0)
     assert env.unwrapped.scene.bounds.steer == pytest.approx(6 * STEER_UNIT)
     assert make_problem(env.unwrapped.scene, config).course == 1.0 and body.course == 0.0
+
+
+def _straight_paths(ovs, steps, dt=0.1):
+    """Each OV's path ``(K, steps + 1, 3)`` straight along its heading at its constant speed (no acceleration)."""
+    t = dt * np.arange(steps + 1)
+    direction = np.stack([np.cos(ovs[:, 3]), np.sin(ovs[:, 3])], axis=1)
+    xy = ovs[:, None, 1:3] + ovs[:, 4, None, None] * t[None, :, None] * direction[:, None]
+    return np.concatenate([xy, np.broadcast_to(ovs[:, None, 3:4], (len(ovs), steps + 1, 1))], axis=2)
+
+
+def test_paths_along_the_headings_predict_as_the_heading_rule(problem):
+    """Given the paths the heading rule would draw (straight, constant speed), the prediction along paths is that
+    rule's, in numpy and in JAX; a horizon longer than the paths goes on straight at their last step."""
+    ovs = np.array([[1.0, 50.0, 2.0, 0.0, 10.0, 0.0], [1.0, 30.0, -2.0, 0.05, 20.0, 0.0]])
+    by_heading = predict_obstacles(problem, ovs, 30)
+    along = predict_obstacles(problem._replace(paths=_straight_paths(ovs, 40)), ovs, 30)
+    short = predict_obstacles(problem._replace(paths=_straight_paths(ovs, 10)), ovs, 30)
+    for a, b, c in zip(by_heading[:4], along[:4], short[:4]):
+        np.testing.assert_allclose(b, a, atol=1e-6)
+        np.testing.assert_allclose(c, a, atol=1e-6)
+    p32 = jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), problem._replace(paths=_straight_paths(ovs, 40)))
+    jitted = jax.jit(lambda p, o: predict_obstacles(p, o, 30))(p32, jnp.asarray(ovs, jnp.float32))
+    for a, b in zip(by_heading[:4], jitted[:4]):
+        np.testing.assert_allclose(np.asarray(b), a, atol=2e-3)
+
+
+def test_a_path_that_turns_away_is_predicted_along_it(problem):
+    """An OV whose path turns off the road's direction is predicted where the path goes, not along its heading."""
+    ovs = np.array([[1.0, 50.0, 2.0, 0.0, 10.0, 0.0]])
+    paths = _straight_paths(ovs, 20)
+    paths[0, :, 1] += np.linspace(0.0, 3.0, 21)  # drifts 3 m to the right over 2 s, heading along the road
+    _, lat, v, _, _ = predict_obstacles(problem._replace(paths=paths), ovs, 20)
+    np.testing.assert_allclose(lat[:, 0], 2.0 + np.linspace(0.0, 3.0, 21), atol=1e-6)
+    np.testing.assert_allclose(v[:, 0], 10.0)
