@@ -328,3 +328,8 @@ def test_a_batch_on_a_junction_road_plans_each_row_on_its_own_paths():
         planner.reset(seed)
     actions = batch.act(np.stack(obs))
     np.testing.assert_allclose(actions, np.stack([p.act(o) for p, o in zip(singles, obs)]), atol=2e-5)
+    # Far OVs leave these first actions alike whatever the paths: check the problem carries each row's own.
+    problem = batch._problem_of(scenes, np.stack(obs).astype(np.float32))
+    assert problem.paths.shape == (2, *scenes[0].ov_paths.shape)
+    for row, scene in enumerate(scenes):
+        np.testing.assert_allclose(problem.paths[row], scene.ov_paths, atol=1e-4)
