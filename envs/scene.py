@@ -64,6 +64,15 @@ def join_obs(ego, u_prev, ovs, ref) -> np.ndarray:
 BOUND_CONSTRAINTS = ("accel_min", "accel_max", "steer", "accel_rate", "steer_rate")
 
 
+def travel(speed, accel, t):
+    """Distance [m] covered by time ``t`` [s] from ``speed`` [m/s] at constant ``accel`` [m/s^2], stopping rather than
+    reversing: the rule by which the planners predict the OVs (numpy or JAX, broadcast)."""
+    xp = array_module(speed, accel, t)
+    t_stop = xp.where(accel < 0, speed / xp.maximum(-accel, 1e-9), xp.inf)
+    tc = xp.minimum(t, t_stop)
+    return speed * tc + 0.5 * accel * tc**2
+
+
 def bound_constraints(bounds, u, du, keep=1.0):
     """The input and rate bounds (paper eq. 4-5) as values that are <= 0 when satisfied, ``(..., 5)`` in the order of
     :data:`BOUND_CONSTRAINTS`: ``a_min - a``, ``a - a_max``, ``|delta| - delta_max``, ``|da| - da_max``,

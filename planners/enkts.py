@@ -234,6 +234,9 @@ class EnKTSPlanner:
             self._problem_scenes = static
         roads = [road_window(s.road, row[:2], self.config.problem) for s, row in zip(scenes, obs)]
         road = roads[0] if self.batch is None else Road(*(np.stack(v) for v in zip(*roads)))
+        if len({s.ov_paths is None for s in scenes}) > 1:  # one program per batch: the rows' paths or none
+            raise ValueError("a batch mixes scenes with the OVs' paths (junction roads) and scenes without: batch "
+                             "episodes of one road")
         paths = None if scenes[0].ov_paths is None else np.stack([s.ov_paths for s in scenes]).astype(np.float32)
         if paths is not None and self.batch is None:
             paths = paths[0]

@@ -41,7 +41,7 @@ import numpy as np
 
 from bimp.configs import ConfigError, added_field, check_fields, load_config, load_layered
 from bimp.envs.road import Route, array_module, project, wrap_angle
-from bimp.envs.scene import Bounds, Scene, bound_constraints
+from bimp.envs.scene import Bounds, Scene, bound_constraints, travel
 from bimp.planners.dynamics import check_dynamics
 
 N_TRACK = 5  # r (3) + s (2)
@@ -382,9 +382,8 @@ def predict_obstacles(problem: Problem, ovs, horizon: int):
     p = project(problem.road, ovs[:, 1:3])
     dh = wrap_angle(ovs[:, 3] - p.heading)
     along, across = xp.cos(dh), xp.sin(dh)
-    tc = xp.minimum(t, t_stop)
-    travel = v0 * tc + 0.5 * a * tc**2
-    return p.s + along * travel, p.l + across * travel, along * v, along * a_t, ovs[:, 0] > 0
+    d = travel(v0, a, t)
+    return p.s + along * d, p.l + across * d, along * v, along * a_t, ovs[:, 0] > 0
 
 
 def _along_paths(problem: Problem, paths, horizon: int, v, a):

@@ -15,16 +15,9 @@ import numpy as np
 
 from bimp.envs.highway.lanes import lane_walk, route_from
 from bimp.envs.road import wrap_angle
+from bimp.envs.scene import travel
 
 PATH_STEPS = 40  # steps of 0.1 s: 4 s, twice the planners' default horizon (a planner extends a path past its end)
-
-
-def travel(speed: float, accel: float, t: np.ndarray) -> np.ndarray:
-    """Distance [m] covered by times ``t (T,)`` at constant ``accel`` from ``speed``, stopping rather than reversing
-    (the planners' rule)."""
-    t_stop = speed / -accel if accel < 0 else np.inf
-    tc = np.minimum(t, t_stop)
-    return speed * tc + 0.5 * accel * tc**2
 
 
 def lane_path(network, vehicle, accel: float, t: np.ndarray) -> np.ndarray:
@@ -36,13 +29,24 @@ def lane_path(network, vehicle, accel: float, t: np.ndarray) -> np.ndarray:
     if index is None or index[0] is None:
         return np.tile([*position, heading], (len(t), 1))
     lane = network.get_lane(index)
-    s0, l0 = lane.local_coordinates(position)
-    s0 = float(np.clip(s0, 0.0, lane.length))
-    dh = wrap_angle(heading - lane.heading_at(s0))
+    # The foot of the perpendicular from the vehicle to the lane's centre and the offset along that normal: a
+    # SineLane's own coordinates are across its straight base, and the path started 0.6 m off the vehicle at
+    # roundabout-v0's entries. Refined from the lane's own arc length (exact on straight lanes and circles).
+    s0 = float(np.clip(lane.local_coordinates(position)[0], 0.0, lane.length))
+    for _ in range(3):
+        h0 = lane.heading_at(s0)
+        s0 = float(np.clip(s0 + np.dot(position - lane.position(s0, 0.0), [np.cos(h0), np.sin(h0)]), 0.0,
+                           lane.length))
+    h0 = lane.heading_at(s0)
+    l0 = float(np.dot(position - lane.position(s0, 0.0), [-np.sin(h0), np.cos(h0)]))
+    dh = wrap_angle(heading - h0)
     d = travel(float(vehicle.speed), accel, t)
     along, lateral = np.cos(dh) * d, l0 + np.sin(dh) * d
-    xy, headings, _, _ = lane_walk(network, index, s0, float(along.max()) + 1.0, route_from(
-        getattr(vehicle, "route", None), index))
+    route = getattr(vehicle, "route", None)
+    # highway-env pops a route's road half a car before the lane's end (``follow_road``: the target lane is then
+    # the next road's, the lane still this one); the rest of the route goes on from this lane's end.
+    plan = route_from(route, index) or (list(route) if route and route[0][0] == index[1] else None)
+    xy, headings, _, _ = lane_walk(network, index, s0, float(along.max()) + 1.0, plan)
     headings = np.unwrap(headings)
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
     past = np.maximum(along - arc[-1], 0.0)  # straight on along the last heading where the walk ended
@@ -65,4 +69,4 @@ def lane_paths(network, vehicles: list, accels: list[float], n: int, dt: float,
     return paths
 
 
-__all__ = ["PATH_STEPS", "lane_path", "lane_paths", "travel"]
+__all__ = ["PATH_STEPS", "lane_path", "lane_paths"]

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import bimp  # noqa: F401  (registers bimp/ID)
-from bimp.envs.highway.prediction import PATH_STEPS, lane_path, travel
+from bimp.envs.highway.prediction import PATH_STEPS, lane_path
+from bimp.envs.scene import travel
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 T = 0.1 * np.arange(PATH_STEPS + 1)
@@ -84,3 +85,39 @@ def test_the_adapter_publishes_paths_on_the_junction_roads_in_the_slots_order(hi
     assert present.any()
     np.testing.assert_allclose(scene.ov_paths[present, 0, :2], ovs[present, 1:3], atol=1e-3)  # now: where it is
     assert np.all(scene.ov_paths[~present] == 0.0)
+
+
+def test_a_path_starts_where_a_vehicle_off_a_sine_lanes_centre_is():
+    """roundabout-v0's entries are sine lanes, whose own lateral coordinate is across their straight base: the
+    path starts at the vehicle's position all the same, and keeps its offset from the lane's centre."""
+    env, base = _base("roundabout-v0")
+    network = base.road.network
+    index = ("ses", "se", 0)
+    lane = network.get_lane(index)
+    assert type(lane).__name__ == "SineLane"
+    vehicle = base.road.vehicles[1]
+    s = lane.length / 2  # where the sine slopes most
+    h = lane.heading_at(s)
+    normal = np.array([-np.sin(h), np.cos(h)])
+    vehicle.position, vehicle.heading, vehicle.speed = lane.position(s, 0.0) + 1.5 * normal, h, 0.0
+    vehicle.lane_index, vehicle.lane = index, lane
+    path = lane_path(network, vehicle, 0.0, T[:3])
+    np.testing.assert_allclose(path[:, :2], np.tile(vehicle.position, (3, 1)), atol=1e-6)
+
+
+@pytest.mark.parametrize("branch", ["il1", "il2", "il3"])
+def test_a_route_popped_before_the_lanes_end_is_followed(branch):
+    """highway-env pops the road a vehicle is on from its route half a car before the lane's end: the path goes on
+    along the rest of the route (the branch the vehicle takes), not the lane graph's own choice."""
+    env, base = _base("intersection-v0")
+    network = base.road.network
+    index = ("o0", "ir0", 0)
+    lane = network.get_lane(index)
+    vehicle = base.road.vehicles[1]
+    vehicle.position, vehicle.heading, vehicle.speed = lane.position(lane.length - 1.0, 0.0), lane.heading_at(
+        lane.length), 8.0
+    vehicle.lane_index, vehicle.lane = index, lane
+    vehicle.route = [("ir0", branch, 0), (branch, "o" + branch[-1], 0)]
+    path = lane_path(network, vehicle, 0.0, 0.1 * np.arange(51))  # 5 s: 40 m, into the branch's exit road
+    roads = [tuple(network.get_closest_lane_index(p[:2], p[2])[:2]) for p in path[-5:]]
+    assert all(road in [(branch, "o" + branch[-1]), ("ir0", branch)] for road in roads), roads

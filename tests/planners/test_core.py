@@ -333,3 +333,15 @@ def test_a_batch_on_a_junction_road_plans_each_row_on_its_own_paths():
     assert problem.paths.shape == (2, *scenes[0].ov_paths.shape)
     for row, scene in enumerate(scenes):
         np.testing.assert_allclose(problem.paths[row], scene.ov_paths, atol=1e-4)
+
+
+def test_a_batch_of_scenes_with_and_without_paths_is_refused():
+    """One batch is one program: rows on a junction road (the OVs' paths) and rows on another road (none) are
+    refused, whichever comes first, rather than planning some rows without their paths."""
+    (junction, obs_j), (straight, obs_s) = episode("bimp/roundabout-v0", 1), episode("bimp/highway-fast-v0", 1)
+    for envs_, obs in (((junction, straight), (obs_j, obs_s)), ((straight, junction), (obs_s, obs_j))):
+        scenes = [e.unwrapped.scene for e in envs_]
+        batch = EnKTSPlanner(lambda: scenes, small())
+        batch.reset(seed=[11, 12])
+        with pytest.raises(ValueError, match="mixes scenes"):
+            batch._problem_of(scenes, np.stack([o[:len(obs[0])] for o in obs]).astype(np.float32))
