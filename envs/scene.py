@@ -187,7 +187,10 @@ class Scene:
     plans on), else None. ``ov_paths``: where the env knows where the OVs drive (a wrapped highway-env junction
     road: :mod:`bimp.envs.highway.prediction`), each slot's path ``(n_obstacles, T, 3)`` ``[x, y, heading]`` every
     ``dt`` from now, which the planners predict the OVs along; None elsewhere (they extrapolate the observation).
-    Per step, like the road a wrapped env republishes, and left out of the comparison of scenes.
+    Per step, like the road a wrapped env republishes, and left out of the comparison of scenes. ``lane_path``: the
+    reference's lane leads through several lanes in a row (exit-v0's plan through the gaps), so the planners track
+    the heading of its path too (:func:`bimp.planners.problem.reference_profile`); False: the heading term aims
+    along the road.
     """
 
     road: Route
@@ -200,6 +203,7 @@ class Scene:
     n_obstacles: int
     geometry: RoadGeometry | None = None
     ov_paths: np.ndarray | None = field(default=None, compare=False)
+    lane_path: bool = False
 
     # --- observation layout --------------------------------------------------------------------------
     @property

@@ -242,13 +242,13 @@ def _smooth(problem: Problem, cfg: Settings, key, ego, u_prev, nominal, obstacle
 
     def step(state, inputs):
         x, u_last, Z, nu = state
-        t, w_du, v_y, du_nom, obs_t, (vr, ar, lane) = inputs
+        t, w_du, v_y, du_nom, obs_t, (vr, ar, lane, course) = inputs
         du = du_nom + w_du
         u = u_last + du
         x_next = vehicle.step(problem.model, x, u)
         Z = Z.at[:, :4].set(x_next).at[:, 4:6].set(du)
         Z = jax.lax.dynamic_update_slice(Z, u, (0, 6 + 2 * t))
-        h = measure(problem, x_next, u, du, Z[:, 6:8], u_prev, lane, vr, ar, (*obs_t, present))
+        h = measure(problem, x_next, u, du, Z[:, 6:8], u_prev, lane, vr, ar, (*obs_t, present), course)
         Y = h + v_y
         active = _active(h, cfg.gate_barriers, cfg.first_control_barriers)
         prior_std = _mean_std(Z)[1]
@@ -311,7 +311,8 @@ def roll_out(model, x0: jnp.ndarray, controls: jnp.ndarray) -> jnp.ndarray:
 plan_step = jax.jit(_plan, static_argnums=1)
 
 # One compiled program for a batch of episodes: the problem's road and the OVs' paths differ per row.
-_BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None, lane_rate=None, course=None, paths=0)
+_BATCH_AXES = Problem(road=0, limits=None, barrier=None, noise=None, model=None, lane_rate=None, course=None, paths=0,
+                      lane_heading=None)
 
 
 @partial(jax.jit, static_argnums=1)

@@ -31,6 +31,7 @@ from bimp.planners.problem import (
     ProblemConfig,
     Road,
     for_road,
+    leads,
     load_planner_config,
     make_problem,
     road_changes,
@@ -138,7 +139,8 @@ class EnKTSPlanner:
         self._scene = scene if callable(scene) else (lambda: scene)
         bound = steer_bound(self._scene())  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound)  # the weights by content and name
-        self.road = road_changes(config.problem, bound)  # what the road changes in the problem, for the record
+        # what the road changes in the problem, for the record
+        self.road = road_changes(config.problem, bound, leads(self._scene()))
         self._model = jax.device_put(model_params(config.problem.dynamics, bound))
         self._problem_scenes: list[Scene] = []
         self._problem: Problem | None = None

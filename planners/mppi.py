@@ -61,6 +61,7 @@ from bimp.planners.problem import (
     Problem,
     ProblemConfig,
     for_road,
+    leads,
     load_planner_config,
     make_problem,
     measure,
@@ -161,6 +162,7 @@ class _Context:
     v_ref: np.ndarray
     a_ref: np.ndarray
     obstacles: tuple[np.ndarray, ...]
+    ref_course: np.ndarray
 
 
 class MPPIPlanner:
@@ -183,7 +185,8 @@ class MPPIPlanner:
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
         bound = steer_bound(self._scene())  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
-        self.road = road_changes(config.problem, bound)  # what the road changes in the problem, for the record
+        # what the road changes in the problem, for the record
+        self.road = road_changes(config.problem, bound, leads(self._scene()))
         if dynamics is None:
             dynamics = model_from_name(config.problem.dynamics, bound)
         self.dynamics = dynamics
@@ -230,9 +233,9 @@ class MPPIPlanner:
         if not self._warm:
             mppi.U = hold
         problem = make_problem(scene, self.config.problem, ego_xy=ego[:2])
-        v_ref, a_ref, lane = reference_profile(problem, ref, ego, self.horizon)
+        v_ref, a_ref, lane, course = reference_profile(problem, ref, ego, self.horizon)
         self._context = _Context(problem, u_prev, lane, v_ref, a_ref,
-                                 predict_obstacles(problem, ovs, self.horizon))
+                                 predict_obstacles(problem, ovs, self.horizon), course)
         start = torch.from_numpy(np.concatenate([ego, u_prev, np.zeros(2), u_prev]))
         # MPPI's own shift refills with a fixed u_init; shift ourselves afterwards (hold the last input).
         u = mppi.command(start, shift_nominal_trajectory=False).numpy().copy()
@@ -269,7 +272,8 @@ class MPPIPlanner:
         b = block.numpy()
         s_o, l_o, v_o, a_o, present = ctx.obstacles
         h = measure(ctx.problem, b[:, :4], b[:, 4:6], b[:, 6:8], b[:, 8:10], ctx.u_prev, ctx.ref_lane[t + 1],
-                    ctx.v_ref[t + 1], ctx.a_ref[t + 1], (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
+                    ctx.v_ref[t + 1], ctx.a_ref[t + 1], (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present),
+                    ctx.ref_course[t + 1])
         return torch.from_numpy(0.5 * np.sum((h / ctx.problem.noise) ** 2, axis=1))
 
 

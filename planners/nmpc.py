@@ -76,6 +76,7 @@ from bimp.planners.problem import (
     BarrierShape,
     ProblemConfig,
     for_road,
+    leads,
     load_planner_config,
     make_problem,
     predict_obstacles,
@@ -190,7 +191,8 @@ class NMPCPlanner:
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
         bound = steer_bound(self._scene())
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
-        self.road = road_changes(config.problem, bound)  # what the road changes in the problem, for the record
+        # what the road changes in the problem, for the record
+        self.road = road_changes(config.problem, bound, leads(self._scene()))
         if dynamics is None:
             model = model_from_name(config.problem.dynamics, bound)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
@@ -297,7 +299,7 @@ class NMPCPlanner:
         H = self.horizon
         problem = make_problem(scene, self.config.problem, ego_xy=ego[:2])
         s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
-        v_ref, a_ref, lane = reference_profile(problem, ref, ego, H)
+        v_ref, a_ref, lane, _ = reference_profile(problem, ref, ego, H)  # the paper's roads: no lane path
         return np.concatenate([ego, u_prev, lane, v_ref, a_ref, road_params(closed_form(scene)),
                                s_o.ravel(), l_o.ravel(), v_o.ravel(), a_o.ravel(), present.astype(float)])
 
@@ -314,7 +316,7 @@ class NMPCPlanner:
         if self._model_dt is not None and abs(self._model_dt - scene.dt) > 1e-9:
             raise ValueError(f"the dynamics model steps {self._model_dt} s but the scene's dt is {scene.dt} s")
         cfg, H, K = self.config, self.horizon, scene.n_obstacles
-        tun = for_road(self.config.problem, scene.bounds.steer)  # the road's steering scales (make_problem's)
+        tun = for_road(self.config.problem, scene.bounds.steer, scene.lane_path)  # the road's scales (make_problem's)
         shape, b = tun.barrier, scene.bounds
         X = ca.MX.sym("X", 4, H)  # x_1 .. x_H (columns)
         U = ca.MX.sym("U", 2, H)  # u_0 .. u_{H-1}

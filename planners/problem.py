@@ -210,7 +210,9 @@ class Problem(NamedTuple):
     """One episode's planning problem: ``noise (m,)`` is the measurement noise scale of each row of ``y``;
     ``model`` the dynamics' parameters (:mod:`bimp.planners.model`); ``lane_rate`` the reference lane's lateral speed
     [m/s] over the horizon (finite: a step is 1e6); ``course``: 1.0 where the heading term measures the course
-    (``ProblemConfig.track_course``), else 0.0 (data, not a program switch); ``paths``: the OVs' paths where the
+    (``ProblemConfig.track_course``), else 0.0 (data, not a program switch); ``lane_heading``: 1.0 where the heading
+    term aims along the reference lane's path (``Scene.lane_path``: :func:`reference_profile`), else 0.0 (data);
+    ``paths``: the OVs' paths where the
     scene gives them (``Scene.ov_paths (K, T, 3)``, :func:`predict_obstacles`), else None (a program switch: a
     junction road compiles its own program)."""
 
@@ -222,14 +224,16 @@ class Problem(NamedTuple):
     lane_rate: float
     course: float = 0.0
     paths: np.ndarray | None = None
+    lane_heading: float = 0.0
 
 
 STEER_UNIT = Bounds().steer  # rad: the paper's steering bound, where the steering's noise scales were tuned
 
 
-def for_road(config: ProblemConfig, steer: float) -> ProblemConfig:
+def for_road(config: ProblemConfig, steer: float, lane_path: bool = False) -> ProblemConfig:
     """``config`` on a road whose planning steering bound is ``steer`` [rad], where it is not the paper's
-    :data:`STEER_UNIT` (the paper's scenarios, the suite and the straight roads keep ``config`` as it is):
+    :data:`STEER_UNIT` (the paper's scenarios, the suite and the straight roads keep ``config`` as it is), and on a
+    road whose reference lane leads through the gaps of several lanes (``lane_path``: exit-v0, ``Scene.lane_path``):
 
     - the steering's noise (``sigma_du``'s and ``sigma_input``'s, tuned at the paper's bound) scales by ``steer /
       STEER_UNIT``, so that it measures the same share of the steering range on every road. At the paper's scales a
@@ -241,23 +245,37 @@ def for_road(config: ProblemConfig, steer: float) -> ProblemConfig:
       its course by the slip (0.12 rad on roundabout-v0's ring, 2.4 of the heading's 0.05 rad sigmas): aligning the
       body with the lane turned the course inward, and the plans settled 1-2 m inside the lane (into the ring's
       inner lane, past the exit), or drifted off it while stopping in the roundabout's S-bend entry. On the paper's
-      roads the slip is at most 0.025 rad.
+      roads the slip is at most 0.025 rad;
+    - with ``lane_path``, no time headway in the OVs' keep-out boxes (``barrier.headway`` 0: the least gap and the
+      braking room stay). The behaviour layer picks the gap to change into by a gap and a braking room of its own
+      (``bimp.envs.highway.gaps``); the planners' 0.6 s headway refused most of them (a vehicle 10 m ahead in the
+      next lane at the EV's speed held EnKTS beside it for 7 s on exit-v0, development seed 2). Development seeds 0-11
+      of exit-v0, EnKTS reaching the exit lane: 4 with the headway, 5 with 0.3 s, 9 with none, no collision; 2 with
+      the behaviour layer's gaps widened to the planners' instead.
 
     :func:`road_changes` lists what this changes, for the record."""
     k = float(steer) / STEER_UNIT
-    if k == 1.0:
-        return config
-    return dataclasses.replace(config, sigma_du=(config.sigma_du[0], config.sigma_du[1] * k),
-                               sigma_input=(config.sigma_input[0], config.sigma_input[1] * k), track_course=True)
+    if k != 1.0:
+        config = dataclasses.replace(config, sigma_du=(config.sigma_du[0], config.sigma_du[1] * k),
+                                     sigma_input=(config.sigma_input[0], config.sigma_input[1] * k), track_course=True)
+    if lane_path:
+        config = dataclasses.replace(config, barrier=dataclasses.replace(config.barrier, headway=0.0))
+    return config
 
 
-def road_changes(config: ProblemConfig, steer: float) -> dict:
-    """The fields of ``config`` that :func:`for_road` changes on a road of steering bound ``steer`` [rad], as
-    ``{key: new value}`` (``{}`` where it changes none): what a planner records beside its config, so that its
-    episodes on such a road are attributed to what it planned with."""
-    adapted = for_road(config, steer)
+def road_changes(config: ProblemConfig, steer: float, lane_path: bool = False) -> dict:
+    """The fields of ``config`` that :func:`for_road` changes on a road of steering bound ``steer`` [rad] (and
+    ``lane_path``), as ``{key: new value}`` (``{}`` where it changes none): what a planner records beside its
+    config, so that its episodes on such a road are attributed to what it planned with."""
+    adapted = for_road(config, steer, lane_path)
     return {f.name: getattr(adapted, f.name) for f in dataclasses.fields(config)
             if getattr(adapted, f.name) != getattr(config, f.name)}
+
+
+def leads(scenes: Scene | list[Scene]) -> bool:
+    """Whether any of ``scenes`` (a scene or a batch's) has a reference lane that leads through lanes
+    (``Scene.lane_path``: :func:`for_road`)."""
+    return any(s.lane_path for s in (scenes if isinstance(scenes, (list, tuple)) else [scenes]))
 
 
 def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
@@ -323,8 +341,9 @@ def road_window(route: Route, ego_xy: np.ndarray, config: ProblemConfig) -> Road
 def make_problem(scene: Scene, config: ProblemConfig, model: tuple = (), ego_xy: np.ndarray | None = None) -> Problem:
     """The problem of ``scene`` under ``config`` with the road seen from ``ego_xy (2,)`` (the EV's position; the
     route's start if None) (numpy leaves; ``jax.device_put`` or any jnp call takes them)."""
-    b, shape = scene.bounds, config.barrier
-    config = for_road(config, b.steer)
+    b = scene.bounds
+    config = for_road(config, b.steer, scene.lane_path)
+    shape = config.barrier
     lo, hi = scene.actuator_range
     f = float
     return Problem(
@@ -338,6 +357,7 @@ def make_problem(scene: Scene, config: ProblemConfig, model: tuple = (), ego_xy:
         lane_rate=f(min(config.lane_change_rate, 1e6)),  # finite: inf * 0 would be nan at t = 0
         course=1.0 if config.track_course else 0.0,
         paths=scene.ov_paths,
+        lane_heading=1.0 if scene.lane_path else 0.0,
     )
 
 
@@ -406,21 +426,29 @@ def reference_profile(problem: Problem, ref, ego, horizon: int):
     ``ref = [v_ref, a_ref, l_ref]`` linearly, never below 0; and the lane offset, leaving the lateral offset of
     ``ego (4,)`` toward ``l_ref`` at ``problem.lane_rate``. A lane change asked as a step makes every state of the
     horizon pull for the far lane at once: the plan swerves and overshoots to the far edge (EnKTS left the road so on
-    6 of development seeds 200-499 of the overtaking scenario; at 1.5 m/s, on 3)."""
+    6 of development seeds 200-499 of the overtaking scenario; at 1.5 m/s, on 3). Returns ``v, a, lane, course``:
+    ``course`` the heading of the lane's path against the road's, ``arctan(lane rate / v)`` while the lane moves,
+    where ``problem.lane_heading`` asks for it (else zeros). Without it the heading term aims along the road and
+    holds a lane change to about 1.2 m/s across (a lane in about 4 s on exit-v0, the EV 0.05 rad off the road's
+    heading: one of the heading's sigmas)."""
     xp = array_module(ref, ego, problem.limits.dt)
     t = xp.arange(horizon + 1) * problem.limits.dt
     v = xp.maximum(ref[0] + ref[1] * t, 0.0)
     _, lat = frenet(problem.road, ego[:2])
     reach = problem.lane_rate * t
     lane = lat + xp.clip(ref[2] - lat, -reach, reach)
-    return v, xp.where(v > 0.0, ref[1], 0.0), lane
+    moving = xp.abs(ref[2] - lat) > reach  # the lane still on its way at t: moving at lane_rate
+    rate = xp.where(moving, xp.sign(ref[2] - lat) * problem.lane_rate, 0.0)
+    course = problem.lane_heading * xp.arctan(rate / xp.maximum(v, 1.0))
+    return v, xp.where(v > 0.0, ref[1], 0.0), lane, course
 
 
-def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obstacles):
+def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obstacles, ref_course=0.0):
     """``h(xb)`` of eq. 8 without noise, ``(N, m)``, for the states ``x (N, 4)`` reached with inputs ``u (N, 2)``
     (increments ``du (N, 2)``); ``u0 (N, 2)`` the first control, ``u_prev (2,)`` the input applied last;
-    ``ref_lane``, ``v_ref``, ``a_ref`` the reference at the state's time; ``obstacles``: ``(s, l, v, a)`` each
-    ``(K,)`` at that time and ``present (K,)`` (one row of :func:`predict_obstacles`). Observed value: zeros.
+    ``ref_lane``, ``v_ref``, ``a_ref``, ``ref_course`` the reference at the state's time; ``obstacles``:
+    ``(s, l, v, a)`` each ``(K,)`` at that time and ``present (K,)`` (one row of :func:`predict_obstacles`).
+    Observed value: zeros.
     """
     xp = array_module(x, u, du, u0, problem.limits.accel, problem.road.xy)
     road, lim, bar = problem.road, problem.limits, problem.barrier
@@ -431,7 +459,8 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
     course = dpsi + problem.course * xp.arctan(0.5 * xp.tan(u[:, 1]))
     v = x[:, 3]
     feedforward = xp.arctan(lim.length * p.curvature)
-    tracking = xp.stack([lat - ref_lane, course, v - v_ref, u[:, 0] - a_ref, u[:, 1] - feedforward], axis=1)
+    tracking = xp.stack([lat - ref_lane, course - ref_course, v - v_ref, u[:, 0] - a_ref, u[:, 1] - feedforward],
+                        axis=1)
 
     s_o, l_o, v_o, a_o, present = obstacles
     w = bar.widths
@@ -468,5 +497,6 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
 __all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance_local", "frenet",
            "Limits", "load_planner_config", "load_problem", "make_problem", "measure",
            "measurement_noise", "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles",
-           "Problem", "PROBLEM_FILE", "ProblemConfig", "reference_profile", "Road", "ROAD_BEHIND", "road_window",
+           "Problem", "PROBLEM_FILE", "leads", "ProblemConfig",
+           "reference_profile", "Road", "ROAD_BEHIND", "road_window",
            "for_road", "road_changes", "STEER_UNIT"]

@@ -312,7 +312,8 @@ class HighwayAdapter(gym.Wrapper):
         p = self.profile
         base.scene = Scene(road=self._shifted[2], bounds=p.bounds, dt=self.dt, vehicle_length=VEHICLE_LENGTH,
                            vehicle_width=VEHICLE_WIDTH, actuator_accel=tuple(base.action_type.acceleration_range),
-                           actuator_steer=tuple(base.action_type.steering_range), n_obstacles=self.n_obstacles)
+                           actuator_steer=tuple(base.action_type.steering_range), n_obstacles=self.n_obstacles,
+                           lane_path=p.lane_path)
 
     def _route_lane(self, ev, route):
         """The EV's lane on its route: highway-env's closest lane, unless that lane's road is off the route and a
@@ -379,7 +380,9 @@ class HighwayAdapter(gym.Wrapper):
         (:attr:`Profile.junction`) the route blends across the gaps between lanes (``lanes.smooth_bridges``) and so
         lies off their centres there: the point is the route's own abreast of the EV moved by the target lane's
         offset from the EV's lane on its route (0 without a lane change); a target lane on another road (highway-env's
-        driver turns to the next road a little before this one ends) is the EV's own."""
+        driver turns to the next road a little before this one ends) is the EV's own. Where the profile has a
+        ``lane_path`` (exit-v0), the point is where the plan through the gaps holds the EV 2 s ahead, while it has
+        one (``GapDriver.lead_point``)."""
         ev = self.env.unwrapped.vehicle
         network = self.env.unwrapped.road.network
         index = self.behaviour.target_lane_index
@@ -388,6 +391,9 @@ class HighwayAdapter(gym.Wrapper):
             lane = network.get_lane(lane_index)
             return np.asarray(lane.position(lane.local_coordinates(ev.position)[0], 0.0), float)
 
+        lead = getattr(self.behaviour.shadow, "lead_point", lambda: None)() if self.profile.lane_path else None
+        if lead is not None:
+            return lead
         if not self.profile.junction:
             return centre(index)
         own = self._lane_on_route

@@ -265,13 +265,14 @@ class GapDriver(DriveOnDriver):
 
     SEARCH = GapSearch()
     plan: GapPlan | None = None
+    _goal_lane = None  # the needed lane, where the plan's place across the lanes is measured (lead_point)
     _next_plan = 0.0  # s of :attr:`ShadowDriver.clock`: MOBIL's own timer is left to MOBIL, which needs it
 
     def change_lane_policy(self) -> None:
         if self.clock >= self._next_plan - 1e-9:
             self._next_plan = self.clock + self.SEARCH.step
             self.plan, self._plan_lane = self._plan()
-        if self.plan is None:
+        if self._plan_lane < 0:
             super().change_lane_policy()
             return
         road = self.target_lane_index[:2]
@@ -285,12 +286,15 @@ class GapDriver(DriveOnDriver):
 
     def _plan(self) -> tuple[GapPlan | None, int]:
         """The lattice's plan from here and the number of the lane its first step drives to (the one the EV is in,
-        or the next towards the needed lane): (None, -1) where there is none."""
+        or the next towards the needed lane); where the lattice finds no way this step, (None, the lane nearest the
+        EV): it holds that lane (MOBIL would head back left, away from the needed lane: EnKTS lost 4 s so on
+        exit-v0, development seed 6); (None, -1) where it has nothing to plan (no lane needed, or past it)."""
         network = self.road.network
         goal_index = needed_lane(network, [self.lane_index, *self.route], self.lane_index[2]) if self.route else None
         if goal_index is None:
             return None, -1
         goal = network.get_lane(goal_index)
+        self._goal_lane = (goal, goal_index[2])
         s, lat = goal.local_coordinates(self.position)
         window = (0.0, goal.length - self.LENGTH)
         if s >= window[1]:
@@ -309,7 +313,20 @@ class GapDriver(DriveOnDriver):
             rows.append((np.round(k + lo / width), so, other.speed))
         search = dataclasses.replace(self.SEARCH, top_speed=max(float(self.target_speed), 1e-3))
         plan = plan_gaps(search, s, self.speed, lane, phase, k, window, np.array(rows))
-        return plan, lane + (toward if plan is not None and plan.change else 0)
+        if plan is None:
+            return None, int(np.round(frac))
+        return plan, lane + (toward if plan.change else 0)
+
+    def lead_point(self) -> np.ndarray | None:
+        """The point ``(2,)`` abreast of the EV where the plan holds it :attr:`GapSearch.lookahead` s from now
+        (:attr:`GapPlan.ahead`: in the next lane but one while the plan changes lanes back to back), None without a
+        plan. MOBIL's target lane names the next lane only, and a reference that stops at each lane's centre
+        slowed the planners to about 4 s a lane: exit-v0's six lanes took longer than the episode."""
+        if self.plan is None or self._goal_lane is None:
+            return None
+        goal, k = self._goal_lane
+        s = goal.local_coordinates(self.position)[0]
+        return np.asarray(goal.position(s, (self.plan.ahead - k) * goal.width_at(s)), float)
 
 
 def carries_oncoming_traffic(network, lane_index) -> bool:

@@ -32,7 +32,8 @@ class GapSearch:
     gap (``gap`` [m], ``brake`` [m/s^2]: module doc) and ``per_group``: how many states are kept
     per lane, change phase and speed (to 4 m/s) at each step, those furthest ahead. ``lag`` [m/s^2 per lattice step
     of lane change left]: the cost of lateral progress put off, against braking's (so that of the ways that arrive
-    first, the one that changes lanes early is taken, and a slower lane change than the lattice's still arrives)."""
+    first, the one that changes lanes early is taken, and a slower lane change than the lattice's still arrives).
+    ``lookahead`` [s]: when the plan's lane is reported (:attr:`GapPlan.ahead`; the planners' horizon)."""
 
     step: float = 0.5
     change_steps: int = 4
@@ -44,12 +45,15 @@ class GapSearch:
     brake: float = 7.0
     per_group: int = 8
     lag: float = 0.5
+    lookahead: float = 2.0
 
     def __post_init__(self) -> None:
         check_fields(self)
         for name in ("step", "top_speed", "horizon", "length", "brake"):
             if not getattr(self, name) > 0:
                 raise ConfigError(name, "> 0", getattr(self, name))
+        if not self.lookahead >= 0:
+            raise ConfigError("lookahead", ">= 0", self.lookahead)
         if not self.lag >= 0:
             raise ConfigError("lag", ">= 0", self.lag)
         for name in ("change_steps", "per_group"):  # ints: check_fields refuses any other type
@@ -62,11 +66,14 @@ class GapSearch:
 @dataclass(frozen=True)
 class GapPlan:
     """The plan's first step: ``accel`` [m/s^2] and ``change`` (begin, or go on with, the change to the next lane
-    towards the goal), and ``arrival`` [s]: when the EV is in the goal lane."""
+    towards the goal), ``arrival`` [s]: when the EV is in the goal lane, and ``ahead``: where across the lanes the
+    plan holds the EV :attr:`GapSearch.lookahead` s from now (lanes numbered as highway-env numbers them, a fraction
+    of the way mid-change; the goal lane where it arrives sooner)."""
 
     accel: float
     change: bool
     arrival: float
+    ahead: float
 
 
 def plan_gaps(search: GapSearch, s0: float, v0: float, lane0: int, phase0: int, goal: int,
@@ -86,16 +93,19 @@ def plan_gaps(search: GapSearch, s0: float, v0: float, lane0: int, phase0: int, 
     toward = int(np.sign(goal - lane0)) or 1
     accels = np.asarray(search.accels, float)
     n_a = len(accels)
-    # states: lane, phase, s, v, cost (braking), first (the index of the first step's option: accel * 2 + change)
+    # states: lane, phase, s, v, cost (braking), first (the index of the first step's option: accel * 2 + change),
+    # ahead (the state's place across the lanes at the lookahead: GapPlan.ahead)
     lane = np.array([lane0])
     phase = np.array([phase0])
     s, v, cost, first = np.array([s0], float), np.array([v0], float), np.zeros(1), np.full(1, -1)
+    ahead = np.array([lane0 + toward * phase0 / search.change_steps], float)
     dt = search.step
     for k in range(int(round(search.horizon / dt))):
         t0 = k * dt
         # every state x every option (accel, change): (M * A * 2,)
         m = len(s)
-        lane_, phase_, s_, v_, cost_, first_ = (np.repeat(x, n_a * 2) for x in (lane, phase, s, v, cost, first))
+        lane_, phase_, s_, v_, cost_, first_, ahead_ = (np.repeat(x, n_a * 2)
+                                                        for x in (lane, phase, s, v, cost, first, ahead))
         a = np.tile(np.repeat(accels, 2), m)
         begin = np.tile(np.array([False, True]), m * n_a)
         ok = ~(begin & ((phase_ > 0) | (lane_ == goal)))  # a change begins from a settled lane, not the goal's
@@ -115,14 +125,16 @@ def plan_gaps(search: GapSearch, s0: float, v0: float, lane0: int, phase0: int, 
         if k == 0:
             first_ = np.arange(m * n_a * 2) % (n_a * 2)
         cost1 = cost_ + (np.maximum(-a, 0.0) + search.lag * left) * dt
-        lane, phase, s, v, cost, first = (x[ok] for x in (lane1, phase1, s1, v1, cost1, first_))
+        if t0 + dt <= search.lookahead + 1e-9:
+            ahead_ = lane1 + toward * phase1 / search.change_steps
+        lane, phase, s, v, cost, first, ahead = (x[ok] for x in (lane1, phase1, s1, v1, cost1, first_, ahead_))
         if not len(s):
             return None
         arrived = np.flatnonzero((lane == goal) & (phase == 0) & (s >= window[0]))
         if len(arrived):
             i = arrived[np.argmin(cost[arrived])]
-            return GapPlan(float(accels[first[i] // 2]), bool(first[i] % 2) or phase0 > 0, t0 + dt)
-        lane, phase, s, v, cost, first = _merge(search, lane, phase, s, v, cost, first)
+            return GapPlan(float(accels[first[i] // 2]), bool(first[i] % 2) or phase0 > 0, t0 + dt, float(ahead[i]))
+        lane, phase, s, v, cost, first, ahead = _merge(search, lane, phase, s, v, cost, first, ahead)
     return None
 
 
@@ -151,7 +163,7 @@ def _short(search: GapSearch, ahead: np.ndarray, v: np.ndarray, o_v: np.ndarray)
     return np.abs(ahead) - search.length < np.where(ahead >= 0, front, rear)
 
 
-def _merge(search: GapSearch, lane, phase, s, v, cost, first):
+def _merge(search: GapSearch, lane, phase, s, v, cost, first, ahead):
     """The states merged on (lane, phase, speed to 2 m/s, position to 2 m), the least braking kept; then at most
     ``per_group`` of each (lane, phase, speed to 4 m/s), those furthest ahead."""
     key = np.stack([lane, phase, np.round(v / 2).astype(int), np.round(s / 2).astype(int)])
@@ -165,4 +177,4 @@ def _merge(search: GapSearch, lane, phase, s, v, cost, first):
     starts = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1]
     rank = np.arange(len(g)) - np.repeat(starts, np.diff(np.r_[starts, len(g)]))
     keep = keep[order[rank < search.per_group]]
-    return lane[keep], phase[keep], s[keep], v[keep], cost[keep], first[keep]
+    return lane[keep], phase[keep], s[keep], v[keep], cost[keep], first[keep], ahead[keep]

@@ -27,7 +27,9 @@ class Profile:
     acceleration (:func:`bimp.envs.highway.behaviour.curve_acceleration`; highway-env's IDM takes a curve at its
     target speed, steering up to 60 degrees at once, and the planners' bounded steering does not); ``gap_plan``: the
     behaviour layer plans its way through the gaps into the lane its route needs (exit-v0's exit lane, which MOBIL
-    never heads for: :class:`bimp.envs.highway.behaviour.GapDriver`)."""
+    never heads for: :class:`bimp.envs.highway.behaviour.GapDriver`); ``lane_path``: the reference's lane is where
+    that plan holds the EV 2 s ahead (``GapDriver.lead_point``), and the planners track its path's heading
+    (``Scene.lane_path``)."""
 
     bounds: Bounds
     actuator_steer: tuple[float, float]
@@ -38,6 +40,7 @@ class Profile:
     junction: bool = added_field(False, neutral=False)
     lateral_accel: float = added_field(float("inf"), neutral=float("inf"))
     gap_plan: bool = added_field(False, neutral=False)
+    lane_path: bool = added_field(False, neutral=False)
 
 
 def _curve_bounds(steer: float) -> Bounds:
@@ -58,7 +61,8 @@ PROFILES: dict[str, Profile] = {
     "highway-fast-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 30.0),
     "merge-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 40.0),  # no duration of its own: highway-env's goal x > 370
     # the exit lane leaves straight; target: the top of its target_speeds (30 m/s)
-    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True, gap_plan=True),
+    "exit-v0": Profile(_STRAIGHT, ACTUATOR_STEER, 30.0, 18.0, drive_on=True, gap_plan=True,
+                       lane_path=True),
     # the entry's turn into the ring, the route's blend across the gap (lanes.smooth_bridges): radius 8 m over 5 m,
     # 0.58 rad needed, a thin 3% under the bound (the ring itself, radius 20 m on the inner lane: 0.247 rad)
     "roundabout-v0": Profile(_curve_bounds(0.6), (-0.8, 0.8), 16.0, 20.0, junction=True, lateral_accel=CURVE_ACCEL),

@@ -108,7 +108,8 @@ def test_the_plan_is_remade_every_lattice_step_and_leaves_mobils_timer_to_mobil(
     from bimp.envs.highway import behaviour
 
     calls = []
-    monkeypatch.setattr(behaviour, "plan_gaps", lambda *a: calls.append(a) or None)  # no plan: MOBIL decides
+    # nothing to plan (no lane needed, or past it): MOBIL decides
+    monkeypatch.setattr(behaviour.GapDriver, "_plan", lambda self: calls.append(self) or (None, -1))
     env = gym.make("bimp/exit-v0")
     env.reset(seed=0)
     adapter = env
@@ -140,3 +141,66 @@ def test_the_plan_runs_up_to_the_behaviour_layers_target_speed(monkeypatch):
 def test_the_profile_records_the_gap_plan_only_where_it_is_set():
     assert "gap_plan" not in gym.make("bimp/highway-fast-v0").unwrapped.BEHAVIOUR.profile
     assert "('gap_plan', True)" in gym.make("bimp/exit-v0").unwrapped.BEHAVIOUR.profile
+
+
+def test_the_plan_reports_where_it_holds_the_ev_at_the_lookahead():
+    """``GapPlan.ahead``: the place across the lanes the plan holds the EV at ``lookahead`` s (2 s: one change of
+    four 0.5 s steps), a fraction mid-change; the goal lane where it arrives sooner."""
+    open_now = (-400.0, 95.0)
+    assert plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 3, open_now, np.zeros((0, 3))).ahead == pytest.approx(1.0)
+    assert plan_gaps(SEARCH, -250.0, 25.0, 0, 2, 3, open_now, np.zeros((0, 3))).ahead == pytest.approx(1.5)
+    assert plan_gaps(SEARCH, -250.0, 25.0, 2, 2, 3, open_now, np.zeros((0, 3))).ahead == pytest.approx(3.0)
+    abreast = np.array([[1, -250.0, 25.0]])  # the change held back: less far across at the lookahead
+    assert plan_gaps(SEARCH, -250.0, 25.0, 0, 0, 3, open_now, abreast).ahead < 1.0
+
+
+def _adapter(env):
+    while not hasattr(env, "behaviour"):
+        env = env.env
+    return env
+
+
+def test_without_a_way_in_the_driver_holds_the_lane_nearest_the_ev(monkeypatch):
+    """Where the lattice finds no way into the needed lane this step, the driver holds the lane it is nearest,
+    instead of MOBIL's choice (which heads back left, away from the exit lane)."""
+    from bimp.envs.highway import behaviour
+
+    env = gym.make("bimp/exit-v0")
+    env.reset(seed=0)
+    adapter = _adapter(env)
+    ev, shadow = env.unwrapped.vehicle, adapter.behaviour.shadow
+    lane = env.unwrapped.road.network.get_lane(("0", "1", 1))
+    ev.position, ev.heading = lane.position(float(lane.local_coordinates(ev.position)[0]), -0.5), 0.0
+    monkeypatch.setattr(behaviour, "plan_gaps", lambda *a: None)
+    mobil = []
+    monkeypatch.setattr(behaviour.ShadowDriver, "change_lane_policy", lambda self: mobil.append(self))
+    shadow._next_plan = 0.0
+    adapter.behaviour.decide(0.1)
+    assert shadow.plan is None and shadow.target_lane_index == ("0", "1", 1) and not mobil
+
+
+def test_on_exit_v0_the_reference_leads_where_the_plan_holds_the_ev_in_2_s():
+    env = gym.make("bimp/exit-v0")
+    obs, _ = env.reset(seed=0)
+    adapter = _adapter(env)
+    scene, shadow = env.unwrapped.scene, adapter.behaviour.shadow
+    assert scene.lane_path and not gym.make("bimp/highway-fast-v0").unwrapped.scene.lane_path
+    assert shadow.plan is not None and shadow.plan.ahead > 0.0  # on its way right from lane 0
+    lead = shadow.lead_point()
+    l_ref = float(scene.split_obs(obs)[3][2])
+    assert l_ref == pytest.approx(float(scene.road.project(lead[None]).l[0]), abs=1e-6)
+    assert l_ref > 0.5 * shadow.plan.ahead * 4.0  # further across than the EV's own lane
+
+
+def test_enkts_reaches_exit_v0s_exit_lane():
+    """EnKTS on the reference that leads through the lanes and with its path's heading (development seed 1): in the
+    exit lane within the episode, no collision; on the reference of the next lane alone it reached lane 3 of 6."""
+    env = gym.make("bimp/exit-v0")
+    obs, info = env.reset(seed=1)
+    policy = make_policy("enkts", env)
+    policy.reset(1)
+    done = False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(policy.act(obs))
+        done = terminated or truncated
+    assert info["goal"] and not info["collision"] and not info["offroad"]

@@ -83,10 +83,10 @@ def test_running_cost_is_the_nll_of_measure_on_random_blocks():
     block = torch.from_numpy(np.column_stack([x, u, du, u0]))
     problem = make_problem(scene, planner.config.problem)
     s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, 3)
-    v_ref, a_ref, lane = reference_profile(problem, ref, ego, 3)
+    v_ref, a_ref, lane, course = reference_profile(problem, ref, ego, 3)
     # the block after step t holds x_{t+1}: it is measured against the references and OVs of time t + 1
     h = measure(problem, x, u, du, u0, u_prev, lane[t + 1], v_ref[t + 1], a_ref[t + 1],
-                (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present))
+                (s_o[t + 1], l_o[t + 1], v_o[t + 1], a_o[t + 1], present), course[t + 1])
     tun = planner.config.problem
     sigma = np.array([*tun.sigma_ref, *tun.sigma_input] + [tun.sigma_barrier] * 11)
     np.testing.assert_allclose(planner.running_cost(block, block[:, 4:6], t).numpy(),

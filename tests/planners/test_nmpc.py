@@ -209,7 +209,7 @@ def test_cost_is_the_nll_of_the_problem_tracking_rows(track_course):
     tun = planner.config.problem
     # The whole road in one window (the states are drawn over all of it).
     problem = make_problem(scene, dataclasses.replace(tun, road_points=1500))
-    v_ref, a_ref, lane = reference_profile(problem, np.array([0.5, -2.0, ref_lane]), ego, H)
+    v_ref, a_ref, lane, _ = reference_profile(problem, np.array([0.5, -2.0, ref_lane]), ego, H)
     assert len(set(a_ref.tolist())) == 2  # the rate switches to 0 where the reference stops
     s_o, l_o, v_o, a_o, present = predict_obstacles(problem, ovs, H)
     f = nlp.solver.get_function("nlp_f")

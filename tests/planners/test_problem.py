@@ -1,6 +1,8 @@
 """bimp.planners.problem: the one definition of the planning problem, in numpy and JAX alike, and the env's agreement
 with it."""
 
+import dataclasses
+
 import gymnasium as gym
 import jax
 import jax.numpy as jnp
@@ -11,14 +13,17 @@ from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.envs.scene import BOUND_CONSTRAINTS, bound_constraints
 from bimp.planners.problem import (
     N_FIRST_CONTROL,
+    STEER_UNIT,
     BarrierShape,
     ProblemConfig,
+    for_road,
     load_problem,
     make_problem,
     measure,
     measurement_noise,
     predict_obstacles,
     reference_profile,
+    road_changes,
 )
 
 
@@ -46,7 +51,7 @@ def test_obstacles_brake_to_a_stop_and_stay_there(problem):
 
 
 def test_reference_profile_never_negative(problem):
-    v, a, _ = reference_profile(problem, np.array([2.0, -5.0, 2.0]), np.array([0.0, 2.0, 0.0, 2.0]), horizon=10)
+    v, a, _, _ = reference_profile(problem, np.array([2.0, -5.0, 2.0]), np.array([0.0, 2.0, 0.0, 2.0]), horizon=10)
     np.testing.assert_allclose(v, np.maximum(2.0 - 0.5 * np.arange(11), 0.0))
     assert np.all(a[v == 0] == 0.0) and a[0] == -5.0
 
@@ -138,13 +143,32 @@ def test_the_reference_lane_changes_at_the_lane_change_rate(scene, xp):
     the step (every state of the horizon asks for the far lane)."""
     ego = xp.asarray([50.0, 2.0, 0.0, 25.0])  # straight road: the lateral offset is y
     ref = xp.asarray([25.0, 0.0, -2.0])
-    _, _, lane = reference_profile(make_problem(scene, ProblemConfig(lane_change_rate=1.5)), ref, ego, 40)
+    _, _, lane, course = reference_profile(make_problem(scene, ProblemConfig(lane_change_rate=1.5)), ref, ego, 40)
     lane = np.asarray(lane)
     np.testing.assert_allclose(lane[:5], 2.0 - 0.15 * np.arange(5), atol=1e-5)
     assert np.all(np.diff(lane) <= 1e-6) and np.all(np.diff(lane) >= -0.15 - 1e-5)
     np.testing.assert_allclose(lane[27:], -2.0, atol=1e-5)  # 4 m at 1.5 m/s: there from t = 2.67 s
-    _, _, step = reference_profile(make_problem(scene, ProblemConfig()), ref, ego, 40)
+    _, _, step, _ = reference_profile(make_problem(scene, ProblemConfig()), ref, ego, 40)
     np.testing.assert_allclose(np.asarray(step)[1:], -2.0, atol=1e-5)
+    assert np.all(np.asarray(course) == 0.0)  # the heading term aims along the road unless the scene's lane leads
+
+
+@pytest.mark.parametrize("xp", [np, jnp])
+def test_a_leading_lane_gives_the_heading_of_its_path(scene, xp):
+    """Where the scene's reference lane leads through lanes (``Scene.lane_path``), the heading term aims along the
+    lane's path while it moves (``arctan(rate / v)``) and along the road once it is there; a plan that holds that
+    heading is measured on course, one along the road off it."""
+    lead = dataclasses.replace(scene, lane_path=True)
+    problem = make_problem(lead, ProblemConfig(lane_change_rate=1.5))
+    ego, ref = xp.asarray([50.0, 2.0, 0.0, 25.0]), xp.asarray([25.0, 0.0, -2.0])
+    v, _, lane, course = (np.asarray(r) for r in reference_profile(problem, ref, ego, 40))
+    np.testing.assert_allclose(course[1:26], np.arctan(-1.5 / 25.0), rtol=1e-5)
+    np.testing.assert_allclose(course[28:], 0.0)
+    far = tuple(np.full(1, x) for x in (1e3, 0.0, 0.0, 0.0)) + (np.zeros(1, bool),)
+    x = np.array([[60.0, 1.0, np.arctan(-1.5 / 25.0), 25.0], [60.0, 1.0, 0.0, 25.0]])
+    zero = np.zeros((2, 2))
+    h = measure(problem, x, zero, zero, zero, np.zeros(2), 1.0, 25.0, 0.0, far, float(course[5]))
+    np.testing.assert_allclose(h[:, 1], [0.0, -np.arctan(-1.5 / 25.0)], atol=1e-6)
 
 
 @pytest.mark.parametrize("bad", [0.0, -1.0])
@@ -278,3 +302,17 @@ def test_a_path_that_turns_away_is_predicted_along_it(problem):
     _, lat, v, _, _ = predict_obstacles(problem._replace(paths=paths), ovs, 20)
     np.testing.assert_allclose(lat[:, 0], 2.0 + np.linspace(0.0, 3.0, 21), atol=1e-6)
     np.testing.assert_allclose(v[:, 0], 10.0)
+
+
+def test_a_leading_lane_drops_the_headway_from_the_keep_out_boxes_and_says_so(scene):
+    """On a road whose reference lane leads through the gaps (``Scene.lane_path``) the behaviour layer has picked
+    the gap: no time headway in the OVs' boxes (the least gap and braking room stay), recorded as a road change."""
+    config = ProblemConfig()
+    assert for_road(config, STEER_UNIT) is config and road_changes(config, STEER_UNIT) == {}
+    changes = road_changes(config, STEER_UNIT, lane_path=True)
+    assert changes == {"barrier": dataclasses.replace(config.barrier, headway=0.0)}
+    plain = make_problem(scene, config)
+    lead = make_problem(dataclasses.replace(scene, lane_path=True), config)
+    assert plain.barrier.headway == config.barrier.headway > 0 and lead.barrier.headway == 0.0
+    assert (plain.lane_heading, lead.lane_heading) == (0.0, 1.0)
+    assert lead.barrier.follower_decel == plain.barrier.follower_decel
