@@ -272,7 +272,7 @@ class GapDriver(DriveOnDriver):
         if self.clock >= self._next_plan - 1e-9:
             self._next_plan = self.clock + self.SEARCH.step
             self.plan, self._plan_lane = self._plan()
-        if self._plan_lane < 0:
+        if self.plan is None:
             super().change_lane_policy()
             return
         road = self.target_lane_index[:2]
@@ -286,9 +286,7 @@ class GapDriver(DriveOnDriver):
 
     def _plan(self) -> tuple[GapPlan | None, int]:
         """The lattice's plan from here and the number of the lane its first step drives to (the one the EV is in,
-        or the next towards the needed lane); where the lattice finds no way this step, (None, the lane nearest the
-        EV): it holds that lane (MOBIL would head back left, away from the needed lane: EnKTS lost 4 s so on
-        exit-v0, development seed 6); (None, -1) where it has nothing to plan (no lane needed, or past it)."""
+        or the next towards the needed lane): (None, -1) where there is none."""
         network = self.road.network
         goal_index = needed_lane(network, [self.lane_index, *self.route], self.lane_index[2]) if self.route else None
         if goal_index is None:
@@ -313,9 +311,7 @@ class GapDriver(DriveOnDriver):
             rows.append((np.round(k + lo / width), so, other.speed))
         search = dataclasses.replace(self.SEARCH, top_speed=max(float(self.target_speed), 1e-3))
         plan = plan_gaps(search, s, self.speed, lane, phase, k, window, np.array(rows))
-        if plan is None:
-            return None, int(np.round(frac))
-        return plan, lane + (toward if plan.change else 0)
+        return plan, lane + (toward if plan is not None and plan.change else 0)
 
     def lead_point(self) -> np.ndarray | None:
         """The point ``(2,)`` abreast of the EV where the plan holds it :attr:`GapSearch.lookahead` s from now

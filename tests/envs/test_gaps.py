@@ -108,8 +108,7 @@ def test_the_plan_is_remade_every_lattice_step_and_leaves_mobils_timer_to_mobil(
     from bimp.envs.highway import behaviour
 
     calls = []
-    # nothing to plan (no lane needed, or past it): MOBIL decides
-    monkeypatch.setattr(behaviour.GapDriver, "_plan", lambda self: calls.append(self) or (None, -1))
+    monkeypatch.setattr(behaviour, "plan_gaps", lambda *a: calls.append(a) or None)  # no plan: MOBIL decides
     env = gym.make("bimp/exit-v0")
     env.reset(seed=0)
     adapter = env
@@ -158,25 +157,6 @@ def _adapter(env):
     while not hasattr(env, "behaviour"):
         env = env.env
     return env
-
-
-def test_without_a_way_in_the_driver_holds_the_lane_nearest_the_ev(monkeypatch):
-    """Where the lattice finds no way into the needed lane this step, the driver holds the lane it is nearest,
-    instead of MOBIL's choice (which heads back left, away from the exit lane)."""
-    from bimp.envs.highway import behaviour
-
-    env = gym.make("bimp/exit-v0")
-    env.reset(seed=0)
-    adapter = _adapter(env)
-    ev, shadow = env.unwrapped.vehicle, adapter.behaviour.shadow
-    lane = env.unwrapped.road.network.get_lane(("0", "1", 1))
-    ev.position, ev.heading = lane.position(float(lane.local_coordinates(ev.position)[0]), -0.5), 0.0
-    monkeypatch.setattr(behaviour, "plan_gaps", lambda *a: None)
-    mobil = []
-    monkeypatch.setattr(behaviour.ShadowDriver, "change_lane_policy", lambda self: mobil.append(self))
-    shadow._next_plan = 0.0
-    adapter.behaviour.decide(0.1)
-    assert shadow.plan is None and shadow.target_lane_index == ("0", "1", 1) and not mobil
 
 
 def test_on_exit_v0_the_reference_leads_where_the_plan_holds_the_ev_in_2_s():
