@@ -17,6 +17,7 @@ Nothing here imports highway-env or JAX.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,7 +65,7 @@ def join_obs(ego, u_prev, ovs, ref) -> np.ndarray:
 BOUND_CONSTRAINTS = ("accel_min", "accel_max", "steer", "accel_rate", "steer_rate")
 
 
-def travel(speed, accel, t):
+def travel(speed: ArrayLike, accel: ArrayLike, t: ArrayLike):
     """Distance [m] covered by time ``t`` [s] from ``speed`` [m/s] at constant ``accel`` [m/s^2], stopping rather than
     reversing: the rule by which the planners predict the OVs (numpy or JAX, broadcast)."""
     xp = array_module(speed, accel, t)
@@ -261,3 +262,9 @@ class Scene:
         ego, ovs = np.asarray(ego, float), np.atleast_2d(np.asarray(ovs, float))
         gap = rect_gap(ego[:2], ego[2], ovs[:, 1:3], ovs[:, 3], self.vehicle_length, self.vehicle_width)
         return np.where(ovs[:, 0] > 0, gap, np.inf)
+
+
+def leads(scenes: Scene | Sequence[Scene]) -> bool:
+    """Whether ``scenes`` (a scene, or a batch's) have a reference lane that leads through lanes
+    (``Scene.lane_path``: :func:`bimp.planners.problem.for_road`)."""
+    return any(s.lane_path for s in ([scenes] if isinstance(scenes, Scene) else list(scenes)))

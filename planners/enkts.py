@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bimp.configs import ConfigError, added_field, check_fields
-from bimp.envs.scene import Scene, real_array
+from bimp.envs.scene import Scene, leads, real_array
 from bimp.planners import core
 from bimp.planners.dynamics import dynamics_files, steer_bound
 from bimp.planners.guard import guarded
@@ -31,7 +31,6 @@ from bimp.planners.problem import (
     ProblemConfig,
     Road,
     for_road,
-    leads,
     load_planner_config,
     make_problem,
     road_changes,
@@ -236,9 +235,11 @@ class EnKTSPlanner:
             self._problem_scenes = static
         roads = [road_window(s.road, row[:2], self.config.problem) for s, row in zip(scenes, obs)]
         road = roads[0] if self.batch is None else Road(*(np.stack(v) for v in zip(*roads)))
-        if len({s.ov_paths is None for s in scenes}) > 1:  # one program per batch: the rows' paths or none
-            raise ValueError("a batch mixes scenes with the OVs' paths (junction roads) and scenes without: batch "
-                             "episodes of one road")
+        # One program and one problem per batch: every row with the OVs' paths or none, and one reading of the
+        # reference (make_problem reads the first scene's).
+        if len({s.ov_paths is None for s in scenes}) > 1 or len({s.lane_path for s in scenes}) > 1:
+            raise ValueError("a batch mixes scenes with the OVs' paths or a leading lane (junction roads, exit-v0) "
+                             "and scenes without: batch episodes of one road")
         paths = None if scenes[0].ov_paths is None else np.stack([s.ov_paths for s in scenes]).astype(np.float32)
         if paths is not None and self.batch is None:
             paths = paths[0]

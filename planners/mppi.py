@@ -55,13 +55,12 @@ import torch
 from pytorch_mppi import MPPI
 
 from bimp.configs import ConfigError, added_field, check_fields
-from bimp.envs.scene import Scene
+from bimp.envs.scene import Scene, leads
 from bimp.planners.dynamics import dynamics_files, model_from_name, steer_bound
 from bimp.planners.problem import (
     Problem,
     ProblemConfig,
     for_road,
-    leads,
     load_planner_config,
     make_problem,
     measure,

@@ -58,7 +58,7 @@ import casadi as ca
 import numpy as np
 
 from bimp.configs import ConfigError, check_fields
-from bimp.envs.scene import Scene
+from bimp.envs.scene import Scene, leads
 from bimp.planners.dynamics import BicycleModel, dynamics_files, model_from_name, steer_bound
 from bimp.planners.nmpc_casadi import (  # re-exported: the program's pieces, as bimp.planners.nmpc named them
     ROAD_PARAMS,
@@ -76,7 +76,6 @@ from bimp.planners.problem import (
     BarrierShape,
     ProblemConfig,
     for_road,
-    leads,
     load_planner_config,
     make_problem,
     predict_obstacles,

@@ -248,10 +248,8 @@ def for_road(config: ProblemConfig, steer: float, lane_path: bool = False) -> Pr
       roads the slip is at most 0.025 rad;
     - with ``lane_path``, no time headway in the OVs' keep-out boxes (``barrier.headway`` 0: the least gap and the
       braking room stay). The behaviour layer picks the gap to change into by a gap and a braking room of its own
-      (``bimp.envs.highway.gaps``); the planners' 0.6 s headway refused most of them (a vehicle 10 m ahead in the
-      next lane at the EV's speed held EnKTS beside it for 7 s on exit-v0, development seed 2). Development seeds 0-11
-      of exit-v0, EnKTS reaching the exit lane: 4 with the headway, 5 with 0.3 s, 9 with none, no collision; 2 with
-      the behaviour layer's gaps widened to the planners' instead.
+      (``bimp.envs.highway.gaps``), and the planners' 0.6 s headway refused most of them (exit-v0's exit lane on 4
+      of development seeds 0-11 with it, 9 without: docs/studies/highway-env-history.md).
 
     :func:`road_changes` lists what this changes, for the record."""
     k = float(steer) / STEER_UNIT
@@ -270,12 +268,6 @@ def road_changes(config: ProblemConfig, steer: float, lane_path: bool = False) -
     adapted = for_road(config, steer, lane_path)
     return {f.name: getattr(adapted, f.name) for f in dataclasses.fields(config)
             if getattr(adapted, f.name) != getattr(config, f.name)}
-
-
-def leads(scenes: Scene | list[Scene]) -> bool:
-    """Whether any of ``scenes`` (a scene or a batch's) has a reference lane that leads through lanes
-    (``Scene.lane_path``: :func:`for_road`)."""
-    return any(s.lane_path for s in (scenes if isinstance(scenes, (list, tuple)) else [scenes]))
 
 
 def measurement_noise(config: ProblemConfig, n_obstacles: int) -> np.ndarray:
@@ -497,6 +489,6 @@ def measure(problem: Problem, x, u, du, u0, u_prev, ref_lane, v_ref, a_ref, obst
 __all__ = ["ACTIVE", "Barrier", "BARRIERS", "BarrierShape", "edge_distance_local", "frenet",
            "Limits", "load_planner_config", "load_problem", "make_problem", "measure",
            "measurement_noise", "N_FIRST_CONTROL", "N_TRACK", "NU_MIN", "predict_obstacles",
-           "Problem", "PROBLEM_FILE", "leads", "ProblemConfig",
+           "Problem", "PROBLEM_FILE", "ProblemConfig",
            "reference_profile", "Road", "ROAD_BEHIND", "road_window",
            "for_road", "road_changes", "STEER_UNIT"]

@@ -380,9 +380,8 @@ class HighwayAdapter(gym.Wrapper):
         (:attr:`Profile.junction`) the route blends across the gaps between lanes (``lanes.smooth_bridges``) and so
         lies off their centres there: the point is the route's own abreast of the EV moved by the target lane's
         offset from the EV's lane on its route (0 without a lane change); a target lane on another road (highway-env's
-        driver turns to the next road a little before this one ends) is the EV's own. Where the profile has a
-        ``lane_path`` (exit-v0), the point is where the plan through the gaps holds the EV 2 s ahead, while it has
-        one (``GapDriver.lead_point``)."""
+        driver turns to the next road a little before this one ends) is the EV's own. With the profile's
+        ``lane_path`` (exit-v0): where the gap plan holds the EV 2 s on, while it has one (``GapDriver.lead_point``)."""
         ev = self.env.unwrapped.vehicle
         network = self.env.unwrapped.road.network
         index = self.behaviour.target_lane_index

@@ -314,7 +314,8 @@ class GapDriver(DriveOnDriver):
         return plan, lane + (toward if plan is not None and plan.change else 0)
 
     def lead_point(self) -> np.ndarray | None:
-        """The point ``(2,)`` abreast of the EV where the plan holds it :attr:`GapSearch.lookahead` s from now
+        """The point ``(2,)`` abreast of the EV where the plan holds it :attr:`GapSearch.lookahead` s after it was
+        made (1.5-2 s from now: the plan is remade every lattice step)
         (:attr:`GapPlan.ahead`: in the next lane but one while the plan changes lanes back to back), None without a
         plan. MOBIL's target lane names the next lane only, and a reference that stops at each lane's centre
         slowed the planners to about 4 s a lane: exit-v0's six lanes took longer than the episode."""

@@ -52,8 +52,8 @@ class GapSearch:
         for name in ("step", "top_speed", "horizon", "length", "brake"):
             if not getattr(self, name) > 0:
                 raise ConfigError(name, "> 0", getattr(self, name))
-        if not self.lookahead >= 0:
-            raise ConfigError("lookahead", ">= 0", self.lookahead)
+        if not (self.lookahead >= 0 and abs(self.lookahead / self.step - round(self.lookahead / self.step)) < 1e-9):
+            raise ConfigError("lookahead", "a whole number of steps >= 0 [s]", self.lookahead)
         if not self.lag >= 0:
             raise ConfigError("lag", ">= 0", self.lag)
         for name in ("change_steps", "per_group"):  # ints: check_fields refuses any other type

@@ -42,6 +42,10 @@ class Profile:
     gap_plan: bool = added_field(False, neutral=False)
     lane_path: bool = added_field(False, neutral=False)
 
+    def __post_init__(self) -> None:
+        if self.lane_path and not self.gap_plan:
+            raise ValueError("a profile's lane_path leads along the gap plan: it needs gap_plan")
+
 
 def _curve_bounds(steer: float) -> Bounds:
     # The paper's bounds with a steering bound that takes the road's tightest curve, and a steering rate that

@@ -184,3 +184,13 @@ def test_enkts_reaches_exit_v0s_exit_lane():
         obs, _, terminated, truncated, info = env.step(policy.act(obs))
         done = terminated or truncated
     assert info["goal"] and not info["collision"] and not info["offroad"]
+
+
+def test_a_lookahead_off_the_lattice_and_a_lane_path_without_a_gap_plan_are_refused():
+    with pytest.raises(ConfigError, match="lookahead"):
+        GapSearch(lookahead=1.2)
+    from bimp.envs.highway.profiles import PROFILES, Profile
+
+    exit_ = PROFILES["exit-v0"]
+    with pytest.raises(ValueError, match="gap_plan"):
+        Profile(exit_.bounds, exit_.actuator_steer, exit_.target_speed, exit_.duration, lane_path=True)

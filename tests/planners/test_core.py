@@ -345,3 +345,9 @@ def test_a_batch_of_scenes_with_and_without_paths_is_refused():
         batch.reset(seed=[11, 12])
         with pytest.raises(ValueError, match="mixes scenes"):
             batch._problem_of(scenes, np.stack([o[:len(obs[0])] for o in obs]).astype(np.float32))
+    (exit_, obs_e), (fast, obs_f) = episode("bimp/exit-v0", 1), episode("bimp/highway-fast-v0", 1)
+    scenes = [exit_.unwrapped.scene, fast.unwrapped.scene]  # a leading lane (exit-v0's) in one row only
+    batch = EnKTSPlanner(lambda: scenes, small())
+    batch.reset(seed=[11, 12])
+    with pytest.raises(ValueError, match="leading lane"):
+        batch._problem_of(scenes, np.stack([obs_e, obs_f]).astype(np.float32))
