@@ -40,7 +40,10 @@ def main(argv: list[str] | None = None) -> int:
                 found = ("would rerun" if args.dry_run else c.outcome if not c.differences
                          else f"{c.outcome.upper()}: " + "; ".join(c.differences[:5]))
                 batches = f" (batches {c.groups})" if c.batch > 1 else ""
-                print(f"{folder}: {c.name}: seeds {c.seeds}{batches}: {found}")
+                elsewhere = [m for m in c.machines if m != library.machine()] if c.differences else []
+                where = (f" [recorded on {' | '.join(elsewhere)}; rerun on {library.machine()}: a rerun there tells the"
+                         " code from the machine]" if elsewhere else "")
+                print(f"{folder}: {c.name}: seeds {c.seeds}{batches}: {found}{where}")
                 status = max(status, 1 if c.differences else 0)
             if not args.dry_run:
                 counts = {k: sum(c.outcome == k for c in checks) for k in ("same", "drift", "different")}

@@ -42,7 +42,7 @@ from bimp import envs
 from bimp.agents.errors import EvaluationError, check_out_dir
 from bimp.agents.evaluation.backends import BackendError, check_backend, run_groups, start_backend
 from bimp.agents.evaluation.metrics import episode_metrics, summarize
-from bimp.agents.evaluation.provenance import code_version, config_diff, config_hash, resolved_config
+from bimp.agents.evaluation.provenance import code_version, config_diff, config_hash, machine, resolved_config
 from bimp.agents.evaluation.records import (
     ARMS_FILE,
     EPISODES_FILE,
@@ -220,7 +220,8 @@ def _base_record(job: Job) -> dict:
     # The config, overrides and seeding are the arm's entry in arms.json: a record names it by hash, and repeats only
     # what differs from it (job.inline).
     return {"scenario": arm.scenario, "label": arm.label, "policy": arm.policy, "seed": job.seed,
-            "config_hash": arm.config_hash, **dict(job.inline), **dict(job.version)}
+            "config_hash": arm.config_hash, **dict(job.inline), **dict(job.version),
+            "machine": machine()}  # where the episode runs (a worker, a Ray node), not where it was asked for
 
 
 def run_group(group: tuple[Job, ...]) -> list[dict]:

@@ -51,7 +51,7 @@ def _metric_problem(name: str, value: object) -> str | None:
 # Optional fields a reader uses, by their types: (type, None allowed).
 _OPTIONAL = {"label": (str, False), "config_hash": (str, False), "config": (dict, False), "steps": (int, False),
              "overrides": (dict, False),
-             "truncated": (bool, False), "git_commit": (str, True), "git_dirty": (bool, False),
+             "truncated": (bool, False), "git_commit": (str, True), "git_dirty": (bool, False), "machine": (str, True),
              "policy_info": (dict, True), "metrics": (dict, True)}
 
 

@@ -11,7 +11,10 @@ in one call with its seeds in the order they ran. An arm seeded otherwise than t
 Compared: ``status``, ``steps``, ``truncated`` and every metric but the plan times, to 1e-9. A difference prints the
 arm, the seed and the metric. An arm is ``same`` (every value to 1e-9), ``drift`` (every episode outcome the same:
 status, steps, the end and the 0/1 outcomes, such as success and collision, while a continuous metric moved:
-floating-point drift, a closed loop amplifies it) or ``different`` (an outcome changed).
+floating-point drift, a closed loop amplifies it) or ``different`` (an outcome changed). Each record names the
+machine it ran on (:func:`bimp.agents.evaluation.provenance.machine`: the CPU and the numerical packages); where an
+arm drifts or differs and its records ran on another machine, the line says so: the same code moves there too, and
+only a rerun on the recording's machine tells the code's changes from the machine's.
 
 Exit status: 0 when every arm rerun is the same, 1 when one drifts or differs, 2 when an arm cannot be rerun (then
 nothing runs and the folder is left as it was). ``compare``, ``aggregate`` and ``leaderboard`` then take the arms
@@ -33,7 +36,7 @@ from bimp.agents.errors import EvaluationError
 from bimp.agents.evaluation.evaluate import evaluate, resolve_arms
 from bimp.agents.evaluation.metrics import BINARY, record_label
 from bimp.agents.evaluation.metrics import code_version as code_version_of
-from bimp.agents.evaluation.provenance import code_version, config_diff
+from bimp.agents.evaluation.provenance import code_version, config_diff, machine
 from bimp.agents.evaluation.records import (
     EPISODES_FILE,
     episode_bytes,
@@ -66,6 +69,7 @@ class ArmCheck:
     overrides: dict = field(default_factory=dict)
     groups: list[list[int]] = field(default_factory=list)  # the seeds of each call to rerun, as they ran
     versions: list[str] = field(default_factory=list)  # the code versions of the records the rerun checks
+    machines: list[str] = field(default_factory=list)  # where those records ran ("unknown": before it was recorded)
     reason: str | None = None
     differences: list[str] | None = None
     outcomes_changed: bool = False
@@ -158,6 +162,7 @@ def plan(folder: str | Path, sample: int, trusted: Iterable[str] = ()) -> list[A
                 picked.append(group)
         check.groups = [[r["seed"] for r in group] for group in picked]
         check.versions = sorted({code_version_of(r) for group in picked for r in group})
+        check.machines = sorted({r.get("machine") or "unknown" for group in picked for r in group})
     return checks
 
 
@@ -225,6 +230,7 @@ def verify_folder(folder: str | Path, sample: int = 2, workers: int = 1, trusted
             verified[arm_key(check.scenario, check.label, check.config_hash)] = {
                 "policy": check.policy, "commit": version["git_commit"] or "", "dirty": bool(version["git_dirty"]),
                 "seeds": check.seeds, "groups": check.groups, "versions": check.versions,
+                "machines": check.machines, "machine": machine(),
                 "outcome": check.outcome, "differences": check.differences}
             write_atomic(folder / VERIFIED_FILE, _dumps(verified))
     return checks

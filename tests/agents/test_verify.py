@@ -137,3 +137,29 @@ def test_verified_arms_are_the_current_codes_to_the_readers(folder, monkeypatch)
         (folder / VERIFIED_FILE).write_text(json.dumps({k: {**v, **change} for k, v in verified.items()}))
         monkeypatch.setattr(verification, "same_code", lambda a, b: a == b)
         assert any(m.kind == "code" for m in leaderboard.find_mixing(leaderboard.load_arms([folder]))), kind
+
+
+def test_a_drift_names_the_machine_the_records_ran_on_where_it_is_not_this_one(folder, capsys):
+    from bimp.agents.evaluation.provenance import machine
+
+    def change(r):
+        r["machine"] = "another CPU; jax 0.0"
+        if r["policy"] == "zero" and r["seed"] == 13:
+            r["metrics"]["min_distance_m"] += 0.5
+
+    rewrite(folder, change)
+    assert main(["verify", str(folder), "--sample", "2"]) == 1
+    lines = capsys.readouterr().out.splitlines()
+    drift = next(line for line in lines if "DRIFT" in line)
+    assert f"[recorded on another CPU; jax 0.0; rerun on {machine()}" in drift
+    assert not any("recorded on" in line for line in lines if ": same" in line)  # no note where nothing moved
+    entry = next(v for v in read_verified(folder).values() if v["policy"] == "zero")
+    assert entry["machines"] == ["another CPU; jax 0.0"] and entry["machine"] == machine()
+
+
+def test_records_name_the_machine_they_ran_on(made):
+    from bimp.agents.evaluation.provenance import machine
+
+    records = [json.loads(line) for line in made[EPISODES_FILE].splitlines()]
+    assert {r["machine"] for r in records} == {machine()}
+    assert "python" in machine() and "jax" in machine() and "numpy" in machine()
