@@ -41,8 +41,12 @@ def main(argv: list[str] | None = None) -> int:
                          else f"{c.outcome.upper()}: " + "; ".join(c.differences[:5]))
                 batches = f" (batches {c.groups})" if c.batch > 1 else ""
                 elsewhere = [m for m in c.machines if m != library.machine()] if c.differences else []
-                where = (f" [recorded on {' | '.join(elsewhere)}; rerun on {library.machine()}: a rerun there tells the"
-                         " code from the machine]" if elsewhere else "")
+                where = ""
+                if elsewhere:  # the machine lines hold "; ": the note's parts stand in brackets of their own
+                    ran = " | ".join(m for m in elsewhere if m != "unknown")
+                    where = (f" [records ran on: {ran}] [this machine: {library.machine()}] (a rerun on the records'"
+                             " machine tells the code from the machine)" if ran else
+                             " [records ran on an unrecorded machine: the code or the machine may have moved them]")
                 print(f"{folder}: {c.name}: seeds {c.seeds}{batches}: {found}{where}")
                 status = max(status, 1 if c.differences else 0)
             if not args.dry_run:

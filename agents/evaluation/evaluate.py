@@ -287,7 +287,8 @@ def step_info_summary(infos: list[dict]) -> dict:
 
 def _crashed(group: tuple[Job, ...], why: str) -> list[dict]:
     """Error records of a group whose worker process died on every try (``why``: how the backend saw it)."""
-    return [{**_base_record(job), "status": "error", "traceback": None,
+    # Made here, not in the worker that died: the machine it ran on is not known (a Ray node).
+    return [{**_base_record(job), "machine": None, "status": "error", "traceback": None,
              "error": f"WorkerDied: {why}; a crash in native code or the out-of-memory killer are the usual causes"}
             for job in group]
 

@@ -63,6 +63,7 @@ def _typed(value: object, kind: type, nullable: bool) -> bool:
 
 _COMMIT = re.compile(r"[0-9a-f]{7,40}")
 MAX_NAME = 200  # characters of a scenario, policy or label name
+MAX_MACHINE = 1000  # characters of a record's machine line (bimp verify prints it)
 
 
 def _name_problem(key: str, name: str) -> str | None:
@@ -103,6 +104,9 @@ def record_problem(value: object) -> str | None:
         problem = _name_problem(key, value[key]) if key in value else None
         if problem is not None:
             return problem
+    machine = value.get("machine")
+    if machine is not None and (len(machine) > MAX_MACHINE or not machine.isprintable()):
+        return f"a record whose machine is {shown(machine)}, not a printable line of at most {MAX_MACHINE} chars"
     if value.get("git_commit") is not None and not _COMMIT.fullmatch(value["git_commit"]):
         return "a record whose git_commit is not a commit's hex digits"
     if "config" in value and config_problem(value["config"]) is not None:

@@ -141,7 +141,7 @@ def test_evaluate_refuses_a_set_config_file_with_trust_model_in_one_line(tmp_pat
 BAD_VALUES = ["yes", {}, [1], math.nan, math.inf, 1e308, 2.0, -1, 0.5, True, None, "many", 10**30, 10**400,
               "a\nb", "a/b", "\x1b[2J", "x" * 300]
 FIELDS = ["seed", "steps", "status", "scenario", "policy", "label", "config_hash", "truncated", "git_commit",
-          "git_dirty", "policy_info", "overrides", "seeding", "config", "config.config", "config.files",
+          "git_dirty", "machine", "policy_info", "overrides", "seeding", "config", "config.config", "config.files",
           *[f"metrics.{name}" for name in METRICS]]
 
 
@@ -182,7 +182,8 @@ def test_fuzzed_record_fields_are_skipped_or_read_never_a_traceback(made, tmp_pa
         assert sane(summary), (number, record)
     assert len(kept) < len(good) + len(lines)  # something was refused: the check is not a pass-through
     for field, value in [("metrics.success_rate", "yes"), ("metrics.collision_rate", 0.5), ("seed", -1),
-                         ("metrics.min_ttc_s", math.nan), ("metrics.score", 2.0), ("steps", "many")]:
+                         ("metrics.min_ttc_s", math.nan), ("metrics.score", 2.0), ("steps", "many"),
+                         ("machine", "\x1b[2J"), ("machine", "a\nb")]:
         assert records.record_problem(variant(good[0], field, value)) is not None, (field, value)
         assert field.rpartition(".")[2] in records.record_problem(variant(good[0], field, value))
 

@@ -151,8 +151,8 @@ def test_a_drift_names_the_machine_the_records_ran_on_where_it_is_not_this_one(f
     assert main(["verify", str(folder), "--sample", "2"]) == 1
     lines = capsys.readouterr().out.splitlines()
     drift = next(line for line in lines if "DRIFT" in line)
-    assert f"[recorded on another CPU; jax 0.0; rerun on {machine()}" in drift
-    assert not any("recorded on" in line for line in lines if ": same" in line)  # no note where nothing moved
+    assert f"[records ran on: another CPU; jax 0.0] [this machine: {machine()}]" in drift
+    assert not any("records ran on" in line for line in lines if ": same" in line)  # no note where nothing moved
     entry = next(v for v in read_verified(folder).values() if v["policy"] == "zero")
     assert entry["machines"] == ["another CPU; jax 0.0"] and entry["machine"] == machine()
 
@@ -163,3 +163,15 @@ def test_records_name_the_machine_they_ran_on(made):
     records = [json.loads(line) for line in made[EPISODES_FILE].splitlines()]
     assert {r["machine"] for r in records} == {machine()}
     assert "python" in machine() and "jax" in machine() and "numpy" in machine()
+
+
+def test_a_drift_on_records_that_name_no_machine_says_so(folder, capsys):
+    def change(r):
+        r.pop("machine", None)
+        if r["policy"] == "zero" and r["seed"] == 13:
+            r["metrics"]["min_distance_m"] += 0.5
+
+    rewrite(folder, change)
+    assert main(["verify", str(folder), "--sample", "2"]) == 1
+    drift = next(line for line in capsys.readouterr().out.splitlines() if "DRIFT" in line)
+    assert "[records ran on an unrecorded machine" in drift and "this machine" not in drift
