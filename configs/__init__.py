@@ -399,29 +399,34 @@ def file_sha256(path: str | Path) -> str:
 
 
 # --- fields added after results were recorded ---------------------------------------------------------------
-def added_field(default: Any, *, neutral: Any) -> Any:
+def added_field(default: Any, *, neutral: Any, by_road: tuple = ()) -> Any:
     """A config field added after records were made without it. ``neutral``: its value that reproduces the behaviour
     from before it existed (it may differ from ``default``, the value new configs take). At its neutral value the
     field is left out of a config's hash (:func:`bimp.agents.evaluation.provenance.config_hash`), so the records made
     before it existed keep resuming; ``bimp migrate`` writes it into them at that value. A field whose old behaviour no
     value reproduces is declared as a plain field: it is always hashed, and the old records are refused, as they must
-    be.
+    be. ``by_road``: values that reproduce the neutral value's behaviour except where the env's road asks otherwise,
+    and there the policy records what the road changed (its ``road``, hashed beside the config): left out of the hash
+    too, so that a road that asks for nothing keeps its old records.
 
         gate_barriers: bool = added_field(True, neutral=True)
+        road_guard: bool | None = added_field(None, neutral=False, by_road=(None,))
     """
-    return dataclasses.field(default=default, metadata={"neutral": neutral})
+    return dataclasses.field(default=default, metadata={"neutral": neutral, "by_road": tuple(by_road)})
 
 
-def neutral_values(cls: type) -> dict[str, Any]:
+def neutral_values(cls: type, by_road: bool = False) -> dict[str, Any]:
     """``{field: neutral value}`` of the fields of the config class ``cls`` declared with :func:`added_field`; a
-    nested config's as a nested mapping (only where it has some)."""
+    nested config's as a nested mapping (only where it has some). ``by_road``: ``{field: [neutral value, *by_road
+    values]}``, every value left out of a config's hash."""
     hints = _hints(cls)
     out: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
         if "neutral" in f.metadata:
-            out[f.name] = f.metadata["neutral"]
+            neutral = f.metadata["neutral"]
+            out[f.name] = [neutral, *f.metadata["by_road"]] if by_road else neutral
         elif isinstance(hints[f.name], type) and dataclasses.is_dataclass(hints[f.name]):
-            nested = neutral_values(hints[f.name])
+            nested = neutral_values(hints[f.name], by_road)
             if nested:
                 out[f.name] = nested
     return out

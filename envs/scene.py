@@ -17,7 +17,7 @@ Nothing here imports highway-env or JAX.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -191,7 +191,12 @@ class Scene:
     Per step, like the road a wrapped env republishes, and left out of the comparison of scenes. ``lane_path``: the
     reference's lane leads through several lanes in a row (exit-v0's plan through the gaps), so the planners track
     the heading of its path too (:func:`bimp.planners.problem.reference_profile`); False: the heading term aims
-    along the road.
+    along the road. ``on_lanes``: where the route's edges leave out drivable lanes beside it (a wrapped highway-env
+    road, at a junction: the ring beside a roundabout's entry), whether points ``(P, 2)`` all lie on a lane (the
+    road-edge guard's test, :mod:`bimp.planners.guard`); None: the route's edges bound the whole drivable area.
+    ``edge_guard``: the road asks its planners to brake in lane rather than
+    apply a plan that leaves it (EnKTS's and EnKS's road-edge guard at ``road_guard`` None): every wrapped highway-env
+    road and family; False on the paper's scenarios, where the planners are the paper's as printed.
     """
 
     road: Route
@@ -205,6 +210,8 @@ class Scene:
     geometry: RoadGeometry | None = None
     ov_paths: np.ndarray | None = field(default=None, compare=False)
     lane_path: bool = False
+    on_lanes: Callable[[np.ndarray], bool] | None = field(default=None, compare=False)
+    edge_guard: bool = False
 
     # --- observation layout --------------------------------------------------------------------------
     @property
@@ -262,6 +269,16 @@ class Scene:
         ego, ovs = np.asarray(ego, float), np.atleast_2d(np.asarray(ovs, float))
         gap = rect_gap(ego[:2], ego[2], ovs[:, 1:3], ovs[:, 3], self.vehicle_length, self.vehicle_width)
         return np.where(ovs[:, 0] > 0, gap, np.inf)
+
+
+def asks_guard(scenes: Scene | Sequence[Scene]) -> bool:
+    """Whether ``scenes`` (a scene, or a batch's) ask for the road-edge guard (``Scene.edge_guard``); a batch that
+    mixes roads that ask with roads that do not is refused (one planner config holds one guard)."""
+    asks = {s.edge_guard for s in ([scenes] if isinstance(scenes, Scene) else list(scenes))}
+    if len(asks) > 1:
+        raise ValueError("a batch mixes roads that ask for the road-edge guard (Scene.edge_guard) with roads that "
+                         "do not: plan them in separate batches")
+    return asks.pop()
 
 
 def leads(scenes: Scene | Sequence[Scene]) -> bool:

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bimp.configs import ConfigError, added_field, check_fields
-from bimp.envs.scene import Scene, leads, real_array
+from bimp.envs.scene import Scene, asks_guard, leads, real_array
 from bimp.planners import core
 from bimp.planners.dynamics import dynamics_files, steer_bound
 from bimp.planners.guard import guarded
@@ -53,7 +53,9 @@ class EnKTSConfig:
     that no particle touches sits out the update (``bimp.planners.core._active``); first_control_barriers: the applied
     control's bounds are measured at every step; update: the reading of the printed eq. 16, ``"perturbed"`` (ours),
     ``"deterministic"`` (the authors' public EnKS code) or ``"literal"`` (:func:`bimp.planners.core.student_t_update`);
-    road_guard: where the smoothed plan leaves the road, brake in lane instead (:mod:`bimp.planners.guard`);
+    road_guard: where the smoothed plan leaves the road, brake in lane instead (:mod:`bimp.planners.guard`): True
+    on every road, False on none, None (the default) where the road asks for it (``Scene.edge_guard``: highway-env's
+    roads and the families; the paper's scenarios keep the planner as printed), recorded as a road change;
     seed: default seed of the planner's key. The switches exist for the ablation and the readings study
     (``docs/reproduction.md``); the defaults are what that study supports. Values are checked by
     :func:`bimp.configs.check_fields` (types, lengths) and then for range: a bad one raises
@@ -71,8 +73,9 @@ class EnKTSConfig:
     gate_barriers: bool = added_field(True, neutral=True)
     first_control_barriers: bool = added_field(True, neutral=True)
     update: str = added_field("perturbed", neutral="perturbed")
-    # Brake in lane where the smoothed plan leaves the road (bimp.planners.guard); off reproduces the planner before.
-    road_guard: bool = added_field(False, neutral=False)
+    # Brake in lane where the smoothed plan leaves the road (bimp.planners.guard); off reproduces the planner before,
+    # and so does None where the road does not ask for it (where it does, the planner's `road` records it).
+    road_guard: bool | None = added_field(None, neutral=False, by_road=(None,))
     seed: int = 0
     problem: ProblemConfig = field(default_factory=ProblemConfig)
 
@@ -140,6 +143,10 @@ class EnKTSPlanner:
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound)  # the weights by content and name
         # what the road changes in the problem, for the record
         self.road = road_changes(config.problem, bound, leads(self._scene()))
+        asked = asks_guard(self._scene())
+        self.guard = asked if config.road_guard is None else config.road_guard
+        if config.road_guard is None and asked:
+            self.road["road_guard"] = True
         self._model = jax.device_put(model_params(config.problem.dynamics, bound))
         self._problem_scenes: list[Scene] = []
         self._problem: Problem | None = None
@@ -194,7 +201,7 @@ class EnKTSPlanner:
         # Plain bools: the episode loop records them and the records summarize bool flags as fallback_steps.
         self.step_info = {"fallback": bool(fell_back) if self.batch is None else tuple(map(bool, fell_back))}
         action = np.asarray(action, dtype=np.float32)
-        if self.config.road_guard:
+        if self.guard:
             action = self._guard(scenes, action)
         return action
 

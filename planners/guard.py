@@ -7,7 +7,8 @@ hard limit there, so the guard checks the plan every step.
 1. The smoothed plan's states ``x_1 .. x_H`` are rolled out on the planner's own model.
 2. The guard acts when a body corner of any of them lies past the drivable area's edge
    (:meth:`bimp.envs.scene.Scene.edge_distance` < 0), further out than the EV is now (an EV already over the edge
-   may come back).
+   may come back), and on no lane where the scene knows its lanes (``Scene.on_lanes``: at a roundabout's entry the
+   route's edges are the entry lane's, and the ring beside it is drivable too).
 3. Then the applied control is replaced by braking in lane (:func:`brake_in_lane`): the planning bound's full
    braking, with steering that holds the road's heading.
 
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bimp.envs.road import wrap_angle
+from bimp.envs.road import body_corners, wrap_angle
 from bimp.envs.scene import Scene
 
 HEADING_TIME = 0.5  # [s] the brake-in-lane steering takes out a heading error over about this long
@@ -27,9 +28,15 @@ HEADING_TIME = 0.5  # [s] the brake-in-lane steering takes out a heading error o
 
 def leaves_road(scene: Scene, x0: np.ndarray, states: np.ndarray) -> bool:
     """Whether the planned ``states (H, >=3)`` put a body corner past the road's edge, further out than the EV at
-    ``x0 (>=3,)`` is (:meth:`Scene.edge_distance`: > 0 inside)."""
-    margins = scene.edge_distance(np.vstack([np.asarray(x0, float)[:4], np.asarray(states, float)[:, :4]]))
-    return bool(margins[1:].min() < min(margins[0], 0.0))  # one projection of the EV's and the plan's corners
+    ``x0 (>=3,)`` is (:meth:`Scene.edge_distance`: > 0 inside), and, where the scene knows its lanes
+    (``Scene.on_lanes``), on no lane: at a junction the route's edges leave out the lanes beside it."""
+    states = np.asarray(states, float)
+    margins = scene.edge_distance(np.vstack([np.asarray(x0, float)[:4], states[:, :4]]))
+    out = states[margins[1:] < min(margins[0], 0.0)]  # one projection of the EV's and the plan's corners
+    if scene.on_lanes is None or not len(out):
+        return bool(len(out))
+    corners = body_corners(out[:, :2], out[:, 2], scene.vehicle_length, scene.vehicle_width)
+    return not scene.on_lanes(corners.reshape(-1, 2))
 
 
 def brake_in_lane(scene: Scene, x0: np.ndarray) -> np.ndarray:

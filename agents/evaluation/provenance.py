@@ -50,13 +50,13 @@ def plain(value: Any) -> Any:
 
 
 @functools.lru_cache(maxsize=None)
-def _neutral(policy_name: str) -> str:
+def _neutral(policy_name: str, by_road: bool = False) -> str:
     # JSON text, so that the cache hands out no mutable dict.
     try:
         reference = policy_spec(policy_name).config_class
     except ValueError:  # not a policy: a hash of something else (a tuning study's space, say)
         return "{}"
-    return "{}" if reference is None else json.dumps(plain(neutral_values(load(reference))))
+    return "{}" if reference is None else json.dumps(plain(neutral_values(load(reference), by_road)))
 
 
 def neutral_config(policy_name: str) -> dict:
@@ -66,11 +66,12 @@ def neutral_config(policy_name: str) -> dict:
 
 
 def without_neutral(value: dict, neutral: dict) -> dict:
-    """``value`` without the fields at their neutral value (nested mappings key by key)."""
+    """``value`` without the fields at a neutral value (``neutral``: :func:`bimp.configs.neutral_values` with
+    ``by_road``, a list of the values per field; nested mappings key by key)."""
     out = {}
     for key, item in value.items():
         mark = neutral.get(key, _NONE)
-        if not isinstance(mark, dict) and item == mark:
+        if isinstance(mark, list) and item in mark:
             continue
         out[key] = without_neutral(item, mark) if isinstance(item, dict) and isinstance(mark, dict) else item
     return out
@@ -100,7 +101,7 @@ def config_hash(policy_name: str, config: dict) -> str:
     other field is hashed, at its default or not: a field whose old behaviour no value reproduces changes the hash of
     every config, and the old records are refused instead of taken for the new behaviour's."""
     config = plain(config)
-    neutral = neutral_config(policy_name)
+    neutral = json.loads(_neutral(policy_name, by_road=True))
     if neutral and isinstance(config.get("config"), dict):
         config = {**config, "config": without_neutral(config["config"], neutral)}
     for key in config.get("files") or {}:  # a file known by its content is hashed by it, not by its name or path

@@ -62,7 +62,7 @@ from gymnasium.error import ResetNeeded
 from bimp.envs.checks import check_highway_config, check_policy_frequency, checked_action, checked_flag, is_int
 from bimp.envs.highway.behaviour import Behaviour, BehaviourRule, curve_acceleration
 from bimp.envs.highway.fixed import HIGHWAY_CLASSES, adapted_class
-from bimp.envs.highway.lanes import RouteCache, check_steering_reach, off_lanes, route_from
+from bimp.envs.highway.lanes import RouteCache, check_steering_reach, coordinates, off_lanes, on_lanes_of, route_from
 from bimp.envs.highway.prediction import lane_paths
 from bimp.envs.highway.profiles import PROFILES, SUPPORTED
 from bimp.envs.overlay import draw_lines
@@ -313,7 +313,7 @@ class HighwayAdapter(gym.Wrapper):
         base.scene = Scene(road=self._shifted[2], bounds=p.bounds, dt=self.dt, vehicle_length=VEHICLE_LENGTH,
                            vehicle_width=VEHICLE_WIDTH, actuator_accel=tuple(base.action_type.acceleration_range),
                            actuator_steer=tuple(base.action_type.steering_range), n_obstacles=self.n_obstacles,
-                           lane_path=p.lane_path)
+                           lane_path=p.lane_path, on_lanes=on_lanes_of(base.road.network), edge_guard=True)
 
     def _route_lane(self, ev, route):
         """The EV's lane on its route: highway-env's closest lane, unless that lane's road is off the route and a
@@ -326,7 +326,7 @@ class HighwayAdapter(gym.Wrapper):
         best, least = index, np.inf
         for _from, _to, _ in route:
             for k, lane in enumerate(graph.get(_from, {}).get(_to, [])):
-                s, lat = lane.local_coordinates(position)
+                s, lat = coordinates(lane, position)
                 if lane.on_lane(position, s, lat) and abs(lat) < least:
                     best, least = (_from, _to, k), abs(lat)
         return best
@@ -388,7 +388,7 @@ class HighwayAdapter(gym.Wrapper):
 
         def centre(lane_index) -> np.ndarray:
             lane = network.get_lane(lane_index)
-            return np.asarray(lane.position(lane.local_coordinates(ev.position)[0], 0.0), float)
+            return np.asarray(lane.position(coordinates(lane, ev.position)[0], 0.0), float)
 
         lead = getattr(self.behaviour.shadow, "lead_point", lambda: None)() if self.profile.lane_path else None
         if lead is not None:

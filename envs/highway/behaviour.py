@@ -35,7 +35,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from bimp.configs import neutral_values
 from bimp.envs.highway.gaps import GapPlan, GapSearch, plan_gaps
 from bimp.envs.highway.junction import Yielding, yield_acceleration
-from bimp.envs.highway.lanes import goes_on_beside, needed_lane
+from bimp.envs.highway.lanes import coordinates, goes_on_beside, needed_lane
 from bimp.envs.road import Route
 
 # Bumped whenever the adapter or the behaviour layer changes what an episode does, so that records made before are
@@ -293,7 +293,7 @@ class GapDriver(DriveOnDriver):
             return None, -1
         goal = network.get_lane(goal_index)
         self._goal_lane = (goal, goal_index[2])
-        s, lat = goal.local_coordinates(self.position)
+        s, lat = coordinates(goal, self.position)
         window = (0.0, goal.length - self.LENGTH)
         if s >= window[1]:
             return None, -1  # before, in the needed lane, the lattice drives on at speed (no braking to its limit)
@@ -307,7 +307,7 @@ class GapDriver(DriveOnDriver):
         for other in self.road.vehicles:
             if other is self or np.cos(other.heading - self.heading) <= 0:
                 continue
-            so, lo = goal.local_coordinates(other.position)
+            so, lo = coordinates(goal, other.position)
             rows.append((np.round(k + lo / width), so, other.speed))
         search = dataclasses.replace(self.SEARCH, top_speed=max(float(self.target_speed), 1e-3))
         plan = plan_gaps(search, s, self.speed, lane, phase, k, window, np.array(rows))
@@ -322,7 +322,7 @@ class GapDriver(DriveOnDriver):
         if self.plan is None or self._goal_lane is None:
             return None
         goal, k = self._goal_lane
-        s = goal.local_coordinates(self.position)[0]
+        s = coordinates(goal, self.position)[0]
         return np.asarray(goal.position(s, (self.plan.ahead - k) * goal.width_at(s)), float)
 
 

@@ -23,6 +23,8 @@ from types import SimpleNamespace
 import numpy as np
 from highway_env.road.regulation import RegulatedRoad
 
+from bimp.envs.highway.lanes import coordinates
+
 HORIZON = 6.0  # s: how far ahead arrival times are compared
 TIME_STEP = 0.25  # s: of the other vehicles' predictions (highway-env's regulation uses 0.25 s)
 PATH_STEP = 1.0  # m: between the EV's path points
@@ -63,7 +65,7 @@ def along_route(vehicle, distances: np.ndarray) -> np.ndarray:
     """Lane-centre points ``(T, 2)`` ``distances`` ``(T,)`` [m] ahead of ``vehicle``'s abreast position along its
     :func:`resolved_route`, as highway-env's ``predict_trajectory_constant_speed`` places them."""
     network, route = vehicle.road.network, resolved_route(vehicle)
-    s0 = network.get_lane(route[0]).local_coordinates(vehicle.position)[0]
+    s0 = coordinates(network.get_lane(route[0]), vehicle.position)[0]
     return np.array([network.position_heading_along_route(route, s0 + d, 0.0, vehicle.lane_index)[0]
                      for d in distances], float).reshape(-1, 2)
 
@@ -130,7 +132,7 @@ def stop_line(vehicle) -> float | None:
     starts at a :func:`junction` (0 on such a lane), None where there is none."""
     network = vehicle.road.network
     route = resolved_route(vehicle)
-    ahead = -network.get_lane(route[0]).local_coordinates(vehicle.position)[0]
+    ahead = -coordinates(network.get_lane(route[0]), vehicle.position)[0]
     for index in route:
         if junction(network, index[0]):
             return max(ahead, 0.0)

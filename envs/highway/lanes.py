@@ -12,7 +12,11 @@ in the route's frame (``l`` > 0 to the right of travel, highway-env's +y at head
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
+
 import numpy as np
+from highway_env.road.lane import CircularLane
 from highway_env.road.road import RoadNetwork
 
 from bimp.envs.road import Route, wrap_angle
@@ -60,7 +64,7 @@ def lane_walk(network, index, s_from: float, length: float, route=None, spacing:
             break  # the end of the network, or a way back (past an intersection's exit road): padded straight
         # Go on from abreast of where this lane ended: lanes may overlap at a join (racetrack-v0: by 0.44 m, and the
         # polyline ran backwards there).
-        s = max(0.0, float(network.get_lane(following).local_coordinates(end_xy)[0]))
+        s = max(0.0, float(coordinates(network.get_lane(following), end_xy)[0]))
         start = network.get_lane(following).position(s, 0.0)
         gap = float(np.hypot(*(start - end_xy)))
         if gap > JOIN:
@@ -93,8 +97,8 @@ def smooth_bridges(network, xy: np.ndarray, heading: np.ndarray, lanes: list, br
         if first < done or j >= len(s) or last > s[-1]:  # overlapping the previous blend, or past the walk's end
             continue
         before, after = network.get_lane(lanes[i]), network.get_lane(lanes[j])
-        s_before = before.local_coordinates(xy[i])[0]
-        s_after = after.local_coordinates(xy[j])[0]
+        s_before = coordinates(before, xy[i])[0]
+        s_after = coordinates(after, xy[j])[0]
         a, b = int(np.searchsorted(s, first)), int(np.searchsorted(s, last))
         sigma = np.arange(max(first, s[0]), s[b], spacing / 20.0)  # to the walk's next point: segments <= spacing
         u = np.minimum((sigma - first) / (last - first), 1.0)
@@ -183,10 +187,10 @@ def _edges(network, xy: np.ndarray, heading: np.ndarray, index, offset: float = 
     beside = _beside(network, index)
     normal = np.array([-np.sin(heading), np.cos(heading)])
     own = network.get_lane(index)
-    s_own, _ = own.local_coordinates(xy)
+    s_own, _ = coordinates(own, xy)
     left, right = -own.width_at(s_own) / 2.0 - offset, own.width_at(s_own) / 2.0 - offset
     for lane in beside:
-        s, _ = lane.local_coordinates(xy)
+        s, _ = coordinates(lane, xy)
         if not -1.0 <= s <= lane.length + 1.0:
             continue
         lat = float(np.dot(lane.position(s, 0.0) - xy, normal))
@@ -210,8 +214,31 @@ def off_lanes(network: RoadNetwork, points: np.ndarray, margin: float, besides=N
       (``besides``, the EV's own, left out), within the adapter's ``SEAM_MARGIN``: where lanes meet without a
       seam, as on every straight road, the rule is highway-env's exactly."""
     lanes = [lane for lane in network.lanes_list() if lane is not besides]
-    return any(not any(lane.on_lane(point, *lane.local_coordinates(point), margin=margin) for lane in lanes)
+    return any(not any(lane.on_lane(point, *coordinates(lane, point), margin=margin) for lane in lanes)
                for point in points)
+
+
+def on_lanes_of(network: RoadNetwork) -> Callable[[np.ndarray], bool]:
+    """Whether every point of ``points (P, 2)`` lies on a lane of ``network``, with no margin, as a function of the
+    points: the road-edge guard's drivable area (``Scene.on_lanes``), the lanes beside a junction included, which the
+    route's edges leave out. No margin, unlike :func:`off_lanes`' ``JUNCTION_MARGIN``: the guard brakes before the
+    env's test would end the episode, not after."""
+    return partial(_on_lanes, network)
+
+
+def _on_lanes(network: RoadNetwork, points: np.ndarray) -> bool:
+    return not off_lanes(network, np.asarray(points, float), 0.0)
+
+
+def coordinates(lane, xy: np.ndarray) -> tuple[float, float]:
+    """``lane.local_coordinates(xy)``, mended for a circular lane of more than half a turn: highway-env wraps the
+    phase to within pi of the start, so the last metres of such an arc (racetrack-v0's road d-e, 3.16 rad) read as
+    lying a whole lap before its start. The branch nearest the lane's extent is taken."""
+    s, lat = lane.local_coordinates(xy)
+    if isinstance(lane, CircularLane) and lane.length > np.pi * lane.radius:
+        lap = 2 * np.pi * lane.radius
+        s = min((s - lap, s, s + lap), key=lambda c: max(-c, c - lane.length, 0.0))
+    return float(s), float(lat)
 
 
 
@@ -239,7 +266,7 @@ def build_route(network, index, position, route=None, behind: float = BEHIND, ah
     the lane's start) to ``ahead`` m after it along ``route``, padded straight to ``ahead`` where the network ends.
     Also the lane index of every point (the padding repeats the last). Headings are unwrapped along the route."""
     lane = network.get_lane(index)
-    s0, _ = lane.local_coordinates(np.asarray(position, float))
+    s0, _ = coordinates(lane, np.asarray(position, float))
     start = float(np.clip(s0 - behind, 0.0, max(lane.length - spacing, 0.0)))
     xy, heading, lanes, bridges = lane_walk(network, index, start, ahead + (s0 - start), route_from(route, index),
                                             spacing)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bimp.envs.highway.lanes import lane_walk, route_from
+from bimp.envs.highway.lanes import coordinates, lane_walk, route_from
 from bimp.envs.road import wrap_angle
 from bimp.envs.scene import travel
 
@@ -34,7 +34,7 @@ def lane_path(network, vehicle, accel: float, t: np.ndarray) -> np.ndarray:
     # roundabout-v0's entries. Refined from the lane's own coordinate in three steps: exact at once on straight
     # lanes and circles; on a sine lane, whose coordinate runs along its base (each step overshoots by the slope's
     # 1 / cos), within 1e-6 m of the foot at roundabout-v0's entries (tested).
-    s0 = float(np.clip(lane.local_coordinates(position)[0], 0.0, lane.length))
+    s0 = float(np.clip(coordinates(lane, position)[0], 0.0, lane.length))
     for _ in range(3):
         h0 = lane.heading_at(s0)
         s0 = float(np.clip(s0 + np.dot(position - lane.position(s0, 0.0), [np.cos(h0), np.sin(h0)]), 0.0,

@@ -13,7 +13,7 @@ from gymnasium.utils.env_checker import check_env
 import bimp  # noqa: F401  (registers bimp/ID)
 from bimp.envs import scenario_spec, wrap
 from bimp.envs.highway.adapter import SUPPORTED
-from bimp.envs.highway.lanes import _spaced, build_route
+from bimp.envs.highway.lanes import _spaced, build_route, coordinates
 from bimp.envs.scene import Scene
 
 pytestmark = pytest.mark.filterwarnings("ignore")
@@ -260,3 +260,22 @@ def test_past_the_outer_side_of_the_road_is_off_it():
     env, ev = _racetrack_ev_at(-3.6)  # lane 0's outer side is at -2.5: its centre 1.1 m beyond
     _, _, terminated, _, info = env.step(np.zeros(2, np.float32))
     assert not ev.on_road and info["offroad"] and terminated
+
+
+def test_an_arc_of_more_than_half_a_turn_is_measured_to_its_end():
+    """racetrack-v0's road d-e is an arc of 3.16 rad. highway-env wraps its phase to within pi of the start, so the
+    lane's own end reads as a whole lap before its start, and the route's edge there lost the lane beside it (the
+    right edge fell from 7.5 to 2.5 m and back within 10 m: the planners' edge, and the guard's, jumped)."""
+    env = gym.make("bimp/racetrack-v0")
+    env.reset(seed=0)
+    network = env.unwrapped.road.network
+    inner, outer = network.get_lane(("d", "e", 0)), network.get_lane(("d", "e", 1))
+    end = inner.position(inner.length - 0.05, 0.0)
+    assert inner.local_coordinates(end)[0] < 0  # highway-env's reading: the test would pass vacuously without it
+    assert coordinates(inner, end)[0] == pytest.approx(inner.length - 0.05, abs=1e-6)
+    assert coordinates(outer, end)[0] == pytest.approx(outer.length, abs=0.1)
+    start = inner.position(1.0, 0.0)  # elsewhere highway-env's own numbers
+    assert coordinates(inner, start) == pytest.approx(inner.local_coordinates(start))
+    route, _ = build_route(network, ("d", "e", 0), inner.position(10.0, 0.0))
+    along = (route.s > 20) & (route.s < 50)  # the join to road e-f, both lanes all the way
+    assert np.allclose(route.right[along], 7.5, atol=0.05) and np.allclose(route.left[along], -2.5, atol=0.05)

@@ -64,8 +64,8 @@ def test_the_shipped_defaults_resolve_to_the_values_they_had(env, name):
     old = json.loads(BEFORE.read_text())[name]
     resolved = resolved_config(make_policy(name, env))
     expected = migrate(old)
-    if name in ("enkts", "enks"):  # added since, off by default: its neutral value, the planner as it was
-        expected["config"]["road_guard"] = False
+    if name in ("enkts", "enks"):  # added since: None, the guard where the road asks for it (the paper's does not)
+        expected["config"]["road_guard"] = None
     assert {"config": resolved["config"]} == expected
     # Beside the config, only the files it names, by content (issue 28): the shipped weights, for a planner.
     assert resolved.get("files", {}) == ({"problem.dynamics": sha256(WEIGHTS_PATH.read_bytes()).hexdigest()}

@@ -8,6 +8,7 @@ import pytest
 
 from bimp import envs  # noqa: F401  (registers the envs)
 from bimp.agents import make_policy
+from bimp.agents.evaluation.provenance import config_hash, resolved_config
 from bimp.planners.guard import brake_in_lane, guarded, leaves_road
 
 
@@ -66,11 +67,14 @@ def test_guarded_keeps_a_plan_on_the_road_and_replaces_one_that_leaves(scene):
     assert np.allclose(scene.to_physical(action), brake_in_lane(scene, x0))
 
 
-def test_the_guard_is_off_by_default_and_said_per_step_when_on():
-    env = gym.make("bimp/Overtaking-v0")
+def test_the_guard_is_where_the_road_asks_for_it_and_said_per_step_when_on():
+    env = gym.make("bimp/Overtaking-v0")  # the paper's scenario: the planner as printed
     obs, _ = env.reset(seed=1)
     plain, on = make_policy("enkts", env), make_policy("enkts", env, road_guard=True)
-    assert plain.config.road_guard is False and dataclasses.replace(on.config, road_guard=False) == plain.config
+    assert plain.config.road_guard is None and not plain.guard and on.guard
+    assert resolved_config(plain)["config"]["road_guard"] is None and "road" not in resolved_config(plain)
+    assert config_hash("enkts", resolved_config(plain)) == config_hash(
+        "enkts", resolved_config(make_policy("enkts", env, road_guard=False)))  # the records from before it
     plain.reset(seed=1)
     on.reset(seed=1)
     action = plain.act(obs)
@@ -79,3 +83,26 @@ def test_the_guard_is_off_by_default_and_said_per_step_when_on():
     batch = make_policy("enks", [gym.make("bimp/Overtaking-v0") for _ in range(2)], road_guard=True)
     batch.reset(seed=[1, 2])
     assert batch.act(np.stack([obs, obs])).shape == (2, 2) and len(batch.step_info["guard"]) == 2
+    road = gym.make("bimp/highway-v0")  # a highway-env road asks for it, and the record says so
+    road.reset(seed=1)
+    asked, off = make_policy("enkts", road), make_policy("enkts", road, road_guard=False)
+    assert asked.guard and resolved_config(asked)["road"] == {"road_guard": True} and not off.guard
+    assert config_hash("enkts", resolved_config(asked)) != config_hash("enkts", resolved_config(off))
+    with pytest.raises(ValueError, match="mixes roads that ask for the road-edge guard"):
+        make_policy("enkts", [road, gym.make("bimp/Overtaking-v0")])
+
+
+def test_where_the_scene_knows_its_lanes_a_corner_on_a_lane_beside_the_route_is_road(scene):
+    """At a roundabout's entry the route's edges are the entry lane's, and a plan turning into the ring crosses them
+    over the ring's lanes: there the guard braked the EV to a halt on 20 of 20 development seeds."""
+    x0 = np.array([10.0, 0.0, 0.0, 20.0])
+    assert not leaves_road(dataclasses.replace(scene, on_lanes=lambda points: True), x0, path(3.5))
+    assert leaves_road(dataclasses.replace(scene, on_lanes=lambda points: False), x0, path(3.5))
+    env = gym.make("bimp/roundabout-v0")
+    env.reset(seed=0)
+    entry = env.unwrapped.scene  # the EV's route into the ring; seed 0's plan at the entry, traced
+    x0, state = np.array([3.65, 30.9, -1.38, 3.35]), np.array([[6.79, 23.04, -1.01, 5.36]])
+    assert entry.edge_distance(state)[0] < 0 < entry.edge_distance(x0)  # past the route's edge: else vacuous
+    assert not leaves_road(entry, x0, state)
+    assert leaves_road(dataclasses.replace(entry, on_lanes=None), x0, state)
+    assert leaves_road(entry, x0, np.array([[10.0, 35.0, -1.01, 5.36]]))  # beside the entry, on no lane
