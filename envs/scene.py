@@ -275,6 +275,8 @@ def asks_guard(scenes: Scene | Sequence[Scene]) -> bool:
     """Whether ``scenes`` (a scene, or a batch's) ask for the road-edge guard (``Scene.edge_guard``); a batch that
     mixes roads that ask with roads that do not is refused (one planner config holds one guard)."""
     asks = {s.edge_guard for s in ([scenes] if isinstance(scenes, Scene) else list(scenes))}
+    if not asks:
+        raise ValueError("no scene to ask: a batch needs at least one")
     if len(asks) > 1:
         raise ValueError("a batch mixes roads that ask for the road-edge guard (Scene.edge_guard) with roads that "
                          "do not: plan them in separate batches")

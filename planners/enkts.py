@@ -141,7 +141,7 @@ class EnKTSPlanner:
         self._scene = scene if callable(scene) else (lambda: scene)
         bound = steer_bound(self._scene())  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound)  # the weights by content and name
-        # what the road changes in the problem, for the record
+        # what the road changes in the problem (and whether it asks for the guard), for the record
         self.road = road_changes(config.problem, bound, leads(self._scene()))
         asked = asks_guard(self._scene())
         self.guard = asked if config.road_guard is None else config.road_guard

@@ -92,7 +92,8 @@ def _without_key(value: Any, path: list[str]) -> Any:
 def config_hash(policy_name: str, config: dict) -> str:
     """16 hex digits of SHA-256 over the policy name and the config, canonical JSON as a record holds it
     (:func:`plain`: a record's own config hashes to its arm's), with every field of the policy's config
-    (``config["config"]``) left out that is at its neutral value (:func:`bimp.configs.added_field`), and every
+    (``config["config"]``) left out that is at its neutral value or at one of its ``by_road`` values
+    (:func:`bimp.configs.added_field`: what those change on a road, the record's ``road`` holds), and every
     entry that names a file known by its content (``config["files"]``, keyed by the entry's dotted key) left out
     for that content: the same weights at two paths are one config, new weights at one path two.
 

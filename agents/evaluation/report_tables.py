@@ -30,8 +30,8 @@ from bimp.agents.files import read_json
 SEEDED = re.compile(r"^(.+)-s(\d+)$")  # a training seed's arm: ppo-s1
 MARK = "†"
 NAMES = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC", "nmpc-t": "NMPC-t", "idm": "IDM/MOBIL",
-         "lane-keep": "lane keeping", "ppo": "PPO", "sac": "SAC", "enkts-guard": "EnKTS + guard",
-         "enks-guard": "EnKS + guard", "idm-yield": "IDM/MOBIL + yield", "inf": "inf (EnKS)"}
+         "lane-keep": "lane keeping", "ppo": "PPO", "sac": "SAC", "enkts-unguarded": "EnKTS, no guard",
+         "enks-unguarded": "EnKS, no guard", "idm-yield": "IDM/MOBIL + yield", "inf": "inf (EnKS)"}
 
 
 @dataclass

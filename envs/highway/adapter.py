@@ -390,7 +390,7 @@ class HighwayAdapter(gym.Wrapper):
             lane = network.get_lane(lane_index)
             return np.asarray(lane.position(coordinates(lane, ev.position)[0], 0.0), float)
 
-        lead = getattr(self.behaviour.shadow, "lead_point", lambda: None)() if self.profile.lane_path else None
+        lead = self.behaviour.shadow.lead_point() if self.profile.lane_path else None  # lane_path: a gap plan
         if lead is not None:
             return lead
         if not self.profile.junction:

@@ -81,6 +81,26 @@ def test_a_field_added_at_its_neutral_value_leaves_old_hashes_one_without_change
     provenance._neutral.cache_clear()
 
 
+def test_a_value_whose_change_the_road_records_hashes_as_neutral_and_migrate_writes_the_neutral_one(monkeypatch):
+    """``added_field(..., by_road=...)``: a value that reproduces the neutral one's behaviour except where the road
+    says otherwise (and there the record's ``road`` says so) is left out of the hash; every other value is hashed;
+    ``bimp migrate`` writes the neutral value itself into old records, never the list the hash compares with."""
+    old = {"config": {"gain": 1.0}, "scenario": {"x": 1}}
+    _version(monkeypatch, gain=1.0)
+    before = config_hash("hash-toy", old)
+    spec = [("gain", float, dataclasses.field(default=1.0)),
+            ("guard", object, added_field(None, neutral=False, by_road=(None,)))]
+    monkeypatch.setattr(sys.modules[__name__], "Grown", dataclasses.make_dataclass("Grown", spec, frozen=True))
+    provenance._neutral.cache_clear()
+    for value in (False, None):
+        assert config_hash("hash-toy", {**old, "config": {"gain": 1.0, "guard": value}}) == before
+    assert config_hash("hash-toy", {**old, "config": {"gain": 1.0, "guard": True}}) != before
+    asked = {**old, "config": {"gain": 1.0, "guard": None}, "road": {"guard": True}}
+    assert config_hash("hash-toy", asked) != before  # where the road asked, its record says so
+    assert provenance.neutral_config("hash-toy") == {"guard": False}
+    provenance._neutral.cache_clear()
+
+
 def test_the_switches_added_for_the_claims_study_are_neutral_and_nmpc_slack_is_not():
     import gymnasium as gym
 
