@@ -27,8 +27,11 @@ The policy that acts with a trained model, its config and the safe reading of mo
 
 from __future__ import annotations
 
+import io
 import json
 import time
+import warnings
+import zipfile
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -59,10 +62,11 @@ _EARLIER = "delete it to resume from an earlier checkpoint (or train into a new 
 
 
 def _resume(cfg: RLConfig, venv, checkpoint: Path):
-    """The model of ``cfg`` on ``venv`` in the state of ``checkpoint`` (a ``CheckpointCallback`` zip), read
+    """The model of ``cfg`` on ``venv`` in the state of ``checkpoint`` (:func:`_checkpoint_callback`'s zip), read
     without unpickling: a fresh :func:`make_model`, then the checkpoint's state dicts (policy and optimizers),
     variables (SAC's ``log_ent_coef``) and counters. What SB3's ``load`` restores beyond that is logging
-    (the recent episodes' returns) or settings ``cfg`` gives anyway. SAC: its replay buffer, :func:`load_buffer`."""
+    (the recent episodes' returns) or settings ``cfg`` gives anyway. SAC: its replay buffer, :func:`load_buffer`,
+    or without one :func:`_refill_buffer`."""
     import torch
     from stable_baselines3.common.save_util import recursive_getattr
 
@@ -82,26 +86,85 @@ def _resume(cfg: RLConfig, venv, checkpoint: Path):
     except (ValueError, KeyError, RuntimeError, TypeError) as err:
         raise ValueError(f"{checkpoint} does not fit this run ({error_brief(err)}); {_EARLIER}") from None
     if cfg.algo == "sac":
-        load_buffer(model.replay_buffer, buffer_path(checkpoint))  # without it SAC learns from an empty buffer
+        buffer = buffer_path(checkpoint)
+        if buffer.is_file() or buffer.with_suffix(".pkl").is_file():  # load_buffer refuses a pickled one
+            load_buffer(model.replay_buffer, buffer)
+        else:
+            _refill_buffer(model, cfg, checkpoint)
     return model
 
 
-# SB3's ReplayBuffer arrays, each (buffer_size // n_envs, n_envs, ...); next_observations is None when
-# optimize_memory_usage.
+def _refill_buffer(model: Any, cfg: RLConfig, checkpoint: Path) -> None:
+    """SAC resumed from a checkpoint without its replay buffer (a repository holds the checkpoints, not their
+    buffers of up to ``buffer_size`` transitions): it keeps its nets, target nets, optimizers and entropy
+    coefficient, and starts again from an empty buffer as a fresh run does, ``learning_starts`` steps of random
+    actions before its next update, so that it never fits its critics to a few transitions. What it loses is the
+    past experience: its next updates see only the new steps. Said in a warning and recorded in
+    ``buffer_lost.json`` (the timesteps of each such resume) beside the run."""
+    warnings.warn(f"{checkpoint.name} has no replay buffer beside it: SAC resumes with an empty one, "
+                  f"{cfg.learning_starts} steps of random actions before it learns again", stacklevel=3)
+    model.learning_starts = model.num_timesteps + cfg.learning_starts
+    lost = checkpoint.parent.parent / "buffer_lost.json"
+    record = read_json(lost) if lost.is_file() else []
+    write_atomic(lost, json.dumps([*record, model.num_timesteps]) + "\n")
+
+
+def model_bytes(model: Any, lean: bool = False) -> bytes:
+    """SB3's zip of ``model`` (``model.save``), in memory so that it reaches disk in one step
+    (:func:`bimp.agents.files.write_atomic`); ``lean``: through :func:`lean_zip`."""
+    buffer = io.BytesIO()
+    model.save(buffer)
+    return lean_zip(buffer.getvalue()) if lean else buffer.getvalue()
+
+
+def lean_zip(model_zip: bytes) -> bytes:
+    """An SB3 model zip with each optimizer's state emptied: Adam's two moments per weight, which acting never
+    reads (two thirds of the file). The weights, the optimizers' settings and the data entry stay, so SB3's own
+    ``load`` still reads the file (with fresh optimizers). Read with ``weights_only``: nothing is unpickled."""
+    import torch
+
+    lean = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(model_zip)) as full, zipfile.ZipFile(lean, "w", zipfile.ZIP_DEFLATED) as out:
+        for name in full.namelist():
+            entry = full.read(name)
+            if name.endswith("optimizer.pth"):  # policy.optimizer, actor./critic.optimizer, ent_coef_optimizer
+                state = torch.load(io.BytesIO(entry), map_location="cpu", weights_only=True)
+                emptied = io.BytesIO()
+                torch.save({**state, "state": {}}, emptied)
+                entry = emptied.getvalue()
+            out.writestr(name, entry)
+    return lean.getvalue()
+
+
 def _checkpoint_callback(cfg: RLConfig, out: Path):
-    """SB3's ``CheckpointCallback`` every ``cfg.checkpoint_every`` timesteps, SAC's replay buffer written by
-    :func:`save_buffer` (no pickle) and before its checkpoint: a checkpoint on disk always has its buffer."""
-    from stable_baselines3.common.callbacks import CheckpointCallback
+    """Every ``cfg.checkpoint_every`` timesteps, the model to ``out/checkpoints/{name}_{steps}_steps.zip`` (SAC's
+    replay buffer beside it first, by :func:`save_buffer`, no pickle: a checkpoint on disk always has its buffer),
+    each file written whole or not at all, then the older checkpoints removed: a run folder holds one, small
+    enough to commit with the run (the buffer is not)."""
+    from stable_baselines3.common.callbacks import BaseCallback
 
-    class Checkpoints(CheckpointCallback):
+    folder, prefix, every = out / "checkpoints", cfg.model_name.removesuffix(".zip"), cfg.checkpoint_every
+
+    class Checkpoints(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.passed = self.num_timesteps // every  # a resumed run counts from its checkpoint
+
         def _on_step(self) -> bool:
-            if self.n_calls % self.save_freq == 0 and getattr(self.model, "replay_buffer", None) is not None:
-                checkpoint = Path(self._checkpoint_path(extension="zip"))
-                save_buffer(self.model.replay_buffer, buffer_path(checkpoint))
-            return super()._on_step()
+            if self.num_timesteps // every == self.passed:
+                return True
+            self.passed = self.num_timesteps // every
+            folder.mkdir(parents=True, exist_ok=True)
+            path = folder / f"{prefix}_{self.num_timesteps}_steps.zip"
+            if getattr(self.model, "replay_buffer", None) is not None:
+                save_buffer(self.model.replay_buffer, buffer_path(path))
+            write_atomic(path, model_bytes(self.model))
+            for old in folder.glob("*_steps.zip"):
+                if old != path:
+                    buffer_path(old).unlink(missing_ok=True)
+                    old.unlink()
+            return True
 
-    return Checkpoints(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1), save_path=str(out / "checkpoints"),
-                       name_prefix=cfg.model_name.removesuffix(".zip"))
+    return Checkpoints()
 
 
 # --- training ------------------------------------------------------------------------------------------
@@ -249,7 +312,7 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     model.learn(total_timesteps=max(cfg.timesteps - done, 0), callback=callbacks, reset_num_timesteps=done == 0)
     wall = time.perf_counter() - start
     venv.close()
-    model.save(path)
+    write_atomic(path, model_bytes(model, lean=True))  # never half a model where make_policy looks
     write_atomic(out / "train_time.json", json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps,
                                                       "resumed_at": done or None}) + "\n")
     plot_curve(out, out / "curve.png", title=f"{cfg.algo.upper()} {cfg.scenario} (seed {cfg.seed})")

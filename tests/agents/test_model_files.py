@@ -23,6 +23,8 @@ from bimp.agents.commands import train_rl
 from bimp.agents.evaluation.records import read_arms, read_records, record_config
 from bimp.agents.registry import make_policy
 
+from .interrupt import interrupted_run
+
 SHIPPED = sorted(rl.MODEL_DIR.glob("*.zip"))
 
 
@@ -183,25 +185,20 @@ def test_files_that_do_not_fit_are_refused_naming_the_file_and_why(overtaking, t
     assert not (tmp_path / "marker").exists()
 
 
-def _sac_run(tmp_path) -> tuple[rl.RLConfig, Path]:
-    """A short SAC run cut back to its first checkpoint, as an interruption leaves it."""
+def _sac_run(tmp_path, monkeypatch) -> tuple[rl.RLConfig, Path]:
+    """A short SAC run interrupted after its first checkpoint."""
     cfg = rl.RLConfig(scenario="emergency-brake", algo="sac", timesteps=192, learning_starts=32, batch_size=16,
                       buffer_size=400, checkpoint_every=96, seed=2)
     out = tmp_path / "run"
-    rl_train.train(cfg, out, progress=False)
-    (out / cfg.model_name).unlink()
-    (out / "train_time.json").unlink()
-    for late in (out / "checkpoints").glob("*"):
-        if "_96_steps" not in late.name:
-            late.unlink()
+    interrupted_run(cfg, out, monkeypatch, after=100)
     return cfg, out
 
 
-def test_resume_reads_the_checkpoint_as_sb3_load_does_and_runs_no_code(tmp_path):
+def test_resume_reads_the_checkpoint_as_sb3_load_does_and_runs_no_code(tmp_path, monkeypatch):
     from stable_baselines3 import SAC
     from stable_baselines3.common.env_util import make_vec_env
 
-    cfg, out = _sac_run(tmp_path)
+    cfg, out = _sac_run(tmp_path, monkeypatch)
     checkpoint = rl_train._latest_checkpoint(out)[1]
     buffer = rl.buffer_path(checkpoint)
     assert buffer.is_file() and not list(out.glob("checkpoints/*.pkl"))  # no pickle is written
@@ -232,8 +229,8 @@ def test_resume_reads_the_checkpoint_as_sb3_load_does_and_runs_no_code(tmp_path)
     assert rl.read_model_file(out / cfg.model_name)[0]["num_timesteps"] == 192
 
 
-def test_a_crafted_or_missing_replay_buffer_is_refused_and_runs_no_code(tmp_path, capsys):
-    cfg, out = _sac_run(tmp_path)
+def test_a_crafted_or_missing_replay_buffer_is_refused_and_runs_no_code(tmp_path, capsys, monkeypatch):
+    cfg, out = _sac_run(tmp_path, monkeypatch)
     buffer = rl.buffer_path(rl_train._latest_checkpoint(out)[1])
     marker = tmp_path / "marker"
     # an array of objects: np.save pickles it, np.load(allow_pickle=False) refuses it before unpickling

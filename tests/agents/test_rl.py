@@ -17,6 +17,8 @@ from bimp.agents.registry import make_policy
 from bimp.configs import load_config
 from bimp.envs.wrappers import features, n_features
 
+from .interrupt import interrupted_run
+
 SHIPPED = sorted(
     (algo, scenario) for algo in rl.ALGOS for scenario in envs.ENV_IDS
     if rl.model_name(algo, scenario).removesuffix(".zip") in rl.default_training_seeds()
@@ -120,11 +122,21 @@ def test_short_training_writes_a_loadable_model(algo, tmp_path):
                     "--no-progress"])
     assert code == 0
     path = out / rl.model_name(algo, "emergency-brake")
-    assert path.is_file() and (out / "curve.png").is_file() and list((out / "checkpoints").glob("*.zip"))
+    assert path.is_file() and (out / "curve.png").is_file()
+    # one checkpoint, the last: a run folder small enough to commit
+    assert [p.name for p in (out / "checkpoints").glob("*.zip")] == [f"{algo}_emergency-brake_256_steps.zip"]
+    # the shipped model is lean: no optimizer moments, the checkpoint keeps them to resume from
+    _, lean, _ = rl.read_model_file(path)
+    _, full, _ = rl.read_model_file(next((out / "checkpoints").glob("*.zip")))
+    optimizers = [name for name in full if name.endswith("optimizer")]
+    assert optimizers and all(lean[n]["state"] == {} and full[n]["state"] for n in optimizers)
+    assert path.stat().st_size < 0.6 * next((out / "checkpoints").glob("*.zip")).stat().st_size
     env = gym.make(envs.env_id("emergency-brake"))
     policy = getattr(rl, f"make_{algo}")(env, model=path)
+    trusted = getattr(rl, f"make_{algo}")(env, model=path, trust_model=True)  # SB3's own load reads it too
     obs, _ = env.reset(seed=0)
     assert env.action_space.contains(policy.act(obs))
+    np.testing.assert_array_equal(policy.act(obs), trusted.act(obs))
 
 
 @pytest.mark.parametrize(("algo", "scenario"), SHIPPED[:1])
@@ -174,17 +186,14 @@ def _logged_steps(out) -> int:
     return int(load_results(str(out))["l"].sum())
 
 
-def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_path):
+def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_path, monkeypatch):
     cfg = rl.RLConfig(scenario="emergency-brake", timesteps=1024, n_steps=64, checkpoint_every=256, seed=3)
     out = tmp_path / "run"
-    path = rl_train.train(cfg, out, progress=False)
-    assert _logged_steps(out) <= 1024
-    # an interruption after the first checkpoint: the model, the time and the later checkpoints never written
-    path.unlink()
-    (out / "train_time.json").unlink()
-    for late in (out / "checkpoints").glob("*.zip"):
-        if not late.name.endswith("_256_steps.zip"):
-            late.unlink()
+    interrupted_run(cfg, out, monkeypatch, after=300)
+    # interrupted after the first checkpoint: no model where make_policy would look, one checkpoint to resume from
+    path = out / cfg.model_name
+    assert not path.exists() and list(out.glob("*.zip")) == [] and not (out / "train_time.json").exists()
+    assert [p.name for p in (out / "checkpoints").iterdir()] == ["ppo_emergency-brake_256_steps.zip"]
     assert rl_train._latest_checkpoint(out)[0] == 256
     rl_train.train(dataclasses.replace(cfg, vec_env="subproc"), out, progress=False)  # how it runs may change
     assert rl.read_model_file(path)[0]["num_timesteps"] == 1024  # 768 more, not 1024 again
@@ -195,6 +204,27 @@ def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_p
     assert _logged_steps(out) <= 1024
     with pytest.raises(ValueError, match="gamma: 0.99 there, 0.9 here"):
         rl_train.train(dataclasses.replace(cfg, gamma=0.9), out, progress=False)
+
+
+def test_sac_resumes_without_its_replay_buffer_by_filling_a_new_one(tmp_path, monkeypatch):
+    """A checkpoint from the repository has no buffer beside it (it is not committed): SAC keeps its nets and
+    collects ``learning_starts`` random steps again before it learns, and says so."""
+    cfg = rl.RLConfig(scenario="emergency-brake", algo="sac", timesteps=512, learning_starts=64,
+                      checkpoint_every=256, seed=3)
+    out = tmp_path / "run"
+    interrupted_run(cfg, out, monkeypatch, after=300)
+    checkpoint = rl_train._latest_checkpoint(out)[1]
+    rl.buffer_path(checkpoint).unlink()
+    resumed = {}
+    real = rl_train._resume
+    monkeypatch.setattr(rl_train, "_resume", lambda *a: resumed.setdefault("model", real(*a)))
+    with pytest.warns(UserWarning, match="no replay buffer beside it: SAC resumes with an empty one, 64 steps"):
+        path = rl_train.train(cfg, out, progress=False)
+    model = resumed["model"]
+    assert model.learning_starts == 256 + 64 and model.replay_buffer.pos == (512 - 256) // cfg.n_envs  # the new steps
+    assert json.loads((out / "buffer_lost.json").read_text()) == [256]
+    _, state_dicts, variables = rl.read_model_file(path)
+    assert rl.read_model_file(path)[0]["num_timesteps"] == 512 and "log_ent_coef" in variables
 
 
 def _fake_train(calls: list, fails: str = "never"):
