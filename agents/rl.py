@@ -197,28 +197,31 @@ def read_model_file(path: str | Path, how: str = _HOW) -> tuple[dict[str, Any], 
     return plain, state_dicts, variables or {}
 
 
-def _check_record(path: Path, meta: Any, algo: str, env: gym.Env) -> None:
+def _check_record(path: Path, meta: Any, algo: str, env: gym.Env, trained_on: str | None = None) -> None:
     """Refuse a model whose ``bimp`` record (written by :func:`train`) is missing or names another algorithm,
-    scenario or feature count than ``env``'s."""
+    scenario or feature count than ``env``'s. ``trained_on``: the scenario the model must record instead of
+    ``env``'s, accepted only where the two are difficulties of one family (:func:`same_family`)."""
     if not isinstance(meta, dict) or not {"scenario", "algo", "n_features"} <= set(meta):
         raise ValueError(f"{path} was not written by `bimp train-rl` (it records no scenario); retrain it")
     if meta["algo"] != algo:
         raise ValueError(f"{path} is a {str(meta['algo']).upper()} model, not {algo.upper()}")
     scenario = _scenario_of(env)
-    if scenario is not None and meta["scenario"] != scenario:
+    if trained_on is not None and meta["scenario"] != trained_on:
+        raise ValueError(f"{path} was trained on {meta['scenario']}, not {trained_on} (trained_on)")
+    if scenario is not None and meta["scenario"] != scenario and trained_on is None:
         raise ValueError(f"{path} was trained on {meta['scenario']}, not {scenario}: its features mean other "
-                         f"things there")
+                         f"things there (another difficulty of its family: give trained_on={meta['scenario']})")
     n = n_features(env.unwrapped.scene)
     if meta["n_features"] != n:
         raise ValueError(f"{path} expects {meta['n_features']} features; this feature set gives {n}")
 
 
-def _load_safe(path: Path, algo: str, env: gym.Env) -> BasePolicy:
+def _load_safe(path: Path, algo: str, env: gym.Env, trained_on: str | None = None) -> BasePolicy:
     """The deterministic SB3 policy of the model file ``path`` rebuilt from plain data, nothing unpickled:
     ``FEATURE_POLICIES[algo]`` on ``env``'s :class:`PlanningWrapper` spaces (features ``(n,)``, action ``(2,)``
     in [-1, 1]), the file's ``policy_kwargs`` (``net_arch``) and its ``policy`` state dict, loaded strict."""
     data, state_dicts, _ = read_model_file(path)
-    _check_record(path, data.get("bimp"), algo, env)
+    _check_record(path, data.get("bimp"), algo, env, trained_on)
     kwargs = data.get("policy_kwargs")
     if not isinstance(kwargs, dict) or "net_arch" not in kwargs:
         raise ValueError(f"{path} records no plain policy_kwargs with net_arch; {_HOW}")
@@ -235,13 +238,13 @@ def _load_safe(path: Path, algo: str, env: gym.Env) -> BasePolicy:
     return policy
 
 
-def _load_trusted(path: Path, algo: str, env: gym.Env) -> BasePolicy:
+def _load_trusted(path: Path, algo: str, env: gym.Env, trained_on: str | None = None) -> BasePolicy:
     """The policy of ``path`` by SB3's own ``load``, which unpickles the file: whatever code it holds runs.
     Only behind ``trust_model=True``."""
     # Schedules are pickled closures; replacing them keeps loading independent of the training Python.
     custom = {"learning_rate": 0.0, "lr_schedule": lambda _: 0.0, "clip_range": lambda _: 0.0}
     model = _algo_class(algo).load(path, device="cpu", custom_objects=custom)
-    _check_record(path, getattr(model, "bimp", None), algo, env)
+    _check_record(path, getattr(model, "bimp", None), algo, env, trained_on)
     if model.observation_space.shape != (n_features(env.unwrapped.scene),) or model.action_space.shape != (2,):
         raise ValueError(f"{path} expects observations {model.observation_space.shape} and actions "
                          f"{model.action_space.shape}; this feature set gives "
@@ -262,7 +265,8 @@ class SB3Policy:
     ``reset`` has nothing to seed.
     """
 
-    def __init__(self, env: gym.Env, model_path: str | Path, algo: str, trust_model: bool = False):
+    def __init__(self, env: gym.Env, model_path: str | Path, algo: str, trust_model: bool = False,
+                 trained_on: str | None = None):
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"no {algo.upper()} model at {path}")
@@ -276,9 +280,13 @@ class SB3Policy:
         self.config = {"algo": algo, "model_sha256": file_sha256(path)}
         if trust_model:
             self.config["trust_model"] = True
+        trained_on = _trained_on(env, trained_on)
+        if trained_on is not None:
+            self.config["trained_on"] = trained_on
         self.artifacts = {"model": artifact_name(path, model_path)}
         # The SB3 policy (an ActorCriticPolicy or SACPolicy); its predict is the algorithm's.
-        self.model = _load_trusted(path, algo, env) if trust_model else _load_safe(path, algo, env)
+        load = _load_trusted if trust_model else _load_safe
+        self.model = load(path, algo, env, trained_on)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         scene = self.env.unwrapped.scene
@@ -296,6 +304,25 @@ def artifact_name(path: Path, given: str | Path) -> str:
     if path.resolve().parent == MODEL_DIR.resolve():
         return f"bimp:agents/models/{path.name}"
     return str(given)
+
+
+def same_family(a: str, b: str) -> bool:
+    """Whether scenarios ``a`` and ``b`` are difficulties of one family (``cut-in-hard``, ``cut-in-extreme``): one
+    env class, whose features mean the same things at every difficulty."""
+    return envs.scenario_spec(a).entry_point == envs.scenario_spec(b).entry_point
+
+
+def _trained_on(env: gym.Env, trained_on: str | None) -> str | None:
+    """``trained_on`` by its scenario name, checked against ``env``'s scenario: ``ValueError`` naming both where
+    they are not one family."""
+    if trained_on is None:
+        return None
+    name = envs.scenario_spec(trained_on).name  # ValueError naming the choices
+    scenario = _scenario_of(env)
+    if scenario is None or not same_family(name, scenario):
+        raise ValueError(f"trained_on={name}: a model of {name} does not drive {scenario or env}, which is not a "
+                         f"difficulty of its family (its features mean other things there)")
+    return name
 
 
 def _scenario_of(env: gym.Env) -> str | None:
@@ -316,8 +343,9 @@ def default_training_seeds() -> dict[str, int]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
-def _shipped_model(env: gym.Env, algo: str, training_seed: int | None) -> Path:
-    scenario = _scenario_of(env)
+def _shipped_model(env: gym.Env, algo: str, training_seed: int | None, trained_on: str | None = None) -> Path:
+    """The shipped model of ``env``'s scenario (or of ``trained_on``, another difficulty of its family)."""
+    scenario = _trained_on(env, trained_on) or _scenario_of(env)
     if scenario is None:
         raise ValueError(f"cannot tell the scenario of {env}: make it with gym.make(envs.env_id(...)) "
                          f"or pass model=")
@@ -335,18 +363,21 @@ def _shipped_model(env: gym.Env, algo: str, training_seed: int | None) -> Path:
 
 
 def make_ppo(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None,
-             trust_model: bool = False) -> SB3Policy:
+             trust_model: bool = False, trained_on: str | None = None) -> SB3Policy:
     """The PPO baseline for ``env``: the shipped model of its scenario trained with ``training_seed`` (default:
-    the shipped default, :func:`default_training_seeds`), or the file ``model``. ``trust_model=True`` loads it
-    with SB3's ``load``, which unpickles it and so runs any code it holds: only for a file you trust (by default
-    it is read without unpickling, docs/security.md)."""
-    return SB3Policy(env, model or _shipped_model(env, "ppo", training_seed), "ppo", trust_model)
+    the shipped default, :func:`default_training_seeds`), or the file ``model``. ``trained_on``: a model of
+    another difficulty of ``env``'s family (``cut-in-hard`` on ``cut-in-extreme``); refused for another family.
+    ``trust_model=True`` loads it with SB3's ``load``, which unpickles it and so runs any code it holds: only for a
+    file you trust (by default it is read without unpickling, docs/security.md)."""
+    path = model or _shipped_model(env, "ppo", training_seed, trained_on)
+    return SB3Policy(env, path, "ppo", trust_model, trained_on)
 
 
 def make_sac(env: gym.Env, *, model: str | Path | None = None, training_seed: int | None = None,
-             trust_model: bool = False) -> SB3Policy:
+             trust_model: bool = False, trained_on: str | None = None) -> SB3Policy:
     """The SAC baseline for ``env``, as :func:`make_ppo`."""
-    return SB3Policy(env, model or _shipped_model(env, "sac", training_seed), "sac", trust_model)
+    path = model or _shipped_model(env, "sac", training_seed, trained_on)
+    return SB3Policy(env, path, "sac", trust_model, trained_on)
 
 
 # --- replay buffers, read and written without pickle ----------------------------------------------------

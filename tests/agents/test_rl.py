@@ -179,6 +179,27 @@ def test_a_model_is_refused_on_another_scenario_and_without_its_record(tmp_path)
     assert isinstance(make_policy("ppo", gym.make(envs.env_id("overtaking")), model=path), Policy)
 
 
+def test_a_model_drives_another_difficulty_of_its_family_only_when_asked(tmp_path):
+    """cut-in's models are evaluated at `extreme` too (issue 50): one env class, features that mean the same."""
+    path = _untrained_model("cut-in-hard", tmp_path)
+    extreme = gym.make(envs.env_id("cut-in-extreme"))
+    with pytest.raises(ValueError, match="trained on cut-in-hard, not cut-in-extreme.*trained_on=cut-in-hard"):
+        make_policy("ppo", extreme, model=path)
+    policy = make_policy("ppo", extreme, model=path, trained_on="cut-in-hard")
+    assert policy.config["trained_on"] == "cut-in-hard"
+    obs, _ = extreme.reset(seed=0)
+    assert extreme.action_space.contains(policy.act(obs))
+    with pytest.raises(ValueError, match="not cut-in-easy \\(trained_on\\)"):
+        make_policy("ppo", extreme, model=path, trained_on="cut-in-easy")
+    with pytest.raises(ValueError, match="a model of lane-drop-hard does not drive cut-in-extreme"):
+        make_policy("ppo", extreme, model=path, trained_on="lane-drop-hard")
+    with pytest.raises(ValueError, match="unknown scenario 'cut-in-hardest'"):
+        make_policy("ppo", extreme, model=path, trained_on="cut-in-hardest")
+    # a shipped model is looked up under the scenario it was trained on
+    with pytest.raises(FileNotFoundError, match="no PPO model is shipped for cut-in-easy"):
+        make_policy("ppo", extreme, trained_on="cut-in-easy", training_seed=9)
+
+
 def _logged_steps(out) -> int:
     """Timesteps of the finished episodes in ``out``'s monitor logs."""
     from stable_baselines3.common.monitor import load_results
