@@ -34,6 +34,7 @@ COMMANDS = {
     "merge": "copy evaluation folders' records into one (runs made apart, ranked as one)",
     "train-dynamics": "train the MLP vehicle model and print its accuracy",
     "train-rl": "train the stable-baselines3 baseline",
+    "curves": "learning curves of train-rl runs over training seeds, and their hours",
 }
 
 

@@ -41,7 +41,7 @@ import numpy as np
 
 from bimp.agents.baselines import ZeroAction
 from bimp.agents.errors import EvaluationError
-from bimp.agents.files import read_json, write_atomic, write_figure
+from bimp.agents.files import read_json, write_atomic
 from bimp.agents.rl import (
     PPOFeaturePolicy,
     RLConfig,
@@ -54,6 +54,7 @@ from bimp.agents.rl import (
     save_buffer,
     shipped_name,
 )
+from bimp.agents.rl_curves import monitor_files, plot_curve
 from bimp.agents.rollout import rollout
 from bimp.configs import load_config
 from bimp.envs.wrappers import PlanningWrapper
@@ -221,7 +222,8 @@ _RESUMABLE_CHANGES = ("vec_env", "checkpoint_every")
 
 
 def check_same_run(cfg: RLConfig, out: Path) -> None:
-    """Refuse to write into ``out`` when it holds another configuration's run: results never mix."""
+    """Refuse to write into ``out`` when it holds another configuration's run: results never mix. The same run
+    with more ``timesteps`` is not another: it continues from its last checkpoint."""
     path = out / "config.json"
     if not path.is_file():
         return
@@ -231,13 +233,13 @@ def check_same_run(cfg: RLConfig, out: Path) -> None:
     now = json.loads(json.dumps(asdict(cfg)))  # tuples as lists, as they were written
     differ = sorted(k for k in set(before) | set(now)
                     if before.get(k) != now.get(k) and k not in _RESUMABLE_CHANGES)
+    # Longer is a resume: the learning rates are constant, so a run to 300k from its 150k checkpoint is the
+    # 300k run (as reproducible as any resume). Shorter would keep steps the config says were not trained.
+    if differ == ["timesteps"] and isinstance(before["timesteps"], int) and before["timesteps"] < cfg.timesteps:
+        return
     if differ:
         changes = ", ".join(f"{k}: {before.get(k)!r} there, {now.get(k)!r} here" for k in differ)
         raise ValueError(f"{out} holds a run with other settings ({changes}); choose another folder")
-
-
-def _monitor_files(out: Path) -> list[Path]:
-    return sorted(out.glob("*.monitor.csv"), key=lambda p: int(p.name.split(".")[0]))
 
 
 def _drop_replayed_episodes(out: Path, n_envs: int, segment_start: int, resume_at: int) -> None:
@@ -245,7 +247,7 @@ def _drop_replayed_episodes(out: Path, n_envs: int, segment_start: int, resume_a
     are played again by the resumed run, and would otherwise count twice in the curve. The envs step in lockstep,
     so at the checkpoint each env had played ``(resume_at - segment_start) / n_envs`` of the segment's steps."""
     budget = (resume_at - segment_start) / n_envs
-    for log in _monitor_files(out)[-n_envs:]:
+    for log in monitor_files(out)[-n_envs:]:
         lines = log.read_text().splitlines(keepends=True)
         kept, steps = lines[:2], 0  # the JSON header and the column names (r,l,t)
         for row in lines[2:]:
@@ -284,11 +286,11 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     if not (isinstance(segments, list) and segments and all(type(n) is int and n >= 0 for n in segments)):
         raise EvaluationError(f"{segments_file} is not a list of step counts: train into a new --out")
     resume_at, checkpoint = _latest_checkpoint(out)
-    if _monitor_files(out):
+    if monitor_files(out):
         _drop_replayed_episodes(out, cfg.n_envs, segments[-1], resume_at)
         segments.append(resume_at)
     write_atomic(segments_file, json.dumps(segments) + "\n")
-    segment = len(_monitor_files(out)) // cfg.n_envs
+    segment = len(monitor_files(out)) // cfg.n_envs
     venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, start_index=segment * cfg.n_envs,
                         monitor_dir=str(out), wrapper_class=PlanningWrapper,
                         vec_env_cls=SubprocVecEnv if cfg.vec_env == "subproc" else DummyVecEnv)
@@ -320,8 +322,10 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
 
 
 def _finished(cfg: RLConfig, out: Path) -> bool:
-    """Whether ``out`` holds ``cfg``'s finished run: its model and ``train_time.json``, written last."""
-    return (out / cfg.model_name).is_file() and (out / "train_time.json").is_file()
+    """Whether ``out`` holds ``cfg``'s finished run: its model and ``train_time.json``, written last, for as many
+    timesteps as ``cfg`` asks (fewer: the run is being made longer)."""
+    done = out / "train_time.json"
+    return (out / cfg.model_name).is_file() and done.is_file() and read_json(done).get("timesteps") == cfg.timesteps
 
 
 def wall_s(out: Path) -> float:
@@ -330,31 +334,6 @@ def wall_s(out: Path) -> float:
     if not (isinstance(wall, dict) and isinstance(wall.get("wall_s"), (int, float))):
         raise EvaluationError(f"{out / 'train_time.json'} holds no wall_s")
     return float(wall["wall_s"])
-
-
-def plot_curve(monitor_dir: Path, path: Path, title: str = "") -> None:
-    """Episode return against timesteps from the Monitor logs in ``monitor_dir``, with a moving mean."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from stable_baselines3.common.monitor import load_results
-
-    df = load_results(str(monitor_dir))  # episodes of all envs, ordered by wall time
-    steps, returns = np.cumsum(df["l"].to_numpy()), df["r"].to_numpy()
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(steps, returns, ".", ms=2, alpha=0.3, label="episode")
-    if len(returns) >= 2:
-        w = max(1, min(50, len(returns) // 10))
-        ax.plot(steps[w - 1:], np.convolve(returns, np.ones(w) / w, mode="valid"), label=f"mean of {w}")
-    ax.set(xlabel="timesteps", ylabel="episode return", title=title)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    write_figure(fig, path, dpi=120)
-    plt.close(fig)
-
-
 
 
 def quick_check(env: gym.Env, policy, seed: int) -> dict[str, float]:

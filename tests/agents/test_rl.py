@@ -225,6 +225,14 @@ def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_p
     assert _logged_steps(out) <= 1024
     with pytest.raises(ValueError, match="gamma: 0.99 there, 0.9 here"):
         rl_train.train(dataclasses.replace(cfg, gamma=0.9), out, progress=False)
+    # a finished run made longer goes on from its last checkpoint; shorter is another run
+    longer = dataclasses.replace(cfg, timesteps=1536)
+    rl_train.train(longer, out, progress=False)
+    assert rl.read_model_file(path)[0]["num_timesteps"] == 1536
+    assert json.loads((out / "segments.json").read_text()) == [0, 256, 1024]
+    assert json.loads((out / "config.json").read_text())["timesteps"] == 1536 and _logged_steps(out) <= 1536
+    with pytest.raises(ValueError, match="timesteps: 1536 there, 1024 here"):
+        rl_train.train(cfg, out, progress=False)
 
 
 def test_sac_resumes_without_its_replay_buffer_by_filling_a_new_one(tmp_path, monkeypatch):

@@ -1,0 +1,137 @@
+"""Learning curves and training cost of ``bimp train-rl`` runs, read from what each run folder holds: its Monitor
+logs (``{i}.monitor.csv``: every finished episode's return, length and wall time) and ``config.json``.
+
+    bimp curves results/training/*_cut-in-hard_s* --out docs/img/rl/cut-in-hard.png
+
+draws one panel per algorithm and scenario (each training seed thin, their mean bold, the band from the lowest to
+the highest seed) and prints per group the runs, their timesteps and the hours they trained.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from bimp.agents.errors import EvaluationError
+from bimp.agents.files import read_json, write_figure
+
+BIN = 5_000  # timesteps per point of a curve over seeds
+
+
+def monitor_files(out: Path) -> list[Path]:
+    """The Monitor logs of a run folder in the order they were written (``{i}.monitor.csv``)."""
+    return sorted(out.glob("*.monitor.csv"), key=lambda p: int(p.name.split(".")[0]))
+
+
+def _config(out: Path) -> dict:
+    config = read_json(out / "config.json") if (out / "config.json").is_file() else None
+    if not isinstance(config, dict) or not {"algo", "scenario", "seed", "n_envs"} <= set(config):
+        raise EvaluationError(f"{out} is not a `bimp train-rl` run folder (no config.json with algo, scenario, "
+                              f"seed and n_envs)")
+    return config
+
+
+def episodes(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(timesteps, returns)`` of a run's finished episodes, each at the timestep it ended: all envs' logs
+    ordered by wall time, their lengths summed (what the run had played when each ended)."""
+    from stable_baselines3.common.monitor import load_results
+
+    if not monitor_files(out):
+        return np.zeros(0), np.zeros(0)
+    df = load_results(str(out))  # episodes of all envs, ordered by wall time
+    return np.cumsum(df["l"].to_numpy()).astype(float), df["r"].to_numpy().astype(float)
+
+
+def hours(out: Path) -> float:
+    """Hours a run trained: per segment (a run, or a resume: ``n_envs`` logs each), the wall time of its last
+    finished episode, summed. Each run steps its envs and learns in one process on one thread, so this is the
+    core-hours it used; an interrupted segment counts up to its last episode, its replayed steps too."""
+    n_envs, logs = _config(out)["n_envs"], monitor_files(out)
+    total = 0.0
+    for start in range(0, len(logs), n_envs):
+        ends = [float(line.split(",")[2]) for log in logs[start:start + n_envs]
+                for line in log.read_text().splitlines()[2:] if line.strip()]
+        total += max(ends, default=0.0)
+    return total / 3600
+
+
+def plot_curve(out: Path, path: Path, title: str = "") -> None:
+    """One run's episode return against timesteps, with a moving mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps, returns = episodes(out)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(steps, returns, ".", ms=2, alpha=0.3, label="episode")
+    if len(returns) >= 2:
+        w = max(1, min(50, len(returns) // 10))
+        ax.plot(steps[w - 1:], np.convolve(returns, np.ones(w) / w, mode="valid"), label=f"mean of {w}")
+    ax.set(xlabel="timesteps", ylabel="episode return", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    write_figure(fig, path, dpi=120)
+    plt.close(fig)
+
+
+def binned(steps: np.ndarray, returns: np.ndarray, total: int) -> np.ndarray:
+    """Mean episode return per :data:`BIN` timesteps, ``(ceil(total / BIN),)``; NaN where no episode ended."""
+    n = -(-total // BIN)
+    index = np.minimum((steps // BIN).astype(int), n - 1)
+    sums, counts = np.bincount(index, returns, n), np.bincount(index, minlength=n)
+    with np.errstate(invalid="ignore"):
+        return sums / counts
+
+
+def groups(runs: list[Path]) -> dict[tuple[str, str], list[tuple[int, Path]]]:
+    """``{(algo, scenario): [(seed, run folder)]}``, seeds in order."""
+    found: dict[tuple[str, str], list[tuple[int, Path]]] = defaultdict(list)
+    for out in runs:
+        config = _config(out)
+        found[config["algo"], config["scenario"]].append((config["seed"], out))
+    return {key: sorted(found[key]) for key in sorted(found)}
+
+
+def plot_curves(runs: list[Path], path: Path) -> list[dict]:
+    """One panel per algorithm and scenario of ``runs``: each seed's mean return per :data:`BIN` timesteps (thin),
+    the mean over seeds (bold) and the band from the lowest to the highest seed. Returns a row per panel: runs,
+    seeds, timesteps each, hours (:func:`hours`) and each seed's mean return over its last 10% of timesteps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    found = groups(runs)
+    if not found:
+        raise EvaluationError("no run folders given")
+    fig, axes = plt.subplots(1, len(found), figsize=(5.5 * len(found), 3.8), squeeze=False)
+    rows = []
+    for ax, ((algo, scenario), seeds) in zip(axes[0], found.items(), strict=True):
+        total = max(int(_config(out)["timesteps"]) for _, out in seeds)
+        curves = np.array([binned(*episodes(out), total) for _, out in seeds])
+        x = (np.arange(curves.shape[1]) + 1) * BIN
+        for (seed, _), curve in zip(seeds, curves, strict=True):
+            ax.plot(x, curve, lw=0.8, alpha=0.6, label=f"seed {seed}")
+        with np.errstate(invalid="ignore"):
+            ax.fill_between(x, np.nanmin(curves, axis=0), np.nanmax(curves, axis=0), alpha=0.15)
+            ax.plot(x, np.nanmean(curves, axis=0), lw=2.2, color="black", label="mean")
+        ax.set(xlabel="timesteps", ylabel=f"mean episode return per {BIN:,}", title=f"{algo.upper()} {scenario}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        last = [episodes(out) for _, out in seeds]
+        rows.append({"algo": algo, "scenario": scenario, "seeds": [seed for seed, _ in seeds],
+                     "timesteps": [int(s[-1]) if len(s) else 0 for s, _ in last],
+                     "hours": round(sum(hours(out) for _, out in seeds), 3),
+                     "final_return": [float(np.mean(r[s > 0.9 * total])) if np.any(s > 0.9 * total) else None
+                                      for s, r in last]})
+    fig.tight_layout()
+    write_figure(fig, path, dpi=110)
+    plt.close(fig)
+    return rows
+
+
+__all__ = ["BIN", "binned", "episodes", "groups", "hours", "monitor_files", "plot_curve", "plot_curves"]

@@ -1,0 +1,50 @@
+"""Learning curves and training hours read from run folders (``bimp curves``), on hand-written Monitor logs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bimp.agents import rl_curves
+from bimp.agents.cli import main as bimp
+
+
+def _run(folder, seed: int, segments: list[list[list[tuple[float, int, float]]]], algo: str = "ppo"):
+    """A run folder of two envs: per segment, per env, its episodes ``(return, length, wall s)``."""
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"algo": algo, "scenario": "cut-in-hard", "seed": seed,
+                                                    "n_envs": 2, "timesteps": 20_000}))
+    i = 0
+    for k, segment in enumerate(segments):
+        for env in segment:
+            rows = "".join(f"{r},{n},{t}\n" for r, n, t in env)
+            (folder / f"{i}.monitor.csv").write_text(f'#{{"t_start": {1000.0 * (k + 1) + i}, "env_id": "x"}}\n'
+                                                     f"r,l,t\n{rows}")
+            i += 1
+    return folder
+
+
+def test_hours_sum_each_segments_last_episode_and_curves_bin_by_timesteps(tmp_path, capsys):
+    one = _run(tmp_path / "s1", 1, [[[(1.0, 4000, 10.0), (3.0, 4000, 20.0)], [(2.0, 4000, 15.0)]],
+                                    [[(5.0, 4000, 3600.0)], [(7.0, 4000, 1800.0)]]])  # resumed: a second segment
+    two = _run(tmp_path / "s2", 2, [[[(10.0, 6000, 7200.0)], [(20.0, 6000, 7100.0)]]])
+    assert rl_curves.hours(one) == pytest.approx((20.0 + 3600.0) / 3600)
+    steps, returns = rl_curves.episodes(one)
+    assert steps[-1] == 20_000 and sorted(returns) == [1.0, 2.0, 3.0, 5.0, 7.0]
+    curve = rl_curves.binned(np.array([4000.0, 5000.0, 12_000.0]), np.array([1.0, 3.0, 6.0]), 20_000)
+    np.testing.assert_array_equal(curve, [1.0, 3.0, 6.0, np.nan])  # 5,000 is the second bin's first step
+    assert bimp(["curves", str(two), str(one), "--out", str(tmp_path / "c.png"), "--json"]) == 0
+    [row] = json.loads(capsys.readouterr().out)
+    assert row["seeds"] == [1, 2] and row["timesteps"] == [20_000, 12_000]
+    assert row["hours"] == pytest.approx((20.0 + 3600.0 + 7200.0) / 3600, abs=1e-3)
+    # the last 10% of 20,000 steps: the episode ending last by wall time (5.0); seed 2 never got there
+    assert row["final_return"] == [5.0, None]
+    assert (tmp_path / "c.png").stat().st_size > 1000
+
+
+def test_curves_refuse_a_folder_that_is_not_a_run(tmp_path, capsys):
+    (tmp_path / "x").mkdir()
+    assert bimp(["curves", str(tmp_path / "x"), "--out", str(tmp_path / "c.png")]) == 2
+    assert "not a `bimp train-rl` run folder" in capsys.readouterr().err
