@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from bimp.agents.evaluation.aggregate import aggregate
+from bimp.agents.evaluation.aggregate import aggregate, best_run, markdown
 from bimp.agents.evaluation.stats import stratified_bootstrap
 
 
@@ -103,3 +103,19 @@ def test_a_run_resumed_across_the_score_has_no_score_and_keeps_every_other_metri
     out = aggregate(per_run)
     assert "score" not in out["overtaking"] and "at_fault_collision_rate" not in out["overtaking"]
     assert out["overtaking"]["success_rate"]["mean"] == pytest.approx(0.75)
+
+
+def test_the_best_run_goes_by_success_then_overtakes_then_progress():
+    def run(success, overtake, progress):
+        return {("overtaking", 1000): {"success_rate": success, "collision_rate": 1 - success, "offroad_rate": 0.0,
+                                       "overtake_rate": overtake, "progress_m": progress}}
+
+    # s1 is ahead by progress, s2 by overtakes, s3 by success: success decides, then overtakes, then progress
+    out = aggregate({"s1": run(0.0, 0.0, 300.0), "s2": run(1.0, 0.0, 250.0), "s3": run(1.0, 1.0, 200.0)})
+    assert best_run(out, "overtaking") == "s3"
+    out = aggregate({"s1": run(1.0, 0.0, 300.0), "s2": run(1.0, 0.0, 250.0)})
+    assert best_run(out, "overtaking") == "s1"
+    assert "- overtaking: s1" in markdown(out, "ppo", ["s1", "s2"])
+    brake = {label: {("emergency-brake", 1000): {**rows[("overtaking", 1000)], "overtake_rate": None}}
+             for label, rows in {"s1": run(1.0, 0.0, 100.0), "s2": run(1.0, 0.0, 110.0)}.items()}
+    assert best_run(aggregate(brake), "emergency-brake") == "s2"  # no overtakes there: progress decides
