@@ -292,3 +292,29 @@ def test_a_marker_passes_its_arguments_and_a_wrong_one_is_named():
 
     with pytest.raises(EvaluationError, match="^p.md: report: no label 'x'"):
         report.render("<!-- report: f folders=a -->\n<!-- /report -->", {"f": failing}, where="p.md")
+
+
+def test_the_rl_verdict_pairs_the_best_planner_with_the_best_rl_arm_and_each_algorithm_over_its_seeds(tmp_path):
+    from bimp.agents.evaluation.report_rl import rl_verdict_table, verdict_rows
+
+    folder = _relabelled(tmp_path, {"enkts": "enkts", "mppi": "mppi", "idm": "ppo-s1", "lane-keep": "ppo-s2",
+                                    "enks": "sac-s1"})
+    results = {label: tables.label_results(folder, label) for label in ("enkts", "mppi", "ppo-s1", "ppo-s2", "sac-s1")}
+    score = {label: sum(m["score"] for m in got.values()) / len(got) for label, got in results.items()}
+    [row] = verdict_rows(folder)
+    assert row["planner"] == max(("enkts", "mppi"), key=score.get)
+    assert row["learner"] == max(("ppo-s1", "ppo-s2", "sac-s1"), key=score.get)
+    paired = tables.compare(results[row["planner"]], results[row["learner"]])["highway-v0"]
+    assert (row["only_a"], row["only_b"]) == (paired["success_rate"]["only_a"], paired["success_rate"]["only_b"])
+    assert row["score_diff"]["mean_diff"] == pytest.approx(paired["score"]["mean_diff"])
+    # PPO over its two seeds: per episode seed the mean of IDM/MOBIL's and lane keeping's outcomes
+    seeds = sorted(seed for _, seed in results["ppo-s1"])
+    mean = sum((results["ppo-s1"]["highway-v0", s]["success_rate"] + results["ppo-s2"]["highway-v0", s]["success_rate"])
+               / 2 for s in seeds) / len(seeds)
+    assert row["algos"]["ppo"]["runs"] == 2 and row["algos"]["ppo"]["success"] == pytest.approx(mean)
+    assert row["algos"]["sac"]["runs"] == 1
+    table, _ = rl_verdict_table(folder)
+    assert table.count("\n| highway-v0 |") == 1 and ("ahead" in table or "no difference shown" in table)
+    # a folder without RL arms has no row
+    (tmp_path / "x").mkdir()
+    assert verdict_rows(_folder(tmp_path / "x", {"enkts": "a" * 40, "idm": "a" * 40})) == []

@@ -1,0 +1,110 @@
+"""The suite's verdict between planning and learning (``<!-- report: rl-verdict -->``): per scenario, the best
+planner against the best RL policy and against each RL algorithm over its training seeds, paired on the same
+episode seeds.
+
+- The best planner: of EnKTS, EnKS, MPPI and NMPC, the highest mean closed-loop score on the scenario; the best RL
+  policy: of the training-seed arms (``ppo-s1``, ``sac-s2``, ...), the same. Both are picked on the seeds they are
+  compared on, as the leaderboard ranks them; the stability seeds (3100+) are what checks that pick.
+- Best against best: the exact McNemar test of success (the seeds only one of them met) and the paired bootstrap 95%
+  interval of the score difference.
+- An algorithm over its seeds (PPO, SAC): per episode seed, its mean over the training seeds of success and score;
+  the planner minus that mean, paired bootstrap 95% over the episode seeds. A training seed is not resampled here:
+  ``bimp aggregate`` gives the interval over training seeds.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from bimp.agents.evaluation.compare import label_results
+from bimp.agents.evaluation.records import read_records, record_label
+from bimp.agents.evaluation.stats import mcnemar_exact, paired_bootstrap
+
+PLANNERS = {"enkts": "EnKTS", "enks": "EnKS", "mppi": "MPPI", "nmpc": "NMPC"}
+RL_LABEL = re.compile(r"^(ppo|sac)-s(\d+)$")
+
+
+def _best(arms: dict[str, dict[int, dict]]) -> str:
+    """The label of the highest mean score (ties: the first by name)."""
+    return max(sorted(arms), key=lambda label: np.mean([m["score"] for m in arms[label].values()]))
+
+
+def _shown(d: dict) -> str:
+    """A paired bootstrap difference as ``+0.012 [-0.003, +0.027]``."""
+    return f"{d['mean_diff']:+.3f} [{d['ci_low']:+.3f}, {d['ci_high']:+.3f}]"
+
+
+def verdict_rows(folder: Path) -> list[dict]:
+    """One row per scenario holding a planner and at least one RL arm: what :func:`rl_verdict_table` shows."""
+    labels = list(dict.fromkeys(record_label(r) for r in read_records(folder)))
+    results = {label: label_results(folder, label) for label in labels
+               if label in PLANNERS or RL_LABEL.match(label)}
+    rows = []
+    for scenario in sorted({s for got in results.values() for s, _ in got}):
+        arms = {label: {seed: m for (s, seed), m in got.items() if s == scenario and m.get("score") is not None}
+                for label, got in results.items()}
+        arms = {label: got for label, got in arms.items() if got}
+        planners = {k: v for k, v in arms.items() if k in PLANNERS}
+        learners = {k: v for k, v in arms.items() if RL_LABEL.match(k)}
+        if not planners or not learners:
+            continue
+        planner, learner = _best(planners), _best(learners)
+        seeds = sorted(set.intersection(*(set(v) for v in (planners[planner], *learners.values()))))
+        if not seeds:
+            continue
+        p, r = planners[planner], learners[learner]
+        test = mcnemar_exact([p[s]["success_rate"] for s in seeds], [r[s]["success_rate"] for s in seeds])
+        row = {"scenario": scenario, "seeds": len(seeds), "planner": planner, "learner": learner,
+               "planner_success": np.mean([p[s]["success_rate"] for s in seeds]),
+               "planner_score": np.mean([p[s]["score"] for s in seeds]),
+               "learner_success": np.mean([r[s]["success_rate"] for s in seeds]),
+               "learner_score": np.mean([r[s]["score"] for s in seeds]), **test,
+               "score_diff": paired_bootstrap([p[s]["score"] for s in seeds], [r[s]["score"] for s in seeds]),
+               "algos": {}}
+        for algo in ("ppo", "sac"):
+            runs = [v for k, v in learners.items() if RL_LABEL.match(k).group(1) == algo]
+            if not runs:
+                continue
+            success = [np.mean([run[s]["success_rate"] for run in runs]) for s in seeds]
+            score = [np.mean([run[s]["score"] for run in runs]) for s in seeds]
+            row["algos"][algo] = {"runs": len(runs), "success": float(np.mean(success)),
+                                  "success_diff": paired_bootstrap([p[s]["success_rate"] for s in seeds], success),
+                                  "score_diff": paired_bootstrap([p[s]["score"] for s in seeds], score)}
+        rows.append(row)
+    return rows
+
+
+def _word(row: dict) -> str:
+    """Who is ahead at the 5% level, on success first, then on the score."""
+    planner, learner = PLANNERS[row["planner"]], row["learner"].upper().replace("-S", " seed ")
+    if row["p_value"] < 0.05:
+        return f"{planner if row['only_a'] > row['only_b'] else learner} ahead on success"
+    low, high = row["score_diff"]["ci_low"], row["score_diff"]["ci_high"]
+    if low > 0 or high < 0:
+        return f"{planner if low > 0 else learner} ahead on the score"
+    return "no difference shown"
+
+
+def rl_verdict_table(folder: Path) -> tuple[str, list]:
+    """The verdict table (module doc) of the evaluation folder ``folder``."""
+    lines = ["| scenario | best planner: success; score | best RL: success; score | only planner / only RL, "
+             "McNemar p | score planner - RL [95%] | PPO over seeds: success; planner - PPO score | "
+             "SAC over seeds: success; planner - SAC score | verdict (best vs best) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for row in verdict_rows(folder):
+        algos = []
+        for algo in ("ppo", "sac"):
+            a = row["algos"].get(algo)
+            algos.append(f"{a['success']:.2f} ({a['runs']} seeds); {_shown(a['score_diff'])}" if a else "-")
+        lines.append(
+            f"| {row['scenario']} | {PLANNERS[row['planner']]} {row['planner_success']:.2f}; "
+            f"{row['planner_score']:.2f} | {row['learner']} {row['learner_success']:.2f}; {row['learner_score']:.2f} "
+            f"| {row['only_a']} / {row['only_b']}, {row['p_value']:.2g} | {_shown(row['score_diff'])} | {algos[0]} | "
+            f"{algos[1]} | {_word(row)} |")
+    return "\n".join(lines), []
+
+
+__all__ = ["PLANNERS", "rl_verdict_table", "verdict_rows"]
