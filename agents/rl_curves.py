@@ -9,6 +9,7 @@ the highest seed) and prints per group the runs, their timesteps and the hours t
 
 from __future__ import annotations
 
+import warnings
 from collections import defaultdict
 from pathlib import Path
 
@@ -116,7 +117,8 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
         x = (np.arange(curves.shape[1]) + 1) * BIN
         for (seed, _), curve in zip(seeds, curves, strict=True):
             ax.plot(x, curve, lw=0.8, alpha=0.6, label=f"seed {seed}")
-        with np.errstate(invalid="ignore"):
+        with warnings.catch_warnings():  # a bin no seed has reached yet stays empty
+            warnings.simplefilter("ignore", RuntimeWarning)
             ax.fill_between(x, np.nanmin(curves, axis=0), np.nanmax(curves, axis=0), alpha=0.15)
             ax.plot(x, np.nanmean(curves, axis=0), lw=2.2, color="black", label="mean")
         ax.set(xlabel="timesteps", ylabel=f"mean episode return per {BIN:,}", title=f"{algo.upper()} {scenario}")

@@ -88,6 +88,25 @@ def _word(row: dict) -> str:
     return "no difference shown"
 
 
+def training_table(root: Path) -> tuple[str, list]:
+    """The training runs under ``root`` (``bimp train-rl --runs-dir``), a row per algorithm and scenario: the
+    training seeds, the timesteps each reached, and the hours they trained (:func:`bimp.agents.rl_curves.hours`:
+    one core per run), with a total per algorithm."""
+    from bimp.agents import rl_curves
+
+    runs = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
+    lines = ["| algorithm | scenario | training seeds | timesteps | core-hours |", "|---|---|---|---|---|"]
+    totals: dict[str, float] = {}
+    for (algo, scenario), seeds in rl_curves.groups(runs).items():
+        reached = [int(steps[-1]) if len(steps := rl_curves.episodes(out)[0]) else 0 for _, out in seeds]
+        spent = sum(rl_curves.hours(out) for _, out in seeds)
+        totals[algo] = totals.get(algo, 0.0) + spent
+        lines.append(f"| {algo.upper()} | {scenario} | {', '.join(str(seed) for seed, _ in seeds)} | "
+                     f"{', '.join(f'{n // 1000}k' for n in reached)} | {spent:.2f} |")
+    lines += [f"| {algo.upper()} | all | | | {hours:.2f} |" for algo, hours in totals.items()]
+    return "\n".join(lines), []
+
+
 def rl_verdict_table(folder: Path) -> tuple[str, list]:
     """The verdict table (module doc) of the evaluation folder ``folder``."""
     lines = ["| scenario | best planner: success; score | best RL: success; score | only planner / only RL, "
@@ -107,4 +126,4 @@ def rl_verdict_table(folder: Path) -> tuple[str, list]:
     return "\n".join(lines), []
 
 
-__all__ = ["PLANNERS", "rl_verdict_table", "verdict_rows"]
+__all__ = ["PLANNERS", "rl_verdict_table", "training_table", "verdict_rows"]

@@ -48,3 +48,15 @@ def test_curves_refuse_a_folder_that_is_not_a_run(tmp_path, capsys):
     (tmp_path / "x").mkdir()
     assert bimp(["curves", str(tmp_path / "x"), "--out", str(tmp_path / "c.png")]) == 2
     assert "not a `bimp train-rl` run folder" in capsys.readouterr().err
+
+
+def test_the_training_table_sums_each_algorithms_hours(tmp_path):
+    from bimp.agents.evaluation.report_rl import training_table
+
+    _run(tmp_path / "ppo_1", 1, [[[(1.0, 4000, 1800.0)], [(2.0, 4000, 900.0)]]])
+    _run(tmp_path / "ppo_2", 2, [[[(1.0, 5000, 3600.0)], [(2.0, 5000, 3000.0)]]])
+    _run(tmp_path / "sac_1", 1, [[[(1.0, 1000, 360.0)], [(2.0, 1000, 360.0)]]], algo="sac")
+    (tmp_path / "notes").mkdir()  # not a run: skipped
+    table, _ = training_table(tmp_path)
+    assert "| PPO | cut-in-hard | 1, 2 | 8k, 10k | 1.50 |" in table
+    assert "| SAC | cut-in-hard | 1 | 2k | 0.10 |" in table and "| PPO | all | | | 1.50 |" in table
