@@ -402,3 +402,12 @@ def test_every_default_training_seed_names_a_shipped_model_that_loads_on_its_sce
         obs, _ = env.reset(seed=0)
         assert env.action_space.contains(policy.act(obs))
         env.close()
+
+
+def test_the_rl_config_files_load_and_sacs_is_the_default_run():
+    from pathlib import Path
+
+    folder = Path(rl.__file__).resolve().parents[1] / "configs" / "rl"
+    loaded = {p.stem: load_config(rl.RLConfig, p) for p in sorted(folder.glob("*.yaml"))}
+    assert {"ppo-sb3", "ppo-highway-env", "sac-sb3"} <= set(loaded)
+    assert loaded["sac-sb3"] == rl.RLConfig(algo="sac")  # its runs are `bimp train-rl --algo sac`'s
