@@ -338,7 +338,7 @@ def shipped_name(algo: str, scenario: str, training_seed: int) -> str:
 
 def default_training_seeds() -> dict[str, int]:
     """``{"{algo}_{scenario}": training seed}`` of the shipped defaults (``agents/models/defaults.json``: the
-    median of the shipped training seeds on the tuning seeds, docs/rl.md)."""
+    best of the shipped training seeds on the tuning seeds, docs/rl.md)."""
     path = MODEL_DIR / "defaults.json"
     return json.loads(path.read_text()) if path.is_file() else {}
 

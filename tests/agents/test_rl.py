@@ -302,12 +302,12 @@ def test_an_empty_out_is_refused_not_taken_for_the_current_folder(tmp_path, monk
 def test_a_grid_refuses_a_folder_of_another_run_before_the_first_trains(tmp_path, monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(rl_train, "train", _fake_train(calls))
-    other = rl.RLConfig(scenario="overtaking", seed=2, timesteps=999)
+    other = rl.RLConfig(scenario="overtaking", seed=2, timesteps=999_999)  # a longer run: not made shorter
     (tmp_path / rl_train.run_name(other)).mkdir()
     (tmp_path / rl_train.run_name(other) / "config.json").write_text(json.dumps(dataclasses.asdict(other)))
     with pytest.raises(SystemExit):  # the second scenario's second seed: after three runs that would have trained
         train_rl.main(["--scenario", "emergency-brake", "overtaking", "--seed", "1", "2", "--runs-dir", str(tmp_path)])
-    assert "timesteps: 999 there, 150000 here" in capsys.readouterr().err
+    assert "timesteps: 999999 there, 150000 here" in capsys.readouterr().err
     assert calls == []
 
 
@@ -411,3 +411,21 @@ def test_the_rl_config_files_load_and_sacs_is_the_default_run():
     loaded = {p.stem: load_config(rl.RLConfig, p) for p in sorted(folder.glob("*.yaml"))}
     assert {"ppo-sb3", "ppo-highway-env", "sac-sb3"} <= set(loaded)
     assert loaded["sac-sb3"] == rl.RLConfig(algo="sac")  # its runs are `bimp train-rl --algo sac`'s
+
+
+def test_each_shipped_default_is_its_best_training_seed_on_the_tuning_seeds():
+    """The rule of docs/rl.md, on the committed selection records (tuning seeds 100-149): the best training seed
+    by success, then overtakes, then progress (`bimp aggregate` names it)."""
+    from pathlib import Path
+
+    from bimp.agents.evaluation.aggregate import aggregate, best_run
+    from bimp.agents.evaluation.compare import label_results
+
+    folder = Path(rl.__file__).resolve().parents[1] / "results" / "tuning" / "rl" / "selection"
+    for key, seed in rl.default_training_seeds().items():
+        algo, scenario = key.split("_", 1)
+        seeds = sorted(int(p.stem.rsplit("_s", 1)[1]) for p in rl.MODEL_DIR.glob(f"{key}_s*.zip"))
+        per_run = {f"{algo}-s{s}": {k: m for k, m in label_results(folder, f"{algo}-s{s}").items() if k[0] == scenario}
+                   for s in seeds}
+        assert len(seeds) == 3 and all(len(got) == 50 for got in per_run.values()), key
+        assert best_run(aggregate(per_run), scenario) == f"{algo}-s{seed}", key
