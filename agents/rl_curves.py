@@ -34,6 +34,19 @@ def _config(out: Path) -> dict:
     return config
 
 
+def trained(out: Path) -> int | None:
+    """The timesteps a run folder's last finished training reached (``train_time.json``, written last); None while
+    it has never finished."""
+    done = out / "train_time.json"
+    record = read_json(done) if done.is_file() else None
+    return record.get("timesteps") if isinstance(record, dict) else None
+
+
+def finished(out: Path) -> bool:
+    """Whether a run folder's training is done for the timesteps its config asks (not while it is made longer)."""
+    return trained(out) == _config(out)["timesteps"]
+
+
 def episodes(out: Path) -> tuple[np.ndarray, np.ndarray]:
     """``(timesteps, returns)`` of a run's finished episodes, each at the timestep it ended: all envs' logs
     ordered by wall time, their lengths summed (what the run had played when each ended)."""
@@ -136,4 +149,5 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
     return rows
 
 
-__all__ = ["BIN", "binned", "episodes", "groups", "hours", "monitor_files", "plot_curve", "plot_curves"]
+__all__ = ["BIN", "binned", "episodes", "finished", "groups", "hours", "monitor_files", "plot_curve", "plot_curves",
+           "trained"]

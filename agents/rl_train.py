@@ -54,7 +54,7 @@ from bimp.agents.rl import (
     save_buffer,
     shipped_name,
 )
-from bimp.agents.rl_curves import monitor_files, plot_curve
+from bimp.agents.rl_curves import monitor_files, plot_curve, trained
 from bimp.agents.rollout import rollout
 from bimp.configs import load_config
 from bimp.envs.wrappers import PlanningWrapper
@@ -324,8 +324,7 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
 def _finished(cfg: RLConfig, out: Path) -> bool:
     """Whether ``out`` holds ``cfg``'s finished run: its model and ``train_time.json``, written last, for as many
     timesteps as ``cfg`` asks (fewer: the run is being made longer)."""
-    done = out / "train_time.json"
-    return (out / cfg.model_name).is_file() and done.is_file() and read_json(done).get("timesteps") == cfg.timesteps
+    return (out / cfg.model_name).is_file() and trained(out) == cfg.timesteps
 
 
 def wall_s(out: Path) -> float:

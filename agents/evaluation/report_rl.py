@@ -109,12 +109,14 @@ def with_verdict(table: tuple[str, list], folder: Path) -> tuple[str, list]:
 
 
 def training_table(root: Path) -> tuple[str, list]:
-    """The training runs under ``root`` (``bimp train-rl --runs-dir``), a row per algorithm and scenario: the
-    training seeds, the timesteps each reached, and the hours they trained (:func:`bimp.agents.rl_curves.hours`:
-    one core per run), with a total per algorithm."""
+    """The finished training runs under ``root`` (``bimp train-rl --runs-dir``), a row per algorithm and scenario:
+    the training seeds, the timesteps each reached, and the hours they trained (:func:`bimp.agents.rl_curves.hours`:
+    one core per run), with a total per algorithm; the runs still training are named below (a finished run's
+    folder does not change, so the table is what its committed folders render)."""
     from bimp.agents import rl_curves
 
-    runs = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
+    every = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
+    runs = [p for p in every if rl_curves.finished(p)]
     lines = ["| algorithm | scenario | training seeds | timesteps | core-hours |", "|---|---|---|---|---|"]
     totals: dict[str, float] = {}
     for (algo, scenario), seeds in rl_curves.groups(runs).items():
@@ -124,6 +126,9 @@ def training_table(root: Path) -> tuple[str, list]:
         lines.append(f"| {algo.upper()} | {scenario} | {', '.join(str(seed) for seed, _ in seeds)} | "
                      f"{', '.join(f'{n // 1000}k' for n in reached)} | {spent:.2f} |")
     lines += [f"| {algo.upper()} | all | | | {hours:.2f} |" for algo, hours in totals.items()]
+    training = [p.name for p in every if p not in runs]
+    if training:
+        lines += ["", f"Still training (not counted): {', '.join(training)}."]
     return "\n".join(lines), []
 
 

@@ -57,6 +57,10 @@ def test_the_training_table_sums_each_algorithms_hours(tmp_path):
     _run(tmp_path / "ppo_2", 2, [[[(1.0, 5000, 3600.0)], [(2.0, 5000, 3000.0)]]])
     _run(tmp_path / "sac_1", 1, [[[(1.0, 1000, 360.0)], [(2.0, 1000, 360.0)]]], algo="sac")
     (tmp_path / "notes").mkdir()  # not a run: skipped
+    for run in ("ppo_1", "ppo_2", "sac_1"):
+        (tmp_path / run / "train_time.json").write_text('{"timesteps": 20000}')
+    _run(tmp_path / "ppo_3", 3, [[[(1.0, 4000, 1800.0)], [(2.0, 4000, 900.0)]]])  # no train_time.json: training
     table, _ = training_table(tmp_path)
+    assert table.endswith("Still training (not counted): ppo_3.")
     assert "| PPO | cut-in-hard | 1, 2 | 8k, 10k | 1.50 |" in table
     assert "| SAC | cut-in-hard | 1 | 2k | 0.10 |" in table and "| PPO | all | | | 1.50 |" in table
