@@ -59,7 +59,8 @@ def features(obs: np.ndarray, scene: Scene) -> np.ndarray:
     error to the road (per 0.1 rad), speed error (per 10 m/s), speed and reference speed (per 30 m/s),
     reference acceleration (per 7 m/s^2), previous input in the agent's units, road curvature here and
     ``_LOOKAHEAD_S`` ahead. Per OV: present, gap along the road (per 50 m), lateral offset (per lane width),
-    speed and acceleration relative to the EV; zeros when absent. Clipped to +-5.
+    speed and acceleration along the road relative to the EV (an oncoming OV's negative); zeros when absent.
+    Clipped to +-5.
     """
     ego, prev_u, ovs, ref = scene.split_obs(obs)
     road = scene.road
@@ -81,12 +82,15 @@ def features(obs: np.ndarray, scene: Scene) -> np.ndarray:
         road.curvature_at(s_e + ego[3] * _LOOKAHEAD_S) * _CURVATURE_SCALE,
     ]
     present = ovs[:, 0] > 0
+    # Speeds are magnitudes: an OV driving against the road (oncoming, on a two-way road) counts negative, or it
+    # would look like traffic at its speed going our way. Exactly 1 for every other OV.
+    along = np.where(np.cos(ovs[:, 3] - p.heading[1:]) < 0.0, -1.0, 1.0)
     ov_f = np.stack([
         np.ones_like(s_o),
         (s_o - s_e) / _GAP_SCALE,
         (l_o - l_e) / LANE_WIDTH,
-        (ovs[:, 4] - ego[3]) / _SPEED_SCALE,
-        ovs[:, 5] / _ACCEL_SCALE,
+        (along * ovs[:, 4] - ego[3]) / _SPEED_SCALE,
+        along * ovs[:, 5] / _ACCEL_SCALE,
     ], axis=-1) * present[:, None]
     out = np.concatenate([np.asarray(ego_f, float), ov_f.ravel()])
     return np.clip(out, -_FEATURE_CLIP, _FEATURE_CLIP).astype(np.float32)

@@ -33,6 +33,24 @@ def test_features_are_ego_relative_and_scaled(overtaking):
     assert ov2[0] == 1 and ov2[1] > ov1[1] and ov2[2] == pytest.approx(-1.0, abs=1e-4)  # the polyline road: 0.1 mm
 
 
+def test_an_oncoming_ov_closes_at_both_speeds_and_traffic_our_way_at_the_difference():
+    """On a two-way road a speed is a magnitude: without the road's direction an oncoming car at 23 m/s read as one
+    driving our way at our speed (relative speed 0), and every RL policy drove into the overtake blind."""
+    env = gym.make(envs.env_id("two-way-overtake-hard"))
+    obs, _ = env.reset(seed=3000)
+    scene = env.unwrapped.scene
+    ego, _, ovs, _ = scene.split_obs(obs)
+    f = features(obs, scene)[11:].reshape(scene.n_obstacles, 5)
+    road = scene.road.project(ovs[:, 1:3])
+    against = np.cos(ovs[:, 3] - road.heading) < 0
+    present = ovs[:, 0] > 0
+    assert np.any(present & against) and np.any(present & ~against)  # oncoming traffic and the car ahead
+    expected = np.clip(np.where(against, -ovs[:, 4], ovs[:, 4]) - ego[3], -50, 50) / 10
+    np.testing.assert_allclose(f[present, 3], expected[present], atol=1e-5)
+    assert np.all(f[present & against, 3] < -ego[3] / 10)  # closing faster than the EV drives
+    env.close()
+
+
 def test_actions_map_inside_the_planning_bounds(overtaking):
     obs, _ = overtaking.reset(seed=0)
     scene = overtaking.unwrapped.scene
