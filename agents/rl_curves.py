@@ -28,9 +28,9 @@ def monitor_files(out: Path) -> list[Path]:
 
 def _config(out: Path) -> dict:
     config = read_json(out / "config.json") if (out / "config.json").is_file() else None
-    if not isinstance(config, dict) or not {"algo", "scenario", "seed", "n_envs"} <= set(config):
+    if not isinstance(config, dict) or not {"algo", "scenario", "seed", "n_envs", "timesteps"} <= set(config):
         raise EvaluationError(f"{out} is not a `bimp train-rl` run folder (no config.json with algo, scenario, "
-                              f"seed and n_envs)")
+                              f"seed, n_envs and timesteps)")
     return config
 
 
@@ -44,7 +44,7 @@ def trained(out: Path) -> int | None:
 
 def finished(out: Path) -> bool:
     """Whether a run folder's training is done for the timesteps its config asks (not while it is made longer)."""
-    return trained(out) == _config(out)["timesteps"]
+    return (trained(out) or 0) >= _config(out)["timesteps"]
 
 
 def episodes(out: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -58,17 +58,25 @@ def episodes(out: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.cumsum(df["l"].to_numpy()).astype(float), df["r"].to_numpy().astype(float)
 
 
+def last_episode_time(out: Path, n_envs: int, segment: int = -1) -> float:
+    """Wall seconds from a segment's start (a run, or a resume: ``n_envs`` logs each) to its last logged episode."""
+    logs = monitor_files(out)
+    logs = logs[segment * n_envs:][:n_envs] if segment >= 0 else logs[-n_envs:]
+    ends = [float(line.split(",")[2]) for log in logs for line in log.read_text().splitlines()[2:] if line.strip()]
+    return max(ends, default=0.0)
+
+
 def hours(out: Path) -> float:
-    """Hours a run trained: per segment (a run, or a resume: ``n_envs`` logs each), the wall time of its last
-    finished episode, summed. Each run steps its envs and learns in one process on one thread, so this is the
-    core-hours it used; an interrupted segment counts up to its last episode, its replayed steps too."""
-    n_envs, logs = _config(out)["n_envs"], monitor_files(out)
-    total = 0.0
-    for start in range(0, len(logs), n_envs):
-        ends = [float(line.split(",")[2]) for log in logs[start:start + n_envs]
-                for line in log.read_text().splitlines()[2:] if line.strip()]
-        total += max(ends, default=0.0)
-    return total / 3600
+    """Hours a run trained, every segment's wall time summed: ``wall.json`` (kept at each checkpoint and at the
+    end; an interrupted segment up to its last logged episode or checkpoint, whichever came later), or, for a run
+    older than that file, the Monitor logs (each segment up to its last finished episode). With the default
+    ``vec_env: dummy`` a run steps its envs and learns in one process on one thread: its core-hours."""
+    if (out / "wall.json").is_file():
+        walls = read_json(out / "wall.json")
+        if isinstance(walls, list) and all(isinstance(w, (int, float)) for w in walls):
+            return sum(walls) / 3600
+    n_envs = _config(out)["n_envs"]
+    return sum(last_episode_time(out, n_envs, k) for k in range(len(monitor_files(out)) // n_envs)) / 3600
 
 
 def plot_curve(out: Path, path: Path, title: str = "") -> None:
@@ -113,7 +121,8 @@ def groups(runs: list[Path]) -> dict[tuple[str, str], list[tuple[int, Path]]]:
 def plot_curves(runs: list[Path], path: Path) -> list[dict]:
     """One panel per algorithm and scenario of ``runs``: each seed's mean return per :data:`BIN` timesteps (thin),
     the mean over seeds (bold) and the band from the lowest to the highest seed. Returns a row per panel: runs,
-    seeds, timesteps each, hours (:func:`hours`) and each seed's mean return over its last 10% of timesteps."""
+    seeds, timesteps each (trained, or logged so far while training), hours (:func:`hours`) and each seed's mean
+    return over its last 10% of timesteps."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -139,7 +148,8 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
         ax.legend(fontsize=7)
         last = [episodes(out) for _, out in seeds]
         rows.append({"algo": algo, "scenario": scenario, "seeds": [seed for seed, _ in seeds],
-                     "timesteps": [int(s[-1]) if len(s) else 0 for s, _ in last],
+                     "timesteps": [trained(out) or (int(s[-1]) if len(s) else 0)
+                                   for (_, out), (s, _) in zip(seeds, last, strict=True)],
                      "hours": round(sum(hours(out) for _, out in seeds), 3),
                      "final_return": [float(np.mean(r[s > 0.9 * total])) if np.any(s > 0.9 * total) else None
                                       for s, r in last]})
@@ -149,5 +159,5 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
     return rows
 
 
-__all__ = ["BIN", "binned", "episodes", "finished", "groups", "hours", "monitor_files", "plot_curve", "plot_curves",
-           "trained"]
+__all__ = ["BIN", "binned", "episodes", "finished", "groups", "hours", "last_episode_time", "monitor_files",
+           "plot_curve", "plot_curves", "trained"]

@@ -32,6 +32,7 @@ import json
 import time
 import warnings
 import zipfile
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -54,7 +55,7 @@ from bimp.agents.rl import (
     save_buffer,
     shipped_name,
 )
-from bimp.agents.rl_curves import monitor_files, plot_curve, trained
+from bimp.agents.rl_curves import last_episode_time, monitor_files, plot_curve, trained
 from bimp.agents.rollout import rollout
 from bimp.configs import load_config
 from bimp.envs.wrappers import PlanningWrapper
@@ -84,6 +85,8 @@ def _resume(cfg: RLConfig, venv, checkpoint: Path):
                 recursive_getattr(model, name).copy_(variables[name])
         for counter in ("num_timesteps", "_n_updates", "_episode_num"):
             setattr(model, counter, int(data[counter]))
+        if cfg.algo == "sac":  # a warm-up after a resume without buffer (_refill_buffer) lasts past later resumes
+            model.learning_starts = max(cfg.learning_starts, int(data.get("learning_starts", 0)))
     except (ValueError, KeyError, RuntimeError, TypeError) as err:
         raise ValueError(f"{checkpoint} does not fit this run ({error_brief(err)}); {_EARLIER}") from None
     if cfg.algo == "sac":
@@ -137,11 +140,12 @@ def lean_zip(model_zip: bytes) -> bytes:
     return lean.getvalue()
 
 
-def _checkpoint_callback(cfg: RLConfig, out: Path):
+def _checkpoint_callback(cfg: RLConfig, out: Path, clock: Callable[[], None] = lambda: None):
     """Every ``cfg.checkpoint_every`` timesteps, the model to ``out/checkpoints/{name}_{steps}_steps.zip`` (SAC's
     replay buffer beside it first, by :func:`save_buffer`, no pickle: a checkpoint on disk always has its buffer),
-    each file written whole or not at all, then the older checkpoints removed: a run folder holds one, small
-    enough to commit with the run (the buffer is not)."""
+    each file written whole or not at all, then every other file there removed (older checkpoints, a buffer whose
+    checkpoint a crash never wrote): a run folder holds one, small enough to commit with the run (the buffer is
+    not). ``clock`` is called at each checkpoint (the run's wall time, :func:`train`)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     folder, prefix, every = out / "checkpoints", cfg.model_name.removesuffix(".zip"), cfg.checkpoint_every
@@ -159,10 +163,10 @@ def _checkpoint_callback(cfg: RLConfig, out: Path):
             if getattr(self.model, "replay_buffer", None) is not None:
                 save_buffer(self.model.replay_buffer, buffer_path(path))
             write_atomic(path, model_bytes(self.model))
-            for old in folder.glob("*_steps.zip"):
-                if old != path:
-                    buffer_path(old).unlink(missing_ok=True)
+            for old in folder.iterdir():
+                if old not in (path, buffer_path(path)):
                     old.unlink()
+            clock()
             return True
 
     return Checkpoints()
@@ -286,10 +290,18 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     if not (isinstance(segments, list) and segments and all(type(n) is int and n >= 0 for n in segments)):
         raise EvaluationError(f"{segments_file} is not a list of step counts: train into a new --out")
     resume_at, checkpoint = _latest_checkpoint(out)
+    if checkpoint is None and trained(out) is not None:
+        raise ValueError(f"{out} holds a finished run of {trained(out)} timesteps and no checkpoint to go on from "
+                         f"(checkpoint_every 0?): train the longer run into a new --out")
+    walls = _walls(out, len(segments))
     if monitor_files(out):
+        # the interrupted segment ran at least until its last logged episode, whose rows the cut below drops
+        walls[-1] = max(walls[-1], last_episode_time(out, cfg.n_envs))
         _drop_replayed_episodes(out, cfg.n_envs, segments[-1], resume_at)
         segments.append(resume_at)
+        walls.append(0.0)
     write_atomic(segments_file, json.dumps(segments) + "\n")
+    write_atomic(out / "wall.json", json.dumps(walls) + "\n")
     segment = len(monitor_files(out)) // cfg.n_envs
     venv = make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, start_index=segment * cfg.n_envs,
                         monitor_dir=str(out), wrapper_class=PlanningWrapper,
@@ -307,24 +319,39 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     # features may have the same length and mean other things.
     model.bimp = {"scenario": cfg.scenario, "algo": cfg.algo, "n_features": venv.observation_space.shape[0]}
     done = model.num_timesteps
-    callbacks = [_checkpoint_callback(cfg, out)] if cfg.checkpoint_every else []
+    start = time.perf_counter()
+
+    def clock() -> None:  # this segment's wall time so far, kept at each checkpoint and at the end
+        walls[-1] = round(time.perf_counter() - start, 1)
+        write_atomic(out / "wall.json", json.dumps(walls) + "\n")
+
+    callbacks = [_checkpoint_callback(cfg, out, clock)] if cfg.checkpoint_every else []
     if progress:
         callbacks.append(_progress_callback(cfg.timesteps))
-    start = time.perf_counter()
     model.learn(total_timesteps=max(cfg.timesteps - done, 0), callback=callbacks, reset_num_timesteps=done == 0)
-    wall = time.perf_counter() - start
     venv.close()
+    clock()
     write_atomic(path, model_bytes(model, lean=True))  # never half a model where make_policy looks
-    write_atomic(out / "train_time.json", json.dumps({"wall_s": round(wall, 1), "timesteps": cfg.timesteps,
+    # what was trained: PPO rounds up to whole rollouts (150,528 for 150k at 1,024 steps a rollout)
+    write_atomic(out / "train_time.json", json.dumps({"wall_s": walls[-1], "timesteps": int(model.num_timesteps),
                                                       "resumed_at": done or None}) + "\n")
     plot_curve(out, out / "curve.png", title=f"{cfg.algo.upper()} {cfg.scenario} (seed {cfg.seed})")
     return path
 
 
+def _walls(out: Path, n_segments: int) -> list[float]:
+    """``wall.json``: the wall seconds of each segment so far, one per entry of ``segments.json`` (zeros for the
+    segments of a run older than the file)."""
+    walls = read_json(out / "wall.json") if (out / "wall.json").is_file() else []
+    if not (isinstance(walls, list) and all(isinstance(w, (int, float)) for w in walls)):
+        raise EvaluationError(f"{out / 'wall.json'} is not a list of seconds: train into a new --out")
+    return [float(w) for w in walls[:n_segments]] + [0.0] * (n_segments - len(walls))
+
+
 def _finished(cfg: RLConfig, out: Path) -> bool:
-    """Whether ``out`` holds ``cfg``'s finished run: its model and ``train_time.json``, written last, for as many
-    timesteps as ``cfg`` asks (fewer: the run is being made longer)."""
-    return (out / cfg.model_name).is_file() and trained(out) == cfg.timesteps
+    """Whether ``out`` holds ``cfg``'s finished run: its model and ``train_time.json``, written last, for at least
+    as many timesteps as ``cfg`` asks (fewer: the run is being made longer)."""
+    return (out / cfg.model_name).is_file() and (trained(out) or 0) >= cfg.timesteps
 
 
 def wall_s(out: Path) -> float:

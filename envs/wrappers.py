@@ -59,8 +59,8 @@ def features(obs: np.ndarray, scene: Scene) -> np.ndarray:
     error to the road (per 0.1 rad), speed error (per 10 m/s), speed and reference speed (per 30 m/s),
     reference acceleration (per 7 m/s^2), previous input in the agent's units, road curvature here and
     ``_LOOKAHEAD_S`` ahead. Per OV: present, gap along the road (per 50 m), lateral offset (per lane width),
-    speed and acceleration along the road relative to the EV (an oncoming OV's negative); zeros when absent.
-    Clipped to +-5.
+    speed along the road relative to the EV and its own acceleration along the road (an oncoming OV's
+    negative); zeros when absent. Clipped to +-5.
     """
     ego, prev_u, ovs, ref = scene.split_obs(obs)
     road = scene.road

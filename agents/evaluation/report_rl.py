@@ -4,12 +4,14 @@ episode seeds.
 
 - The best planner: of EnKTS, EnKS, MPPI and NMPC, the highest mean closed-loop score on the scenario; the best RL
   policy: of the training-seed arms (``ppo-s1``, ``sac-s2``, ...), the same. Both are picked on the seeds they are
-  compared on, as the leaderboard ranks them; the stability seeds (3100+) are what checks that pick.
-- Best against best: the exact McNemar test of success (the seeds only one of them met) and the paired bootstrap 95%
-  interval of the score difference.
-- An algorithm over its seeds (PPO, SAC): per episode seed, its mean over the training seeds of success and score;
-  the planner minus that mean, paired bootstrap 95% over the episode seeds. A training seed is not resampled here:
-  ``bimp aggregate`` gives the interval over training seeds.
+  then compared on (every arm of the suite runs the same leaderboard seeds), as the leaderboard ranks them: the
+  tests do not correct for that pick, so "ahead" leans optimistic for both sides; the stability seeds (3100+) are
+  what checks the pick.
+- Best against best, on the seeds both ran: the exact McNemar test of success (the seeds only one of them met) and
+  the paired bootstrap 95% interval of the score difference.
+- An algorithm over its seeds (PPO, SAC), on the seeds the planner and all its runs ran: per episode seed, its mean
+  over the training seeds of success and score; the planner minus that mean, paired bootstrap 95% over the
+  episode seeds. A training seed is not resampled here: ``bimp aggregate`` gives the interval over training seeds.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bimp.agents.errors import EvaluationError
 from bimp.agents.evaluation.compare import label_results
 from bimp.agents.evaluation.records import read_records, record_label
 from bimp.agents.evaluation.stats import mcnemar_exact, paired_bootstrap
@@ -52,10 +55,10 @@ def verdict_rows(folder: Path) -> list[dict]:
         if not planners or not learners:
             continue
         planner, learner = _best(planners), _best(learners)
-        seeds = sorted(set.intersection(*(set(v) for v in (planners[planner], *learners.values()))))
+        p, r = planners[planner], learners[learner]
+        seeds = sorted(set(p) & set(r))
         if not seeds:
             continue
-        p, r = planners[planner], learners[learner]
         test = mcnemar_exact([p[s]["success_rate"] for s in seeds], [r[s]["success_rate"] for s in seeds])
         row = {"scenario": scenario, "seeds": len(seeds), "planner": planner, "learner": learner,
                "planner_success": np.mean([p[s]["success_rate"] for s in seeds]),
@@ -66,13 +69,14 @@ def verdict_rows(folder: Path) -> list[dict]:
                "algos": {}}
         for algo in ("ppo", "sac"):
             runs = [v for k, v in learners.items() if RL_LABEL.match(k).group(1) == algo]
-            if not runs:
+            both = sorted(set(p).intersection(*(set(run) for run in runs))) if runs else []
+            if not both:
                 continue
-            success = [np.mean([run[s]["success_rate"] for run in runs]) for s in seeds]
-            score = [np.mean([run[s]["score"] for run in runs]) for s in seeds]
+            success = [np.mean([run[s]["success_rate"] for run in runs]) for s in both]
+            score = [np.mean([run[s]["score"] for run in runs]) for s in both]
             row["algos"][algo] = {"runs": len(runs), "success": float(np.mean(success)),
-                                  "success_diff": paired_bootstrap([p[s]["success_rate"] for s in seeds], success),
-                                  "score_diff": paired_bootstrap([p[s]["score"] for s in seeds], score)}
+                                  "success_diff": paired_bootstrap([p[s]["success_rate"] for s in both], success),
+                                  "score_diff": paired_bootstrap([p[s]["score"] for s in both], score)}
         rows.append(row)
     return rows
 
@@ -115,16 +119,18 @@ def training_table(root: Path) -> tuple[str, list]:
     folder does not change, so the table is what its committed folders render)."""
     from bimp.agents import rl_curves
 
+    if not root.is_dir():
+        raise EvaluationError(f"no training runs folder {root}")
     every = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
     runs = [p for p in every if rl_curves.finished(p)]
     lines = ["| algorithm | scenario | training seeds | timesteps | core-hours |", "|---|---|---|---|---|"]
     totals: dict[str, float] = {}
     for (algo, scenario), seeds in rl_curves.groups(runs).items():
-        reached = [int(steps[-1]) if len(steps := rl_curves.episodes(out)[0]) else 0 for _, out in seeds]
+        reached = [rl_curves.trained(out) for _, out in seeds]
         spent = sum(rl_curves.hours(out) for _, out in seeds)
         totals[algo] = totals.get(algo, 0.0) + spent
         lines.append(f"| {algo.upper()} | {scenario} | {', '.join(str(seed) for seed, _ in seeds)} | "
-                     f"{', '.join(f'{n // 1000}k' for n in reached)} | {spent:.2f} |")
+                     f"{', '.join(f'{n:,}' for n in reached)} | {spent:.2f} |")
     lines += [f"| {algo.upper()} | all | | | {hours:.2f} |" for algo, hours in totals.items()]
     training = [p.name for p in every if p not in runs]
     if training:

@@ -216,7 +216,11 @@ def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_p
     assert not path.exists() and list(out.glob("*.zip")) == [] and not (out / "train_time.json").exists()
     assert [p.name for p in (out / "checkpoints").iterdir()] == ["ppo_emergency-brake_256_steps.zip"]
     assert rl_train._latest_checkpoint(out)[0] == 256
+    stray = out / "checkpoints" / "ppo_emergency-brake_replay_buffer_768_steps.npz.part"  # a crash's leftover
+    stray.write_bytes(b"x")
     rl_train.train(dataclasses.replace(cfg, vec_env="subproc"), out, progress=False)  # how it runs may change
+    assert not stray.exists() and [p.name for p in (out / "checkpoints").iterdir()] == [
+        "ppo_emergency-brake_1024_steps.zip"]
     assert rl.read_model_file(path)[0]["num_timesteps"] == 1024  # 768 more, not 1024 again
     assert json.loads((out / "train_time.json").read_text())["resumed_at"] == 256
     assert json.loads((out / "segments.json").read_text()) == [0, 256]
@@ -254,6 +258,33 @@ def test_sac_resumes_without_its_replay_buffer_by_filling_a_new_one(tmp_path, mo
     assert json.loads((out / "buffer_lost.json").read_text()) == [256]
     _, state_dicts, variables = rl.read_model_file(path)
     assert rl.read_model_file(path)[0]["num_timesteps"] == 512 and "log_ent_coef" in variables
+
+
+def test_a_sac_warm_up_after_a_lost_buffer_lasts_past_a_later_resume(tmp_path, monkeypatch):
+    cfg = rl.RLConfig(scenario="emergency-brake", algo="sac", timesteps=768, learning_starts=200,
+                      checkpoint_every=128, seed=3)
+    out = tmp_path / "run"
+    interrupted_run(cfg, out, monkeypatch, after=300)  # checkpoint at 256
+    rl.buffer_path(rl_train._latest_checkpoint(out)[1]).unlink()
+    with pytest.warns(UserWarning, match="no replay buffer"):
+        interrupted_run(cfg, out, monkeypatch, after=400)  # warm-up to 456; checkpoint at 384, with its buffer
+    assert rl_train._latest_checkpoint(out)[0] == 384 and rl.buffer_path(rl_train._latest_checkpoint(out)[1]).is_file()
+    resumed = {}
+    real = rl_train._resume
+    monkeypatch.setattr(rl_train, "_resume", lambda *a: resumed.setdefault("model", real(*a)))
+    rl_train.train(cfg, out, progress=False)
+    assert resumed["model"].learning_starts == 256 + 200  # not 200: it would learn from 128 new transitions
+    # every segment's wall time, the interrupted ones too
+    walls = json.loads((out / "wall.json").read_text())
+    assert len(walls) == len(json.loads((out / "segments.json").read_text())) == 3 and all(w > 0 for w in walls)
+
+
+def test_a_run_without_checkpoints_is_not_made_longer_from_scratch(tmp_path):
+    cfg = rl.RLConfig(scenario="emergency-brake", timesteps=256, n_steps=64, checkpoint_every=0, seed=3)
+    rl_train.train(cfg, tmp_path / "run", progress=False)
+    assert json.loads((tmp_path / "run" / "train_time.json").read_text())["timesteps"] == 256
+    with pytest.raises(ValueError, match="finished run of 256 timesteps and no checkpoint to go on from"):
+        rl_train.train(dataclasses.replace(cfg, timesteps=512), tmp_path / "run", progress=False)
 
 
 def _fake_train(calls: list, fails: str = "never"):

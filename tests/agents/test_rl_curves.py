@@ -62,5 +62,16 @@ def test_the_training_table_sums_each_algorithms_hours(tmp_path):
     _run(tmp_path / "ppo_3", 3, [[[(1.0, 4000, 1800.0)], [(2.0, 4000, 900.0)]]])  # no train_time.json: training
     table, _ = training_table(tmp_path)
     assert table.endswith("Still training (not counted): ppo_3.")
-    assert "| PPO | cut-in-hard | 1, 2 | 8k, 10k | 1.50 |" in table
-    assert "| SAC | cut-in-hard | 1 | 2k | 0.10 |" in table and "| PPO | all | | | 1.50 |" in table
+    assert "| PPO | cut-in-hard | 1, 2 | 20,000, 20,000 | 1.50 |" in table  # trained, not logged
+    assert "| SAC | cut-in-hard | 1 | 20,000 | 0.10 |" in table and "| PPO | all | | | 1.50 |" in table
+
+
+def test_hours_come_from_wall_json_where_a_run_kept_it(tmp_path):
+    from bimp.agents.errors import EvaluationError
+    from bimp.agents.evaluation.report_rl import training_table
+
+    run = _run(tmp_path / "r", 1, [[[(1.0, 4000, 10.0)], [(2.0, 4000, 15.0)]]])
+    (run / "wall.json").write_text("[1800.0, 900.0]")  # the logs' last episode (15 s) is not the time spent
+    assert rl_curves.hours(run) == pytest.approx(0.75)
+    with pytest.raises(EvaluationError, match="no training runs folder"):
+        training_table(tmp_path / "nowhere")

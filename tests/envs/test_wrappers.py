@@ -48,6 +48,8 @@ def test_an_oncoming_ov_closes_at_both_speeds_and_traffic_our_way_at_the_differe
     expected = np.clip(np.where(against, -ovs[:, 4], ovs[:, 4]) - ego[3], -50, 50) / 10
     np.testing.assert_allclose(f[present, 3], expected[present], atol=1e-5)
     assert np.all(f[present & against, 3] < -ego[3] / 10)  # closing faster than the EV drives
+    np.testing.assert_allclose(f[present, 4], np.clip(np.where(against, -ovs[:, 5], ovs[:, 5]), -35, 35)[present] / 7,
+                               atol=1e-6)
     env.close()
 
 
