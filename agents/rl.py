@@ -355,9 +355,12 @@ def _shipped_model(env: gym.Env, algo: str, training_seed: int | None, trained_o
     path = MODEL_DIR / shipped_name(algo, scenario, training_seed) if training_seed is not None else None
     if path is None or not path.is_file():
         shipped = sorted(p.name for p in MODEL_DIR.glob(f"{key}_s*.zip"))
+        kin = sorted({name for name in envs.SCENARIOS if name != scenario and same_family(name, scenario)
+                      and any(MODEL_DIR.glob(f"{model_name(algo, name).removesuffix('.zip')}_s*.zip"))})
         raise FileNotFoundError(
             f"no {algo.upper()} model is shipped for {scenario}"
             + (f" with training seed {training_seed} (shipped: {shipped})" if shipped else "")
+            + (f"; its family's models drive it with trained_on={kin[0]}" if kin and not shipped else "")
             + f"; train one with `bimp train-rl --scenario {scenario} --algo {algo}` and pass model=")
     return path
 
