@@ -199,7 +199,7 @@ def test_a_model_drives_another_difficulty_of_its_family_only_when_asked(tmp_pat
     with pytest.raises(FileNotFoundError, match="no PPO model is shipped for cut-in-easy"):
         make_policy("ppo", extreme, trained_on="cut-in-easy", training_seed=9)
     # where only another difficulty of the family has models, the error says how to drive them
-    with pytest.raises(FileNotFoundError, match="its family's models drive it with trained_on=emergency-brake-noisy-hard"):
+    with pytest.raises(FileNotFoundError, match="drive it with trained_on=emergency-brake-noisy-hard"):
         make_policy("ppo", gym.make(envs.env_id("emergency-brake-noisy")))
 
 
