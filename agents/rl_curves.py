@@ -69,12 +69,16 @@ def last_episode_time(out: Path, n_envs: int, segment: int = -1) -> float:
 def hours(out: Path) -> float:
     """Hours a run trained, every segment's wall time summed: ``wall.json`` (kept at each checkpoint and at the
     end; an interrupted segment up to its last logged episode or checkpoint, whichever came later), or, for a run
-    older than that file, the Monitor logs (each segment up to its last finished episode). With the default
+    older than that file, ``train_time.json``'s wall time where it trained in one go, else the Monitor logs (each
+    segment up to its last finished episode). With the default
     ``vec_env: dummy`` a run steps its envs and learns in one process on one thread: its core-hours."""
     if (out / "wall.json").is_file():
         walls = read_json(out / "wall.json")
         if isinstance(walls, list) and all(isinstance(w, (int, float)) for w in walls):
             return sum(walls) / 3600
+    done = read_json(out / "train_time.json") if (out / "train_time.json").is_file() else None
+    if isinstance(done, dict) and done.get("resumed_at") is None and isinstance(done.get("wall_s"), (int, float)):
+        return done["wall_s"] / 3600  # trained in one go: its one segment's wall time
     n_envs = _config(out)["n_envs"]
     return sum(last_episode_time(out, n_envs, k) for k in range(len(monitor_files(out)) // n_envs)) / 3600
 

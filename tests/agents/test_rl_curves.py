@@ -71,7 +71,9 @@ def test_hours_come_from_wall_json_where_a_run_kept_it(tmp_path):
     from bimp.agents.evaluation.report_rl import training_table
 
     run = _run(tmp_path / "r", 1, [[[(1.0, 4000, 10.0)], [(2.0, 4000, 15.0)]]])
-    (run / "wall.json").write_text("[1800.0, 900.0]")  # the logs' last episode (15 s) is not the time spent
+    (run / "train_time.json").write_text('{"wall_s": 360.0, "timesteps": 8000, "resumed_at": null}')
+    assert rl_curves.hours(run) == pytest.approx(0.1)  # trained in one go: its wall time, not the logs' 15 s
+    (run / "wall.json").write_text("[1800.0, 900.0]")
     assert rl_curves.hours(run) == pytest.approx(0.75)
     with pytest.raises(EvaluationError, match="no training runs folder"):
         training_table(tmp_path / "nowhere")
