@@ -195,14 +195,16 @@ class ExitDestination:
 def adapted_class(cls: type) -> type:
     """The adapted subclass of highway-env's env class ``cls``: a fixed one above for the four that fail under
     continuous actions, else ``Bimp<Name>`` = (:class:`AdaptedEnv`, ``cls``), made once and cached. A subclass of one
-    of the four (a suite family on two-way-v0's road) takes its fix: (``Fixed...``, ``cls``)."""
+    of the four (a suite family on two-way-v0's road) takes its fix: (``Fixed...``, ``cls``), and keeps its own
+    ``_rewards`` where it defines one (its task's reward, not the road's)."""
     if cls in _FIXED:
         return _FIXED[cls]
     if cls not in _ADAPTED:
         fixed = next((_FIXED[base] for base in cls.__mro__ if base in _FIXED), None)
         bases = ((fixed, cls) if fixed is not None else (ExitDestination, AdaptedEnv, cls)
                  if issubclass(cls, ExitEnv) else (AdaptedEnv, cls))
-        _ADAPTED[cls] = type(f"Bimp{cls.__name__}", bases, {"__module__": __name__})
+        own = {"_rewards": vars(cls)["_rewards"]} if fixed is not None and "_rewards" in vars(cls) else {}
+        _ADAPTED[cls] = type(f"Bimp{cls.__name__}", bases, {"__module__": __name__, **own})
     return _ADAPTED[cls]
 
 

@@ -31,6 +31,7 @@ from bimp.envs.suite.two_way_overtake import (
     PASSED,
     PASSING,
     RIGHT,
+    SPEED_LIMIT,
     TwoWayOvertakeRanges,
 )
 from tests.envs.test_suite_families import BrakeAtTheBounds, drawn_params
@@ -139,6 +140,25 @@ def test_the_goal_ends_the_episode_and_waiting_never_meets_it():
     metrics = episode_metrics(episode.trace, 0.1, episode.truncated)
     assert metrics["success_rate"] == 0.0 and metrics["score"] == 0.0  # the score's goal gate
     assert record_missed_goal({"truncated": episode.truncated, "metrics": metrics})
+
+
+def test_the_reward_pays_the_goal_the_steps_it_ends_and_never_the_oncoming_lane():
+    """The family's reward (for learners) is its own, not two-way-v0's, whose goal ended the episode unpaid: a pass
+    that returns to its lane must never earn less than racing on in the oncoming lane to the time limit."""
+    env = gym.make(ID)
+    env.reset(seed=0)
+    base = env.unwrapped
+    assert {base.config[k] for k in ("high_speed_reward", "right_lane_reward", "goal_reward")} == {0.8, 0.2, 1.0}
+    _, reward, _, _, info = env.step(np.zeros(2, np.float32))
+    assert set(info["rewards"]) == {"high_speed_reward", "right_lane_reward", "goal_reward"}
+    assert info["rewards"]["right_lane_reward"] == 1.0 and info["rewards"]["goal_reward"] == 0.0
+    assert reward == pytest.approx(0.8 * min(base.vehicle.speed / SPEED_LIMIT, 1.0) + 0.2)
+    ev, slow = base.vehicle, base.slow_vehicle
+    ev.position = np.array([slow.position[0] + PASSED + 0.5, slow.position[1]])
+    _, reward, terminated, _, info = env.step(np.zeros(2, np.float32))
+    left = (DURATION - base.time) * base.config["policy_frequency"]
+    assert terminated and info["goal"] and info["rewards"]["goal_reward"] == pytest.approx(left)
+    assert reward >= left  # every step left, at the most any step pays (0.8 + 0.2)
 
 
 def test_pass_time_against_a_stepped_pass():
