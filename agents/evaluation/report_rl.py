@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bimp.agents import rl_curves
 from bimp.agents.errors import EvaluationError
 from bimp.agents.evaluation.compare import label_results
 from bimp.agents.evaluation.records import read_records, record_label
@@ -117,8 +118,6 @@ def training_table(root: Path) -> tuple[str, list]:
     the training seeds, the timesteps each reached, and the hours they trained (:func:`bimp.agents.rl_curves.hours`:
     one core per run), with a total per algorithm; the runs still training are named below (a finished run's
     folder does not change, so the table is what its committed folders render)."""
-    from bimp.agents import rl_curves
-
     if not root.is_dir():
         raise EvaluationError(f"no training runs folder {root}")
     every = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
