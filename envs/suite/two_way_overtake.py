@@ -164,16 +164,17 @@ class TwoWayOvertakeEnv(Family, TwoWayEnv):
 
     slow_vehicle: Vehicle
 
-    @classmethod
-    def default_config(cls) -> dict:
-        # The reward (_rewards): TwoWayEnv's weights the oncoming lane 0.2, which is no part of this task.
-        config = super().default_config()
-        config.update(left_lane_reward=0.0, high_speed_reward=0.8, right_lane_reward=0.2, goal_reward=1.0)
-        return config
+    # The reward's weights (_rewards). Not config keys: the config is part of every record's arm, and the reward
+    # is no part of what a planner does. two-way-v0's own weight keys (high_speed_reward, left_lane_reward) stay
+    # in the config, unread.
+    REWARD_WEIGHTS = MappingProxyType({"high_speed_reward": 0.8, "right_lane_reward": 0.2, "goal_reward": 1.0})
+
+    def _reward(self, action) -> float:
+        return sum(self.REWARD_WEIGHTS[name] * term for name, term in self._rewards(action).items())
 
     def _rewards(self, action) -> dict[str, float]:
-        """The reward's terms, weighted by the config's ``*_reward`` keys (0.8, 0.2, 1.0): for learners, as the
-        planners never read it. two-way-v0's reward (:class:`bimp.envs.highway.fixed.FixedTwoWayEnv`'s, speed 20-30
+        """The reward's terms, weighted by :data:`REWARD_WEIGHTS` (0.8, 0.2, 1.0): for learners, as the planners
+        never read it. two-way-v0's reward (:class:`bimp.envs.highway.fixed.FixedTwoWayEnv`'s, speed 20-30
         m/s and a left-lane term that is 0 on this road) pays nothing for the goal, which ends the episode: so a
         pass that returns to its lane cuts the reward short, and PPO trained on it raced on in the oncoming lane
         (1,000-1,550 m in the 40 s; 15 goals in 300 episodes). Here:

@@ -148,7 +148,7 @@ def test_the_reward_pays_the_goal_the_steps_it_ends_and_never_the_oncoming_lane(
     env = gym.make(ID)
     env.reset(seed=0)
     base = env.unwrapped
-    assert {base.config[k] for k in ("high_speed_reward", "right_lane_reward", "goal_reward")} == {0.8, 0.2, 1.0}
+    assert dict(base.REWARD_WEIGHTS) == {"high_speed_reward": 0.8, "right_lane_reward": 0.2, "goal_reward": 1.0}
     _, reward, _, _, info = env.step(np.zeros(2, np.float32))
     assert set(info["rewards"]) == {"high_speed_reward", "right_lane_reward", "goal_reward"}
     assert info["rewards"]["right_lane_reward"] == 1.0 and info["rewards"]["goal_reward"] == 0.0
