@@ -67,13 +67,13 @@ def last_episode_time(out: Path, n_envs: int, segment: int = -1) -> float:
 
 
 def hours(out: Path) -> float:
-    """Hours a run trained, every segment's wall time summed: ``wall.json`` (kept at each checkpoint and at the
-    end; an interrupted segment up to its last logged episode or checkpoint, whichever came later), or, for a run
-    older than that file, ``train_time.json``'s wall time where it trained in one go, else the Monitor logs (each
-    segment up to its last finished episode). With the default
-    ``vec_env: dummy`` a run steps its envs and learns in one process on one thread: its core-hours."""
-    if (out / "wall.json").is_file():
-        walls = read_json(out / "wall.json")
+    """Hours a run trained, every segment's summed: its process's CPU time (``cpu.json``, kept at each checkpoint
+    and at the end; with the default ``vec_env: dummy`` a run steps its envs and learns in that one process), else
+    its wall time, an upper bound where runs outnumbered the cores (``wall.json``: an interrupted segment up to its
+    last logged episode or checkpoint, whichever came later; for a run older than that file ``train_time.json``'s
+    where it trained in one go, else the Monitor logs, each segment up to its last finished episode)."""
+    for name in ("cpu.json", "wall.json"):
+        walls = read_json(out / name) if (out / name).is_file() else None
         if isinstance(walls, list) and all(isinstance(w, (int, float)) for w in walls):
             return sum(walls) / 3600
     done = read_json(out / "train_time.json") if (out / "train_time.json").is_file() else None
@@ -81,6 +81,11 @@ def hours(out: Path) -> float:
         return done["wall_s"] / 3600  # trained in one go: its one segment's wall time
     n_envs = _config(out)["n_envs"]
     return sum(last_episode_time(out, n_envs, k) for k in range(len(monitor_files(out)) // n_envs)) / 3600
+
+
+def measured_cpu(out: Path) -> bool:
+    """Whether :func:`hours` of this run is CPU time (``cpu.json``), not wall time."""
+    return (out / "cpu.json").is_file()
 
 
 def plot_curve(out: Path, path: Path, title: str = "") -> None:
@@ -163,5 +168,5 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
     return rows
 
 
-__all__ = ["BIN", "binned", "episodes", "finished", "groups", "hours", "last_episode_time", "monitor_files",
-           "plot_curve", "plot_curves", "trained"]
+__all__ = ["BIN", "binned", "episodes", "finished", "groups", "hours", "last_episode_time", "measured_cpu",
+           "monitor_files", "plot_curve", "plot_curves", "trained"]

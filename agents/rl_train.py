@@ -293,13 +293,14 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     if checkpoint is None and trained(out) is not None:
         raise ValueError(f"{out} holds a finished run of {trained(out)} timesteps and no checkpoint to go on from "
                          f"(checkpoint_every 0?): train the longer run into a new --out")
-    walls = _walls(out, len(segments))
+    walls, cpus = _walls(out, "wall.json", len(segments)), _walls(out, "cpu.json", len(segments))
     if monitor_files(out):
         # the interrupted segment ran at least until its last logged episode, whose rows the cut below drops
         walls[-1] = max(walls[-1], last_episode_time(out, cfg.n_envs))
         _drop_replayed_episodes(out, cfg.n_envs, segments[-1], resume_at)
         segments.append(resume_at)
         walls.append(0.0)
+        cpus.append(0.0)
     write_atomic(segments_file, json.dumps(segments) + "\n")
     write_atomic(out / "wall.json", json.dumps(walls) + "\n")
     segment = len(monitor_files(out)) // cfg.n_envs
@@ -321,9 +322,12 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     done = model.num_timesteps
     start = time.perf_counter()
 
-    def clock() -> None:  # this segment's wall time so far, kept at each checkpoint and at the end
-        walls[-1] = round(time.perf_counter() - start, 1)
+    cpu_start = time.process_time()
+
+    def clock() -> None:  # this segment's wall and CPU time so far, kept at each checkpoint and at the end
+        walls[-1], cpus[-1] = round(time.perf_counter() - start, 1), round(time.process_time() - cpu_start, 1)
         write_atomic(out / "wall.json", json.dumps(walls) + "\n")
+        write_atomic(out / "cpu.json", json.dumps(cpus) + "\n")
 
     callbacks = [_checkpoint_callback(cfg, out, clock)] if cfg.checkpoint_every else []
     if progress:
@@ -339,12 +343,13 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     return path
 
 
-def _walls(out: Path, n_segments: int) -> list[float]:
-    """``wall.json``: the wall seconds of each segment so far, one per entry of ``segments.json`` (zeros for the
-    segments of a run older than the file)."""
-    walls = read_json(out / "wall.json") if (out / "wall.json").is_file() else []
+def _walls(out: Path, name: str, n_segments: int) -> list[float]:
+    """``wall.json`` or ``cpu.json``: the wall or CPU seconds of each segment so far (the training process's CPU
+    time: with more runs than cores side by side, wall time counts the waiting too), one per entry of
+    ``segments.json`` (zeros for the segments of a run older than the file)."""
+    walls = read_json(out / name) if (out / name).is_file() else []
     if not (isinstance(walls, list) and all(isinstance(w, (int, float)) for w in walls)):
-        raise EvaluationError(f"{out / 'wall.json'} is not a list of seconds: train into a new --out")
+        raise EvaluationError(f"{out / name} is not a list of seconds: train into a new --out")
     return [float(w) for w in walls[:n_segments]] + [0.0] * (n_segments - len(walls))
 
 

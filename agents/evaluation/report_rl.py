@@ -116,21 +116,24 @@ def with_verdict(table: tuple[str, list], folder: Path) -> tuple[str, list]:
 def training_table(root: Path) -> tuple[str, list]:
     """The finished training runs under ``root`` (``bimp train-rl --runs-dir``), a row per algorithm and scenario:
     the training seeds, the timesteps each reached, and the hours they trained (:func:`bimp.agents.rl_curves.hours`:
-    one core per run), with a total per algorithm; the runs still training are named below (a finished run's
+    the training process's CPU time where the run kept it, else its wall time: an upper bound where runs
+    outnumbered the cores), with a total per algorithm; the runs still training are named below (a finished run's
     folder does not change, so the table is what its committed folders render)."""
     if not root.is_dir():
         raise EvaluationError(f"no training runs folder {root}")
     every = sorted(p for p in root.iterdir() if (p / "config.json").is_file())
     runs = [p for p in every if rl_curves.finished(p)]
-    lines = ["| algorithm | scenario | training seeds | timesteps | core-hours |", "|---|---|---|---|---|"]
+    lines = ["| algorithm | scenario | training seeds | timesteps | core-hours | measured as |",
+             "|---|---|---|---|---|---|"]
     totals: dict[str, float] = {}
     for (algo, scenario), seeds in rl_curves.groups(runs).items():
         reached = [rl_curves.trained(out) for _, out in seeds]
         spent = sum(rl_curves.hours(out) for _, out in seeds)
         totals[algo] = totals.get(algo, 0.0) + spent
         lines.append(f"| {algo.upper()} | {scenario} | {', '.join(str(seed) for seed, _ in seeds)} | "
-                     f"{', '.join(f'{n:,}' for n in reached)} | {spent:.2f} |")
-    lines += [f"| {algo.upper()} | all | | | {hours:.2f} |" for algo, hours in totals.items()]
+                     f"{', '.join(f'{n:,}' for n in reached)} | {spent:.2f} | "
+                     f"{'CPU' if all(rl_curves.measured_cpu(out) for _, out in seeds) else 'wall (at most)'} |")
+    lines += [f"| {algo.upper()} | all | | | {hours:.2f} | |" for algo, hours in totals.items()]
     training = [p.name for p in every if p not in runs]
     if training:
         lines += ["", f"Still training (not counted): {', '.join(training)}."]

@@ -278,8 +278,9 @@ def test_a_sac_warm_up_after_a_lost_buffer_lasts_past_a_later_resume(tmp_path, m
     rl_train.train(cfg, out, progress=False)
     assert resumed["model"].learning_starts == 256 + 200  # not 200: it would learn from 128 new transitions
     # every segment's wall time, the interrupted ones too
-    walls = json.loads((out / "wall.json").read_text())
-    assert len(walls) == len(json.loads((out / "segments.json").read_text())) == 3 and all(w > 0 for w in walls)
+    walls, cpus = (json.loads((out / name).read_text()) for name in ("wall.json", "cpu.json"))
+    assert len(walls) == len(cpus) == len(json.loads((out / "segments.json").read_text())) == 3
+    assert all(w > 0 for w in walls) and all(c > 0 for c in cpus[1:])
 
 
 def test_a_run_without_checkpoints_is_not_made_longer_from_scratch(tmp_path):

@@ -62,8 +62,9 @@ def test_the_training_table_sums_each_algorithms_hours(tmp_path):
     _run(tmp_path / "ppo_3", 3, [[[(1.0, 4000, 1800.0)], [(2.0, 4000, 900.0)]]])  # no train_time.json: training
     table, _ = training_table(tmp_path)
     assert table.endswith("Still training (not counted): ppo_3.")
-    assert "| PPO | cut-in-hard | 1, 2 | 20,000, 20,000 | 1.50 |" in table  # trained, not logged
-    assert "| SAC | cut-in-hard | 1 | 20,000 | 0.10 |" in table and "| PPO | all | | | 1.50 |" in table
+    assert "| PPO | cut-in-hard | 1, 2 | 20,000, 20,000 | 1.50 | wall (at most) |" in table  # trained, not logged
+    assert "| SAC | cut-in-hard | 1 | 20,000 | 0.10 | wall (at most) |" in table
+    assert "| PPO | all | | | 1.50 | |" in table
 
 
 def test_hours_come_from_wall_json_where_a_run_kept_it(tmp_path):
@@ -74,6 +75,8 @@ def test_hours_come_from_wall_json_where_a_run_kept_it(tmp_path):
     (run / "train_time.json").write_text('{"wall_s": 360.0, "timesteps": 8000, "resumed_at": null}')
     assert rl_curves.hours(run) == pytest.approx(0.1)  # trained in one go: its wall time, not the logs' 15 s
     (run / "wall.json").write_text("[1800.0, 900.0]")
-    assert rl_curves.hours(run) == pytest.approx(0.75)
+    assert rl_curves.hours(run) == pytest.approx(0.75) and not rl_curves.measured_cpu(run)
+    (run / "cpu.json").write_text("[900.0, 900.0]")  # the process's CPU time: wall counts the waiting for a core
+    assert rl_curves.hours(run) == pytest.approx(0.5) and rl_curves.measured_cpu(run)
     with pytest.raises(EvaluationError, match="no training runs folder"):
         training_table(tmp_path / "nowhere")
