@@ -118,6 +118,25 @@ def binned(steps: np.ndarray, returns: np.ndarray, total: int) -> np.ndarray:
         return sums / counts
 
 
+CLIMB_WINDOW = 25_000  # timesteps compared at a curve's end
+CLIMB_SHARE = 0.05  # of the gain since the first bin: more than this, and a curve still climbs
+
+
+def climbing(curves: np.ndarray) -> bool:
+    """Whether a learning curve over seeds (``(seeds, bins)`` of :func:`binned`) still climbs at its end: the mean
+    over the seeds of their last ``CLIMB_WINDOW`` timesteps above that of the window before by more than
+    ``CLIMB_SHARE`` of the gain since the first bin (noise at a plateau stays under it). The rule by which a run is
+    made longer (docs/rl.md)."""
+    k = CLIMB_WINDOW // BIN
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(curves, axis=0)
+    if mean.size < 2 * k + 1 or np.isnan(mean[[0, -1]]).any():
+        return False
+    last, before = np.nanmean(mean[-k:]), np.nanmean(mean[-2 * k:-k])
+    return bool(last - before > CLIMB_SHARE * abs(last - mean[0]))
+
+
 def groups(runs: list[Path]) -> dict[tuple[str, str], list[tuple[int, Path]]]:
     """``{(algo, scenario): [(seed, run folder)]}``, seeds in order."""
     found: dict[tuple[str, str], list[tuple[int, Path]]] = defaultdict(list)
@@ -130,8 +149,8 @@ def groups(runs: list[Path]) -> dict[tuple[str, str], list[tuple[int, Path]]]:
 def plot_curves(runs: list[Path], path: Path) -> list[dict]:
     """One panel per algorithm and scenario of ``runs``: each seed's mean return per :data:`BIN` timesteps (thin),
     the mean over seeds (bold) and the band from the lowest to the highest seed. Returns a row per panel: runs,
-    seeds, timesteps each (trained, or logged so far while training), hours (:func:`hours`) and each seed's mean
-    return over its last 10% of timesteps."""
+    seeds, timesteps each (trained, or logged so far while training), hours (:func:`hours`), whether the mean still
+    climbs (:func:`climbing`) and each seed's mean return over its last 10% of timesteps."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -159,7 +178,7 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
         rows.append({"algo": algo, "scenario": scenario, "seeds": [seed for seed, _ in seeds],
                      "timesteps": [trained(out) or (int(s[-1]) if len(s) else 0)
                                    for (_, out), (s, _) in zip(seeds, last, strict=True)],
-                     "hours": round(sum(hours(out) for _, out in seeds), 3),
+                     "hours": round(sum(hours(out) for _, out in seeds), 3), "climbing": climbing(curves),
                      "final_return": [float(np.mean(r[s > 0.9 * total])) if np.any(s > 0.9 * total) else None
                                       for s, r in last]})
     fig.tight_layout()
@@ -168,5 +187,5 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
     return rows
 
 
-__all__ = ["BIN", "binned", "episodes", "finished", "groups", "hours", "last_episode_time", "measured_cpu",
-           "monitor_files", "plot_curve", "plot_curves", "trained"]
+__all__ = ["BIN", "CLIMB_SHARE", "CLIMB_WINDOW", "binned", "climbing", "episodes", "finished", "groups", "hours",
+           "last_episode_time", "measured_cpu", "monitor_files", "plot_curve", "plot_curves", "trained"]

@@ -27,10 +27,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
-    print(f"{args.out}\n\n| algo | scenario | seeds | timesteps | hours | final return per seed |\n"
-          "|---|---|---|---|---|---|")
+    print(f"{args.out}\n\n| algo | scenario | seeds | timesteps | hours | final return per seed | still climbing |\n"
+          "|---|---|---|---|---|---|---|")
     for row in rows:
         finals = " / ".join("-" if r is None else f"{r:.1f}" for r in row["final_return"])
         print(f"| {row['algo']} | {row['scenario']} | {', '.join(map(str, row['seeds']))} | "
-              f"{', '.join(f'{t:,}' for t in row['timesteps'])} | {row['hours']:.2f} | {finals} |")
+              f"{', '.join(f'{t:,}' for t in row['timesteps'])} | {row['hours']:.2f} | {finals} | "
+              f"{'yes' if row['climbing'] else 'no'} |")
     return 0

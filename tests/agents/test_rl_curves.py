@@ -80,3 +80,11 @@ def test_hours_come_from_wall_json_where_a_run_kept_it(tmp_path):
     assert rl_curves.hours(run) == pytest.approx(0.5) and rl_curves.measured_cpu(run)
     with pytest.raises(EvaluationError, match="no training runs folder"):
         training_table(tmp_path / "nowhere")
+
+
+def test_a_curve_climbs_while_its_last_window_gains_more_than_noise():
+    flat = np.array([[10.0, 50, 90, 100, 101, 100, 99, 101, 100, 102, 100, 101]])  # a plateau from 20k on
+    assert not rl_curves.climbing(flat)
+    rising = np.array([[10.0, 30, 50, 70, 90, 110, 130, 150, 170, 190, 210, 230]])
+    assert rl_curves.climbing(rising) and rl_curves.climbing(np.vstack([rising, rising + 5]))
+    assert not rl_curves.climbing(rising[:, :6])  # too short to have two windows and a start
