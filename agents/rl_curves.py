@@ -72,10 +72,12 @@ def hours(out: Path) -> float:
     its wall time, an upper bound where runs outnumbered the cores (``wall.json``: an interrupted segment up to its
     last logged episode or checkpoint, whichever came later; for a run older than that file ``train_time.json``'s
     where it trained in one go, else the Monitor logs, each segment up to its last finished episode)."""
-    for name in ("cpu.json", "wall.json"):
-        walls = read_json(out / name) if (out / name).is_file() else None
-        if isinstance(walls, list) and all(isinstance(w, (int, float)) for w in walls):
-            return sum(walls) / 3600
+    cpus, walls = _seconds(out, "cpu.json"), _seconds(out, "wall.json")
+    if cpus is not None or walls is not None:
+        cpus, walls = cpus or [], walls or []
+        n = max(len(cpus), len(walls))
+        cpus, walls = cpus + [0.0] * (n - len(cpus)), walls + [0.0] * (n - len(walls))
+        return sum(c if c > 0 else w for c, w in zip(cpus, walls, strict=True)) / 3600  # a segment before cpu.json
     done = read_json(out / "train_time.json") if (out / "train_time.json").is_file() else None
     if isinstance(done, dict) and done.get("resumed_at") is None and isinstance(done.get("wall_s"), (int, float)):
         return done["wall_s"] / 3600  # trained in one go: its one segment's wall time
@@ -83,9 +85,17 @@ def hours(out: Path) -> float:
     return sum(last_episode_time(out, n_envs, k) for k in range(len(monitor_files(out)) // n_envs)) / 3600
 
 
+def _seconds(out: Path, name: str) -> list[float] | None:
+    """``wall.json`` or ``cpu.json``: seconds per segment; None where the run has no such file."""
+    values = read_json(out / name) if (out / name).is_file() else None
+    ok = isinstance(values, list) and all(isinstance(v, (int, float)) for v in values)
+    return [float(v) for v in values] if ok else None
+
+
 def measured_cpu(out: Path) -> bool:
-    """Whether :func:`hours` of this run is CPU time (``cpu.json``), not wall time."""
-    return (out / "cpu.json").is_file()
+    """Whether :func:`hours` of this run is CPU time for every segment (``cpu.json``), not wall time for any."""
+    cpus = _seconds(out, "cpu.json")
+    return cpus is not None and len(cpus) >= len(_seconds(out, "wall.json") or []) and all(c > 0 for c in cpus)
 
 
 def plot_curve(out: Path, path: Path, title: str = "") -> None:

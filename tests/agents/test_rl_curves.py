@@ -78,6 +78,8 @@ def test_hours_come_from_wall_json_where_a_run_kept_it(tmp_path):
     assert rl_curves.hours(run) == pytest.approx(0.75) and not rl_curves.measured_cpu(run)
     (run / "cpu.json").write_text("[900.0, 900.0]")  # the process's CPU time: wall counts the waiting for a core
     assert rl_curves.hours(run) == pytest.approx(0.5) and rl_curves.measured_cpu(run)
+    (run / "cpu.json").write_text("[0.0, 900.0]")  # a first segment trained before cpu.json: its wall time
+    assert rl_curves.hours(run) == pytest.approx(0.75) and not rl_curves.measured_cpu(run)
     with pytest.raises(EvaluationError, match="no training runs folder"):
         training_table(tmp_path / "nowhere")
 
