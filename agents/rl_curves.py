@@ -72,7 +72,7 @@ def hours(out: Path) -> float:
     its wall time, an upper bound where runs outnumbered the cores (``wall.json``: an interrupted segment up to its
     last logged episode or checkpoint, whichever came later; for a run older than that file ``train_time.json``'s
     where it trained in one go, else the Monitor logs, each segment up to its last finished episode)."""
-    cpus, walls = _seconds(out, "cpu.json"), _seconds(out, "wall.json")
+    cpus, walls = seconds(out, "cpu.json"), seconds(out, "wall.json")
     if cpus is not None or walls is not None:
         cpus, walls = cpus or [], walls or []
         n = max(len(cpus), len(walls))
@@ -85,17 +85,21 @@ def hours(out: Path) -> float:
     return sum(last_episode_time(out, n_envs, k) for k in range(len(monitor_files(out)) // n_envs)) / 3600
 
 
-def _seconds(out: Path, name: str) -> list[float] | None:
-    """``wall.json`` or ``cpu.json``: seconds per segment; None where the run has no such file."""
-    values = read_json(out / name) if (out / name).is_file() else None
-    ok = isinstance(values, list) and all(isinstance(v, (int, float)) for v in values)
-    return [float(v) for v in values] if ok else None
+def seconds(out: Path, name: str) -> list[float] | None:
+    """``wall.json`` or ``cpu.json``: seconds per segment; None where the run has no such file.
+    :class:`EvaluationError` naming the file where it is not a list of seconds."""
+    if not (out / name).is_file():
+        return None
+    values = read_json(out / name)
+    if not (isinstance(values, list) and all(isinstance(v, (int, float)) for v in values)):
+        raise EvaluationError(f"{out / name} is not a list of seconds: train into a new --out")
+    return [float(v) for v in values]
 
 
 def measured_cpu(out: Path) -> bool:
     """Whether :func:`hours` of this run is CPU time for every segment (``cpu.json``), not wall time for any."""
-    cpus = _seconds(out, "cpu.json")
-    return cpus is not None and len(cpus) >= len(_seconds(out, "wall.json") or []) and all(c > 0 for c in cpus)
+    cpus = seconds(out, "cpu.json")
+    return cpus is not None and len(cpus) >= len(seconds(out, "wall.json") or []) and all(c > 0 for c in cpus)
 
 
 def plot_curve(out: Path, path: Path, title: str = "") -> None:
@@ -173,7 +177,8 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
     rows = []
     for ax, ((algo, scenario), seeds) in zip(axes[0], found.items(), strict=True):
         total = max(int(_config(out)["timesteps"]) for _, out in seeds)
-        curves = np.array([binned(*episodes(out), total) for _, out in seeds])
+        logged = [episodes(out) for _, out in seeds]  # read once: the curve and the rows below
+        curves = np.array([binned(*run, total) for run in logged])
         x = (np.arange(curves.shape[1]) + 1) * BIN
         for (seed, _), curve in zip(seeds, curves, strict=True):
             ax.plot(x, curve, lw=0.8, alpha=0.6, label=f"seed {seed}")
@@ -184,13 +189,12 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
         ax.set(xlabel="timesteps", ylabel=f"mean episode return per {BIN:,}", title=f"{algo.upper()} {scenario}")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-        last = [episodes(out) for _, out in seeds]
         rows.append({"algo": algo, "scenario": scenario, "seeds": [seed for seed, _ in seeds],
                      "timesteps": [trained(out) or (int(s[-1]) if len(s) else 0)
-                                   for (_, out), (s, _) in zip(seeds, last, strict=True)],
+                                   for (_, out), (s, _) in zip(seeds, logged, strict=True)],
                      "hours": round(sum(hours(out) for _, out in seeds), 3), "climbing": climbing(curves),
                      "final_return": [float(np.mean(r[s > 0.9 * total])) if np.any(s > 0.9 * total) else None
-                                      for s, r in last]})
+                                      for s, r in logged]})
     fig.tight_layout()
     write_figure(fig, path, dpi=110)
     plt.close(fig)
@@ -198,4 +202,5 @@ def plot_curves(runs: list[Path], path: Path) -> list[dict]:
 
 
 __all__ = ["BIN", "CLIMB_SHARE", "CLIMB_WINDOW", "binned", "climbing", "episodes", "finished", "groups", "hours",
-           "last_episode_time", "measured_cpu", "monitor_files", "plot_curve", "plot_curves", "trained"]
+           "last_episode_time", "measured_cpu", "monitor_files", "plot_curve", "plot_curves", "seconds",
+           "trained"]

@@ -55,7 +55,7 @@ from bimp.agents.rl import (
     save_buffer,
     shipped_name,
 )
-from bimp.agents.rl_curves import last_episode_time, monitor_files, plot_curve, trained
+from bimp.agents.rl_curves import last_episode_time, monitor_files, plot_curve, seconds, trained
 from bimp.agents.rollout import rollout
 from bimp.configs import load_config
 from bimp.envs.wrappers import PlanningWrapper
@@ -347,10 +347,8 @@ def _walls(out: Path, name: str, n_segments: int) -> list[float]:
     """``wall.json`` or ``cpu.json``: the wall or CPU seconds of each segment so far (the training process's CPU
     time: with more runs than cores side by side, wall time counts the waiting too), one per entry of
     ``segments.json`` (zeros for the segments of a run older than the file)."""
-    walls = read_json(out / name) if (out / name).is_file() else []
-    if not (isinstance(walls, list) and all(isinstance(w, (int, float)) for w in walls)):
-        raise EvaluationError(f"{out / name} is not a list of seconds: train into a new --out")
-    return [float(w) for w in walls[:n_segments]] + [0.0] * (n_segments - len(walls))
+    walls = seconds(out, name) or []
+    return walls[:n_segments] + [0.0] * (n_segments - len(walls))
 
 
 def _finished(cfg: RLConfig, out: Path) -> bool:
