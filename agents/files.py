@@ -87,6 +87,11 @@ def read_json(path: str | Path, limit: int | None = None) -> Any:
     return value
 
 
+def read_json_or(path: str | Path, default: Any) -> Any:
+    """:func:`read_json` of ``path`` where it is a file, else ``default`` (an optional record beside a run)."""
+    return read_json(path) if Path(path).is_file() else default
+
+
 def write_atomic(path: str | Path, text: str | bytes) -> None:
     """``path`` holds ``text``, replaced in one step (fsynced before the rename): a reader, an interruption or a full
     disk leaves the old file or the new one, never part of one. :class:`EvaluationError` in one line naming the file

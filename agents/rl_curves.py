@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from bimp.agents.errors import EvaluationError
-from bimp.agents.files import read_json, write_figure
+from bimp.agents.files import read_json, read_json_or, write_figure
 
 BIN = 5_000  # timesteps per point of a curve over seeds
 
@@ -27,7 +27,7 @@ def monitor_files(out: Path) -> list[Path]:
 
 
 def _config(out: Path) -> dict:
-    config = read_json(out / "config.json") if (out / "config.json").is_file() else None
+    config = read_json_or(out / "config.json", None)
     if not isinstance(config, dict) or not {"algo", "scenario", "seed", "n_envs", "timesteps"} <= set(config):
         raise EvaluationError(f"{out} is not a `bimp train-rl` run folder (no config.json with algo, scenario, "
                               f"seed, n_envs and timesteps)")
@@ -37,8 +37,7 @@ def _config(out: Path) -> dict:
 def trained(out: Path) -> int | None:
     """The timesteps a run folder's last finished training reached (``train_time.json``, written last); None while
     it has never finished."""
-    done = out / "train_time.json"
-    record = read_json(done) if done.is_file() else None
+    record = read_json_or(out / "train_time.json", None)
     return record.get("timesteps") if isinstance(record, dict) else None
 
 
@@ -78,7 +77,7 @@ def hours(out: Path) -> float:
         n = max(len(cpus), len(walls))
         cpus, walls = cpus + [0.0] * (n - len(cpus)), walls + [0.0] * (n - len(walls))
         return sum(c if c > 0 else w for c, w in zip(cpus, walls, strict=True)) / 3600  # a segment before cpu.json
-    done = read_json(out / "train_time.json") if (out / "train_time.json").is_file() else None
+    done = read_json_or(out / "train_time.json", None)
     if isinstance(done, dict) and done.get("resumed_at") is None and isinstance(done.get("wall_s"), (int, float)):
         return done["wall_s"] / 3600  # trained in one go: its one segment's wall time
     n_envs = _config(out)["n_envs"]

@@ -42,7 +42,7 @@ import numpy as np
 
 from bimp.agents.baselines import ZeroAction
 from bimp.agents.errors import EvaluationError
-from bimp.agents.files import read_json, write_atomic
+from bimp.agents.files import read_json, read_json_or, write_atomic
 from bimp.agents.rl import (
     PPOFeaturePolicy,
     RLConfig,
@@ -109,7 +109,7 @@ def _refill_buffer(model: Any, cfg: RLConfig, checkpoint: Path) -> None:
                   f"{cfg.learning_starts} steps of random actions before it learns again", stacklevel=3)
     model.learning_starts = model.num_timesteps + cfg.learning_starts
     lost = checkpoint.parent.parent / "buffer_lost.json"
-    record = read_json(lost) if lost.is_file() else []
+    record = read_json_or(lost, [])
     write_atomic(lost, json.dumps([*record, model.num_timesteps]) + "\n")
 
 
@@ -286,7 +286,7 @@ def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     write_atomic(out / "config.json", json.dumps(asdict(cfg), indent=2) + "\n")
     segments_file = out / "segments.json"  # the timesteps each segment (run, or resume) started from
-    segments = read_json(segments_file) if segments_file.is_file() else [0]
+    segments = read_json_or(segments_file, [0])
     if not (isinstance(segments, list) and segments and all(type(n) is int and n >= 0 for n in segments)):
         raise EvaluationError(f"{segments_file} is not a list of step counts: train into a new --out")
     resume_at, checkpoint = _latest_checkpoint(out)

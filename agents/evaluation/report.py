@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bimp.agents.errors import EvaluationError
 from bimp.agents.evaluation.provenance import REPO_ROOT
-from bimp.agents.evaluation.report_rl import rl_verdict_table, training_table, with_verdict
+from bimp.agents.evaluation.report_rl import rl_verdict_table, training_table, verdict_column
 from bimp.agents.evaluation.report_tables import (
     Cell,
     bench_table,
@@ -53,7 +53,7 @@ TABLES: dict[str, Callable[[], tuple[str, list[Cell]]]] = {
     "suite-overall": lambda: overall_table(results("suite")),
     "rl-verdict": lambda: rl_verdict_table(results("suite")),
     # the suite's grid with the planning-vs-learning verdict as its last column (the README's)
-    "suite-verdict": lambda: with_verdict(grid_table([results("suite")], with_score=True), results("suite")),
+    "suite-verdict": lambda: grid_table([results("suite")], with_score=True, extra=verdict_column(results("suite"))),
     "rl-training": lambda: training_table(results("training")),
     # EnKTS and EnKS with the road-edge guard where they left the road, beside every policy's row from the main folders
     "road-guard": lambda: grid_table([results("suite"), results("highway"), results("road-guard")], with_score=True,

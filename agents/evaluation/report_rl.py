@@ -93,24 +93,11 @@ def _word(row: dict) -> str:
     return "no difference shown"
 
 
-def with_verdict(table: tuple[str, list], folder: Path) -> tuple[str, list]:
-    """A scenario grid (``grid_table``'s, a row per scenario) with a last column: who is ahead, the best planner or
-    the best RL arm (:func:`verdict_rows`), with the exact McNemar p of success; ``-`` where a scenario has no RL
-    arm."""
-    text, arms = table
-    verdicts = {row["scenario"]: f"{_word(row)} (p = {row['p_value']:.2g})" for row in verdict_rows(folder)}
-    lines = text.split("\n")
-    out = []
-    for i, line in enumerate(lines):
-        if not line.startswith("|"):
-            out.append(line)
-        elif i == 0:
-            out.append(line + " best planner vs best RL |")
-        elif line.startswith("|---"):
-            out.append(line + "---|")
-        else:
-            out.append(line + f" {verdicts.get(line.split('|')[1].strip(), '-')} |")
-    return "\n".join(out), arms
+def verdict_column(folder: Path) -> tuple[str, dict[str, str]]:
+    """``grid_table``'s extra column for ``folder``: who is ahead per scenario, the best planner or the best RL arm
+    (:func:`verdict_rows`), with the exact McNemar p of success."""
+    return "best planner vs best RL", {row["scenario"]: f"{_word(row)} (p = {row['p_value']:.2g})"
+                                       for row in verdict_rows(folder)}
 
 
 def training_table(root: Path) -> tuple[str, list]:
@@ -159,4 +146,4 @@ def rl_verdict_table(folder: Path) -> tuple[str, list]:
     return "\n".join(lines), []
 
 
-__all__ = ["PLANNERS", "rl_verdict_table", "training_table", "verdict_rows", "with_verdict"]
+__all__ = ["PLANNERS", "rl_verdict_table", "training_table", "verdict_column", "verdict_rows"]

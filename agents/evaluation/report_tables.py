@@ -120,10 +120,12 @@ def _footnote(arms: list[Cell]) -> list[str]:
             "version, and `bimp verify` has not found these the same at a later one (`bimp report` names them)."]
 
 
-def grid_table(folders: list[Path], with_score: bool, rows_of: Path | None = None) -> tuple[str, list[Cell]]:
+def grid_table(folders: list[Path], with_score: bool, rows_of: Path | None = None,
+               extra: tuple[str, dict[str, str]] | None = None) -> tuple[str, list[Cell]]:
     """A row per scenario, a column per policy: success (Wilson 95%; over training seeds their range) and, with
     ``with_score``, the mean closed-loop score after a semicolon; ``-`` where a policy did not run. ``rows_of``: only
-    the scenarios that folder (one of ``folders``, a study beside the main folders) ran."""
+    the scenarios that folder (one of ``folders``, a study beside the main folders) ran. ``extra``: a last column,
+    its header and a cell per scenario (``-`` where it has none)."""
     arms = _arms(folders)
     if rows_of is not None:
         rows = {r["scenario"] for r in read_records(rows_of)}
@@ -131,8 +133,9 @@ def grid_table(folders: list[Path], with_score: bool, rows_of: Path | None = Non
     columns = list(dict.fromkeys(a.column for a in arms))
     by = {(a.scenario, a.column): a for a in arms}
     runs = {a.column: a.runs for a in arms}
-    lines = ["| scenario | " + " | ".join(_column_name(c, runs[c]) for c in columns) + " |",
-             "|---|" + "---|" * len(columns)]
+    header, extra_cells = extra if extra is not None else (None, {})
+    names = [_column_name(c, runs[c]) for c in columns] + ([header] if header is not None else [])
+    lines = ["| scenario | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for scenario in sorted({a.scenario for a in arms}):
         cells = []
         for column in columns:
@@ -142,6 +145,8 @@ def grid_table(folders: list[Path], with_score: bool, rows_of: Path | None = Non
                 continue
             score = _stat(a, "score") if with_score else None
             cells.append(_short(_stat(a, "success_rate")) + (f"; {score['mean']:.2f}" if score else "") + _mark(a))
+        if header is not None:
+            cells.append(extra_cells.get(scenario, "-"))
         lines.append(f"| {scenario} | " + " | ".join(cells) + " |")
     return "\n".join(lines + _footnote(arms)), arms
 

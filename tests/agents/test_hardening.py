@@ -239,6 +239,17 @@ def test_a_fifo_is_refused_without_waiting_for_a_writer(tmp_path):
         read_records(tmp_path)
 
 
+def test_an_optional_record_reads_as_its_default_only_where_there_is_no_file(tmp_path):
+    from bimp.agents.files import read_json_or
+
+    assert read_json_or(tmp_path / "none.json", [0]) == [0]
+    (tmp_path / "a.json").write_text("[1, 2]\n")
+    assert read_json_or(tmp_path / "a.json", None) == [1, 2]
+    (tmp_path / "bad.json").write_text("[1,")
+    with pytest.raises(EvaluationError, match="bad.json is not JSON"):  # a broken record is never its default
+        read_json_or(tmp_path / "bad.json", [])
+
+
 def test_a_file_or_a_line_over_its_limit_is_refused_naming_the_limit(folder, monkeypatch, capsys):
     monkeypatch.setattr(record_check, "MAX_LINE_BYTES", 100)
     assert read_records(folder) == []

@@ -295,7 +295,7 @@ def test_a_marker_passes_its_arguments_and_a_wrong_one_is_named():
 
 
 def test_the_rl_verdict_pairs_the_best_planner_with_the_best_rl_arm_and_each_algorithm_over_its_seeds(tmp_path):
-    from bimp.agents.evaluation.report_rl import rl_verdict_table, verdict_rows, with_verdict
+    from bimp.agents.evaluation.report_rl import rl_verdict_table, verdict_column, verdict_rows
 
     folder = _relabelled(tmp_path, {"enkts": "enkts", "mppi": "mppi", "idm": "ppo-s1", "lane-keep": "ppo-s2",
                                     "enks": "sac-s1"})
@@ -316,10 +316,14 @@ def test_the_rl_verdict_pairs_the_best_planner_with_the_best_rl_arm_and_each_alg
     table, _ = rl_verdict_table(folder)
     assert table.count("\n| highway-v0 |") == 1 and ("ahead" in table or "no difference shown" in table)
     # the grid with the verdict as its last column
-    grid, _ = with_verdict(tables.grid_table([folder], with_score=True), folder)
+    grid, _ = tables.grid_table([folder], with_score=True, extra=verdict_column(folder))
     header, rule, line = grid.splitlines()[:3]
     assert header.endswith("| best planner vs best RL |") and rule.count("---") == header.count("|") - 1
     assert line.startswith("| highway-v0 |") and line.endswith(f"(p = {row['p_value']:.2g}) |")
+    assert grid.splitlines()[2].count("|") == header.count("|")
+    # a scenario the extra column has no cell for shows "-"
+    grid, _ = tables.grid_table([folder], with_score=True, extra=("x", {}))
+    assert grid.splitlines()[0].endswith("| x |") and grid.splitlines()[2].endswith("| - |")
     # a folder without RL arms has no row
     (tmp_path / "x").mkdir()
     assert verdict_rows(_folder(tmp_path / "x", {"enkts": "a" * 40, "idm": "a" * 40})) == []
