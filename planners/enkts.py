@@ -139,11 +139,12 @@ class EnKTSPlanner:
     def __init__(self, scene: Scene | Callable[[], Scene | Sequence[Scene]], config: EnKTSConfig = EnKTSConfig()):
         self.config = config
         self._scene = scene if callable(scene) else (lambda: scene)
-        bound = steer_bound(self._scene())  # the model must cover the road's steering bound
+        built = self._scene()  # the scene at build: what the road asks of the planner
+        bound = steer_bound(built)  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound)  # the weights by content and name
         # what the road changes in the problem (and whether it asks for the guard), for the record
-        self.road = road_changes(config.problem, bound, leads(self._scene()))
-        asked = asks_guard(self._scene())
+        self.road = road_changes(config.problem, bound, leads(built))
+        asked = asks_guard(built)
         self.guard = asked if config.road_guard is None else config.road_guard
         if config.road_guard is None and asked:
             self.road["road_guard"] = True

@@ -181,11 +181,12 @@ class MPPIPlanner:
         self.config = config
         self.n_particles, self.horizon = config.n_particles, config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
+        built = self._scene()  # the scene at build: what the road asks of the planner
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
-        bound = steer_bound(self._scene())  # the model must cover the road's steering bound
+        bound = steer_bound(built)  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
         # what the road changes in the problem, for the record
-        self.road = road_changes(config.problem, bound, leads(self._scene()))
+        self.road = road_changes(config.problem, bound, leads(built))
         if dynamics is None:
             dynamics = model_from_name(config.problem.dynamics, bound)
         self.dynamics = dynamics

@@ -185,13 +185,14 @@ class NMPCPlanner:
         self.config = config
         self.horizon = config.problem.horizon
         self._scene = scene if callable(scene) else (lambda: scene)
-        closed_form(self._scene())  # refused at build, where bimp evaluate names it, not in every episode
+        built = self._scene()  # the scene at build: what the road asks of the planner
+        closed_form(built)  # refused at build, where bimp evaluate names it, not in every episode
         self._model_dt = None  # the step the learned model was trained for, checked against the scene's
         # The weights by content (in the config's hash) and by name; a model handed in directly is the caller's.
-        bound = steer_bound(self._scene())
+        bound = steer_bound(built)
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound) if dynamics is None else ({}, {})
         # what the road changes in the problem, for the record
-        self.road = road_changes(config.problem, bound, leads(self._scene()))
+        self.road = road_changes(config.problem, bound, leads(built))
         if dynamics is None:
             model = model_from_name(config.problem.dynamics, bound)
             build = bicycle_function if isinstance(model, BicycleModel) else mlp_function
