@@ -271,10 +271,15 @@ class Scene:
         return np.where(ovs[:, 0] > 0, gap, np.inf)
 
 
+def scene_batch(scenes: Scene | Sequence[Scene]) -> list[Scene]:
+    """A scene, or a batch's scenes, as the batch's list (a scene alone: a batch of one)."""
+    return [scenes] if isinstance(scenes, Scene) else list(scenes)
+
+
 def asks_guard(scenes: Scene | Sequence[Scene]) -> bool:
     """Whether ``scenes`` (a scene, or a batch's) ask for the road-edge guard (``Scene.edge_guard``); a batch that
     mixes roads that ask with roads that do not is refused (one planner config holds one guard)."""
-    asks = {s.edge_guard for s in ([scenes] if isinstance(scenes, Scene) else list(scenes))}
+    asks = {s.edge_guard for s in scene_batch(scenes)}
     if not asks:
         raise ValueError("no scene to ask: a batch needs at least one")
     if len(asks) > 1:
@@ -286,4 +291,4 @@ def asks_guard(scenes: Scene | Sequence[Scene]) -> bool:
 def leads(scenes: Scene | Sequence[Scene]) -> bool:
     """Whether ``scenes`` (a scene, or a batch's) have a reference lane that leads through lanes
     (``Scene.lane_path``: :func:`bimp.planners.problem.for_road`)."""
-    return any(s.lane_path for s in ([scenes] if isinstance(scenes, Scene) else list(scenes)))
+    return any(s.lane_path for s in scene_batch(scenes))

@@ -24,6 +24,7 @@ import functools
 import pickle
 import re
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,7 +36,7 @@ from torch import nn
 from bimp.configs import ConfigError, file_sha256
 
 # The env's vehicle and actuators, from the module that defines them without loading highway-env and pygame.
-from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, VEHICLE_LENGTH
+from bimp.envs.scene import ACTUATOR_ACCEL, ACTUATOR_STEER, DT, MAX_SPEED, VEHICLE_LENGTH, Scene, scene_batch
 
 WEIGHTS_PATH = Path(__file__).resolve().parent / "weights" / "mlp.pt"
 CHECKPOINT_FORMAT = "bimp-dynamics-mlp"
@@ -432,10 +433,9 @@ def model_from_name(name: str, steer_bound: float = 0.0) -> BicycleModel | Learn
     return load_model(path)
 
 
-def steer_bound(scenes) -> float:
+def steer_bound(scenes: Scene | Sequence[Scene]) -> float:
     """The widest planning steering bound [rad] of a scene or scenes (what the planner's model must cover)."""
-    scenes = scenes if isinstance(scenes, (list, tuple)) else [scenes]
-    return max(float(scene.bounds.steer) for scene in scenes)
+    return max(float(scene.bounds.steer) for scene in scene_batch(scenes))
 
 
 __all__ = ["BicycleModel", "LearnedDynamics", "MLP", "SHIPPED_WEIGHTS", "WEIGHTS_PATH", "apply_change",

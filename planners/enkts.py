@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bimp.configs import ConfigError, added_field, check_fields
-from bimp.envs.scene import Scene, asks_guard, leads, real_array
+from bimp.envs.scene import Scene, asks_guard, leads, real_array, scene_batch
 from bimp.planners import core
 from bimp.planners.dynamics import dynamics_files, steer_bound
 from bimp.planners.guard import guarded
@@ -176,8 +176,7 @@ class EnKTSPlanner:
         """Normalized action ``(2,)`` float32 in [-1, 1], the smoothed mean of the first control; for a batch,
         ``obs (B, obs_dim)`` -> ``(B, 2)``. Raises ``ValueError`` on an observation of the wrong shape or dtype
         (real numbers only) or with non-finite entries."""
-        scenes = self._scene()
-        scenes = [scenes] if isinstance(scenes, Scene) else list(scenes)
+        scenes = scene_batch(self._scene())
         if (self.batch or 1) != len(scenes):
             raise ValueError(f"the planner was reset for {self.batch or 1} episode(s) but the scene callable gives "
                              f"{len(scenes)}")
