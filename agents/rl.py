@@ -37,6 +37,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.sac.policies import SACPolicy
 
 from bimp import envs
+from bimp.agents.files import read_json_or
 from bimp.configs import ConfigError, check_fields, file_sha256
 from bimp.envs.wrappers import PlanningWrapper, features, n_features, to_env_action
 
@@ -339,8 +340,7 @@ def shipped_name(algo: str, scenario: str, training_seed: int) -> str:
 def default_training_seeds() -> dict[str, int]:
     """``{"{algo}_{scenario}": training seed}`` of the shipped defaults (``agents/models/defaults.json``: the
     best of the shipped training seeds on the tuning seeds, docs/rl.md)."""
-    path = MODEL_DIR / "defaults.json"
-    return json.loads(path.read_text()) if path.is_file() else {}
+    return read_json_or(MODEL_DIR / "defaults.json", {})
 
 
 def _shipped_model(env: gym.Env, algo: str, training_seed: int | None, trained_on: str | None = None) -> Path:

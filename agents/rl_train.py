@@ -252,14 +252,14 @@ def _drop_replayed_episodes(out: Path, n_envs: int, segment_start: int, resume_a
     so at the checkpoint each env had played ``(resume_at - segment_start) / n_envs`` of the segment's steps."""
     budget = (resume_at - segment_start) / n_envs
     for log in monitor_files(out)[-n_envs:]:
-        lines = log.read_bytes().decode().splitlines(keepends=True)  # as written: Monitor ends lines in \r\n
+        lines = log.read_bytes().splitlines(keepends=True)  # bytes: the lines kept stay as written (\r\n, \n)
         kept, steps = lines[:2], 0  # the JSON header and the column names (r,l,t)
         for row in lines[2:]:
-            steps += int(row.split(",")[1])
+            steps += int(row.split(b",")[1])
             if steps > budget:
                 break
             kept.append(row)
-        write_atomic(log, "".join(kept))
+        write_atomic(log, b"".join(kept))
 
 
 def train(cfg: RLConfig, out: Path, progress: bool = True) -> Path:

@@ -139,7 +139,7 @@ class EnKTSPlanner:
     def __init__(self, scene: Scene | Callable[[], Scene | Sequence[Scene]], config: EnKTSConfig = EnKTSConfig()):
         self.config = config
         self._scene = scene if callable(scene) else (lambda: scene)
-        built = self._scene()  # the scene at build: what the road asks of the planner
+        built = scene_batch(self._scene())  # the scenes at build: what the road asks of the planner
         bound = steer_bound(built)  # the model must cover the road's steering bound
         self.files, self.artifacts = dynamics_files(config.problem.dynamics, bound)  # the weights by content and name
         # what the road changes in the problem (and whether it asks for the guard), for the record

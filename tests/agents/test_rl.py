@@ -243,7 +243,7 @@ def test_training_resumes_from_its_last_checkpoint_and_refuses_another_run(tmp_p
 
 
 def test_a_resume_cuts_the_logs_back_to_its_checkpoint_keeping_their_lines_as_written(tmp_path):
-    header = '#{"t_start": 1.0, "env_id": "x"}\r\nr,l,t\r\n'
+    header = '#{"t_start": 1.0, "env_id": "x"}\nr,l,t\r\n'  # as SB3's Monitor writes them
     for i in (0, 1):  # one env's log each, in lockstep: 30 steps each at the checkpoint (60 over both)
         (tmp_path / f"{i}.monitor.csv").write_bytes((header + "1.5,10,0.1\r\n2.5,20,0.2\r\n3.5,10,0.3\r\n").encode())
     rl_train._drop_replayed_episodes(tmp_path, n_envs=2, segment_start=0, resume_at=60)

@@ -351,3 +351,27 @@ def test_a_batch_of_scenes_with_and_without_paths_is_refused():
     batch.reset(seed=[11, 12])
     with pytest.raises(ValueError, match="leading lane"):
         batch._problem_of(scenes, np.stack([obs_e, obs_f]).astype(np.float32))
+
+
+def test_a_planner_reads_its_scene_source_once_at_build_and_takes_a_scene_or_a_batch_alike():
+    from bimp.envs.scene import scene_batch
+    from bimp.planners.dynamics import steer_bound
+    from bimp.planners.mppi import MPPIConfig, MPPIPlanner
+
+    env, _ = episode("bimp/Overtaking-v0", 1)
+    scene = env.unwrapped.scene
+    calls = []
+
+    def source():
+        calls.append(1)
+        return scene
+
+    EnKTSPlanner(source, small())
+    MPPIPlanner(source, MPPIConfig(n_particles=4, problem={"horizon": 3}))
+    assert len(calls) == 2  # once each
+    pair = np.empty(2, dtype=object)
+    pair[:] = [scene, scene]
+    for batch in ((scene, scene), [scene, scene], pair, (s for s in (scene, scene))):
+        assert scene_batch(batch) == [scene, scene]
+    assert scene_batch(scene) == [scene]
+    assert steer_bound(scene) == steer_bound([scene, scene]) == steer_bound(pair) == scene.bounds.steer
