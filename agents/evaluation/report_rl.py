@@ -93,10 +93,18 @@ def _word(row: dict) -> str:
     return "no difference shown"
 
 
+def _evidence(row: dict) -> str:
+    """What decided :func:`_word`: the exact McNemar p of success, and where success shows no difference, the
+    paired score difference (planner - RL) with its 95% interval."""
+    diff = row["score_diff"]
+    score = f"score {diff['mean_diff']:+.2f} [{diff['ci_low']:+.2f}, {diff['ci_high']:+.2f}]"
+    return f"p = {row['p_value']:.2g}" if row["p_value"] < 0.05 else f"p = {row['p_value']:.2g}; {score}"
+
+
 def verdict_column(folder: Path) -> tuple[str, dict[str, str]]:
     """``grid_table``'s extra column for ``folder``: who is ahead per scenario, the best planner or the best RL arm
-    (:func:`verdict_rows`), with the exact McNemar p of success."""
-    return "best planner vs best RL", {row["scenario"]: f"{_word(row)} (p = {row['p_value']:.2g})"
+    (:func:`verdict_rows`), with what decided it (:func:`_evidence`)."""
+    return "best planner vs best RL", {row["scenario"]: f"{_word(row)} ({_evidence(row)})"
                                        for row in verdict_rows(folder)}
 
 

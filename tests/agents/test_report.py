@@ -319,7 +319,10 @@ def test_the_rl_verdict_pairs_the_best_planner_with_the_best_rl_arm_and_each_alg
     grid, _ = tables.grid_table([folder], with_score=True, extra=verdict_column(folder))
     header, rule, line = grid.splitlines()[:3]
     assert header.endswith("| best planner vs best RL |") and rule.count("---") == header.count("|") - 1
-    assert line.startswith("| highway-v0 |") and line.endswith(f"(p = {row['p_value']:.2g}) |")
+    assert line.startswith("| highway-v0 |") and f"(p = {row['p_value']:.2g}" in line
+    diff = row["score_diff"]
+    if row["p_value"] >= 0.05:  # no difference on success: the score difference and its interval say the rest
+        assert line.endswith(f"; score {diff['mean_diff']:+.2f} [{diff['ci_low']:+.2f}, {diff['ci_high']:+.2f}]) |")
     assert grid.splitlines()[2].count("|") == header.count("|")
     # a scenario the extra column has no cell for shows "-"
     grid, _ = tables.grid_table([folder], with_score=True, extra=("x", {}))
