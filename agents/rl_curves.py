@@ -71,12 +71,9 @@ def hours(out: Path) -> float:
     its wall time, an upper bound where runs outnumbered the cores (``wall.json``: an interrupted segment up to its
     last logged episode or checkpoint, whichever came later; for a run older than that file ``train_time.json``'s
     where it trained in one go, else the Monitor logs, each segment up to its last finished episode)."""
-    cpus, walls = seconds(out, "cpu.json"), seconds(out, "wall.json")
-    if cpus is not None or walls is not None:
-        cpus, walls = cpus or [], walls or []
-        n = max(len(cpus), len(walls))
-        cpus, walls = cpus + [0.0] * (n - len(cpus)), walls + [0.0] * (n - len(walls))
-        return sum(c if c > 0 else w for c, w in zip(cpus, walls, strict=True)) / 3600  # a segment before cpu.json
+    segments = _cpu_wall(out)
+    if segments is not None:
+        return sum(c if c > 0 else w for c, w in segments) / 3600  # a segment before cpu.json: its wall time
     done = read_json_or(out / "train_time.json", None)
     if isinstance(done, dict) and done.get("resumed_at") is None and isinstance(done.get("wall_s"), (int, float)):
         return done["wall_s"] / 3600  # trained in one go: its one segment's wall time
@@ -97,8 +94,19 @@ def seconds(out: Path, name: str) -> list[float] | None:
 
 def measured_cpu(out: Path) -> bool:
     """Whether :func:`hours` of this run is CPU time for every segment (``cpu.json``), not wall time for any."""
-    cpus = seconds(out, "cpu.json")
-    return cpus is not None and len(cpus) >= len(seconds(out, "wall.json") or []) and all(c > 0 for c in cpus)
+    segments = _cpu_wall(out)
+    return bool(segments) and all(c > 0 for c, _ in segments)
+
+
+def _cpu_wall(out: Path) -> list[tuple[float, float]] | None:
+    """``(cpu, wall)`` seconds per segment (0 where a file does not reach that segment); None where the run has
+    neither ``cpu.json`` nor ``wall.json``."""
+    cpus, walls = seconds(out, "cpu.json"), seconds(out, "wall.json")
+    if cpus is None and walls is None:
+        return None
+    cpus, walls = cpus or [], walls or []
+    n = max(len(cpus), len(walls))
+    return list(zip(cpus + [0.0] * (n - len(cpus)), walls + [0.0] * (n - len(walls)), strict=True))
 
 
 def plot_curve(out: Path, path: Path, title: str = "") -> None:
