@@ -106,7 +106,13 @@ def _cpu_wall(out: Path) -> list[tuple[float, float]] | None:
         return None
     cpus, walls = cpus or [], walls or []
     n = max(len(cpus), len(walls))
-    return list(zip(cpus + [0.0] * (n - len(cpus)), walls + [0.0] * (n - len(walls)), strict=True))
+    return list(zip(per_segment(cpus, n), per_segment(walls, n), strict=True))
+
+
+def per_segment(values: list[float], n_segments: int) -> list[float]:
+    """Seconds per segment from ``values`` (``wall.json`` or ``cpu.json``), ``n_segments`` of them: cut there, and
+    zeros for the segments the file does not reach (those run before it existed)."""
+    return values[:n_segments] + [0.0] * (n_segments - len(values))
 
 
 def plot_curve(out: Path, path: Path, title: str = "") -> None:

@@ -55,7 +55,7 @@ from bimp.agents.rl import (
     save_buffer,
     shipped_name,
 )
-from bimp.agents.rl_curves import last_episode_time, monitor_files, plot_curve, seconds, trained
+from bimp.agents.rl_curves import last_episode_time, monitor_files, per_segment, plot_curve, seconds, trained
 from bimp.agents.rollout import rollout
 from bimp.configs import load_config
 from bimp.envs.wrappers import PlanningWrapper
@@ -347,8 +347,7 @@ def _walls(out: Path, name: str, n_segments: int) -> list[float]:
     """``wall.json`` or ``cpu.json``: the wall or CPU seconds of each segment so far (the training process's CPU
     time: with more runs than cores side by side, wall time counts the waiting too), one per entry of
     ``segments.json`` (zeros for the segments of a run older than the file)."""
-    walls = seconds(out, name) or []
-    return walls[:n_segments] + [0.0] * (n_segments - len(walls))
+    return per_segment(seconds(out, name) or [], n_segments)
 
 
 def _finished(cfg: RLConfig, out: Path) -> bool:
